@@ -1,0 +1,63 @@
+# egosim — every target that needs the environment depends on `setup`, so on a fresh clone
+# `make dataset` or `make test` is the first and only command.
+SHELL := /bin/bash
+PYTHON ?= python3
+VENV := .venv
+BIN := $(VENV)/bin
+STAMP := $(VENV)/.stamp-setup
+TORCH_VERSION := 2.13.0
+
+# make dataset: INPUT (a video file/folder, frame folder or EgoDex folder; empty = synthetic world)
+INPUT ?=
+DATA ?= data/dataset
+WORKFLOW ?= workflows/dataset.yaml
+SET ?=
+WORKERS ?=
+
+.PHONY: setup test test-all lint format dataset check train bench clean
+
+setup: $(STAMP)
+
+# Re-runs when pyproject.toml changes. open3d 0.20 needs Debian's libusb-1.0-0: installed here
+# when missing (needs root, as on CI and the dev machines).
+$(STAMP): pyproject.toml
+	@if ! ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0'; then \
+		echo "installing libusb-1.0-0 (needed by open3d)"; \
+		(apt-get update -qq && apt-get install -y -qq libusb-1.0-0) >/dev/null || \
+		{ echo "could not install libusb-1.0-0: run 'apt-get install libusb-1.0-0' as root"; exit 1; }; \
+	fi
+	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
+	$(BIN)/pip install -q --upgrade pip
+	$(BIN)/pip install -q torch==$(TORCH_VERSION)
+	$(BIN)/pip install -q -e ".[dev]"
+	touch $(STAMP)
+
+test: setup
+	$(BIN)/python -m pytest -q
+
+# Everything, including the slow end-to-end tests.
+test-all: setup
+	$(BIN)/python -m pytest -q -m ""
+
+lint: setup
+	$(BIN)/ruff check .
+	$(BIN)/ruff format --check .
+
+format: setup
+	$(BIN)/ruff check --fix .
+	$(BIN)/ruff format .
+
+# Build a dataset (from the synthetic world unless INPUT is given), then check every shard.
+dataset: setup
+	$(BIN)/egosim run $(WORKFLOW) --out $(DATA) $(if $(INPUT),--input $(INPUT)) \
+		$(if $(WORKERS),--workers $(WORKERS)) $(foreach s,$(SET),--set $(s))
+	$(BIN)/egosim check $(DATA)
+
+check: setup
+	$(BIN)/egosim check $(DATA)
+
+bench: setup
+	$(BIN)/python -m bench.run
+
+clean:
+	rm -rf $(VENV) data/dataset bench/results.jsonl

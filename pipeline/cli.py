@@ -1,0 +1,215 @@
+"""The ``egosim`` command line: thin commands that build configs and call library code.
+
+Library code raises typed errors; only this module turns them into a message and an exit code.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import sys
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from egosim.pipeline.check import check_shard, find_shards
+from egosim.pipeline.execute import ShardTask, run_shard_task, task_fingerprint
+from egosim.pipeline.media import MediaError
+from egosim.pipeline.records import ClipValueError
+from egosim.pipeline.shards import ShardError, ShardReader
+from egosim.pipeline.stage import SourceStage, StageError, get_stage, registered_stages
+from egosim.pipeline.workflow import load_workflow
+from egosim.schemas import SchemaError
+
+app = typer.Typer(
+    help="egosim: egocentric hand-object videos to world-simulator training data.",
+    no_args_is_help=True,
+    add_completion=False,
+)
+
+USER_ERRORS = (StageError, ShardError, SchemaError, MediaError, ClipValueError, OSError)
+
+
+def _fail(exc: BaseException) -> typer.Exit:
+    typer.secho(f"error: {exc}", fg=typer.colors.RED, err=True)
+    return typer.Exit(code=2)
+
+
+def _params(items: list[str], flag: str) -> dict[str, str]:
+    out = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep:
+            raise StageError(f"{flag} {item!r} is not key=value")
+        out[key] = value
+    return out
+
+
+@app.command()
+def run(
+    workflow: Annotated[Path, typer.Argument(help="Workflow YAML file.")],
+    out: Annotated[Path, typer.Option("--out", help="Run folder for every step's shards.")],
+    input: Annotated[
+        str | None, typer.Option("--input", help="Input path for source steps (ingest).")
+    ] = None,
+    scheduler: Annotated[
+        str | None, typer.Option("--scheduler", help="Existing Dask scheduler, tcp://HOST:PORT.")
+    ] = None,
+    workers: Annotated[
+        int | None, typer.Option("--workers", help="Local cluster size (default: cores).")
+    ] = None,
+    set_: Annotated[
+        list[str] | None, typer.Option("--set", help="Override a parameter: step.param=value.")
+    ] = None,
+) -> None:
+    """Run a workflow on a Dask cluster (local by default); skips finished shards."""
+    from rich.progress import Progress
+
+    from egosim.pipeline.runner import run_workflow
+
+    try:
+        wf = load_workflow(workflow, set_ or [])
+        with Progress(transient=False) as bar:
+            job = bar.add_task(f"{wf.name}", total=None)
+
+            def progress(result, done: int, total: int) -> None:
+                bar.update(job, completed=done, total=total)
+                state = "skipped" if result.skipped else f"{result.seconds:.1f}s"
+                bar.console.print(
+                    f"{result.step}[{result.shard_index}]: {result.rows} rows, "
+                    f"{result.rejected} rejected ({state})"
+                )
+
+            summary = run_workflow(
+                wf, out, source=input, scheduler=scheduler, n_workers=workers, progress=progress
+            )
+    except USER_ERRORS as exc:
+        raise _fail(exc) from exc
+    skipped = sum(r.skipped for r in summary.results)
+    typer.echo(
+        f"done: {len(summary.results)} shard tasks ({skipped} skipped), "
+        f"{summary.rejected} clips rejected; outputs in {out}"
+    )
+
+
+@app.command()
+def stage(
+    name: Annotated[str, typer.Argument(help="Stage name (see `egosim stages`).")],
+    output: Annotated[Path, typer.Option("--output", help="Output shard path.")],
+    input: Annotated[
+        list[str] | None,
+        typer.Option("--input", help="Input shard, role=path for several roles, or ingest path."),
+    ] = None,
+    param: Annotated[
+        list[str] | None, typer.Option("--param", help="Stage parameter key=value.")
+    ] = None,
+) -> None:
+    """Run one stage on one shard, in this process, without a cluster."""
+    try:
+        stage_cls = get_stage(name)
+        stage_obj = stage_cls.from_params(_params(param or [], "--param"))
+        rejects = output.with_name(output.stem + ".rejects.parquet")
+        common = {
+            "step": name,
+            "stage": name,
+            "params": stage_obj.params(),
+            "shard_index": 0,
+            "shard_count": 1,
+            "output": output,
+            "rejects": rejects,
+        }
+        if isinstance(stage_obj, SourceStage):
+            sources = input or [None]
+            units = [u for src in sources for u in stage_obj.list_units(src)]
+            if not units:
+                raise StageError(f"no inputs found under {input}")
+            fps = {u: stage_obj.unit_fingerprint(u) for u in units}
+            task = ShardTask(**common, units=tuple(units), input_fingerprints=fps)
+        else:
+            roles = list(stage_cls.inputs)
+            given = dict(i.split("=", 1) if "=" in i else (roles[0], i) for i in input or [])
+            inputs = {role: Path(p) for role, p in given.items()}
+            in_fps = {}
+            for role, p in inputs.items():
+                with ShardReader(p) as reader:
+                    in_fps[role] = reader.meta.fingerprint
+            task = ShardTask(**common, inputs=inputs, input_fingerprints=in_fps)
+        fp = task_fingerprint(stage_cls, task.params, task.input_fingerprints, 0, 1)
+        task = dataclasses.replace(task, fingerprint=fp)
+        result = run_shard_task(task)
+    except USER_ERRORS as exc:
+        raise _fail(exc) from exc
+    typer.echo(f"{output}: {result.rows} rows, {result.rejected} rejected (see {rejects})")
+
+
+@app.command()
+def check(
+    paths: Annotated[list[Path], typer.Argument(help="Shard files or folders of shards.")],
+    allow_empty: Annotated[bool, typer.Option(help="Accept shards with no rows.")] = False,
+) -> None:
+    """Validate shards; lists every violation and exits non-zero if there is any."""
+    shards = find_shards(paths)
+    if not shards:
+        raise _fail(FileNotFoundError(f"no shards found under {[str(p) for p in paths]}"))
+    problems: list[str] = []
+    for shard in shards:
+        problems += check_shard(shard, allow_empty=allow_empty)
+    for problem in problems:
+        typer.echo(problem)
+    typer.echo(f"checked {len(shards)} shard(s): {len(problems)} violation(s)")
+    if problems:
+        raise typer.Exit(code=1)
+
+
+@app.command()
+def inspect(path: Annotated[Path, typer.Argument(help="A shard file.")]) -> None:
+    """Print a readable summary of one shard: schema, provenance and its rows."""
+    try:
+        with ShardReader(path) as reader:
+            meta = reader.meta
+            typer.echo(f"{path}")
+            typer.echo(f"  schema: {meta.schema} v{meta.schema_version}, {reader.num_rows} rows")
+            typer.echo(f"  stage: {meta.stage}  egosim {meta.package_version}")
+            typer.echo(f"  fingerprint: {meta.fingerprint}")
+            typer.echo(f"  params: {json.dumps(meta.params, sort_keys=True)}")
+            for row in reader.iter_rows():
+                typer.echo("  - " + _row_summary(row))
+    except USER_ERRORS as exc:
+        raise _fail(exc) from exc
+
+
+def _row_summary(row: dict) -> str:
+    parts = []
+    for key, value in row.items():
+        if value is None:
+            continue
+        if isinstance(value, bytes):
+            parts.append(f"{key}=<{len(value) / 1024:.0f} KiB>")
+        elif isinstance(value, list):
+            parts.append(f"{key}=[{len(value)}]")
+        else:
+            parts.append(f"{key}={value}")
+    return " ".join(parts)
+
+
+@app.command()
+def stages() -> None:
+    """List every stage with its backends, input and output schemas and parameters."""
+    for name, cls in sorted(registered_stages().items()):
+        ins = ", ".join(f"{r}:{s.name}v{s.version}" for r, s in cls.inputs.items()) or "-"
+        backends = ", ".join(cls.backends) or "-"
+        typer.echo(f"{name}: {cls.description}")
+        typer.echo(f"  inputs: {ins}  output: {cls.output.name}v{cls.output.version}")
+        typer.echo(f"  backends: {backends}  gpu: {cls.gpu}")
+        params = ", ".join(f.name for f in dataclasses.fields(cls.config_class))
+        typer.echo(f"  params: {params}")
+
+
+def main() -> None:  # pragma: no cover - console entry point
+    """Console entry point."""
+    app()
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

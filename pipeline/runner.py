@@ -1,0 +1,251 @@
+"""The Dask runner: a workflow times its shards becomes a graph of :class:`ShardTask`.
+
+- One task per (step, shard); shard ``i`` of a step depends on shard ``i`` of its inputs.
+- Default: a local ``dask.distributed`` cluster of process workers sized to the machine.
+  ``scheduler="tcp://HOST:PORT"`` runs the same graph on an existing cluster (its workers need
+  egosim installed and the output folder on a shared filesystem).
+- Steps with ``resources: {GPU: 1}`` only run on workers that declare a ``GPU`` resource. A local
+  cluster gives one worker per visible CUDA device that resource; with none, GPU steps run on
+  the CPU workers (with a warning) instead of waiting forever.
+- Output layout: ``OUT/<step>/shard-00000.parquet`` and ``rejects-00000.parquet``,
+  ``OUT/rejects.parquet`` (all rejects), ``OUT/manifest.json`` (per-shard results) and
+  ``OUT/workflow.resolved.yaml``.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import os
+import warnings
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from egosim.pipeline.execute import ShardResult, ShardTask, run_shard_task, task_fingerprint
+from egosim.pipeline.shards import ShardReader, ShardWriter
+from egosim.pipeline.stage import SourceStage, StageError, get_stage
+from egosim.pipeline.workflow import Workflow
+from egosim.schemas import REJECTS
+
+log = logging.getLogger(__name__)
+
+
+class RunError(StageError):
+    """Some tasks of a run failed as a whole (not a per-clip reject); lists each of them."""
+
+
+@dataclass(frozen=True)
+class RunSummary:
+    """What a run did, per shard task."""
+
+    out: Path  # output folder
+    results: list[ShardResult]  # one per task, in completion order
+    workers: dict[str, str] = field(default_factory=dict)  # task key -> worker that ran it
+
+    @property
+    def rejected(self) -> int:
+        """Clips rejected by tasks that ran in this run."""
+        return sum(r.rejected for r in self.results)
+
+
+def shard_path(out: Path, step: str, index: int) -> Path:
+    """Where shard ``index`` of ``step`` lives under the run folder."""
+    return Path(out) / step / f"shard-{index:05d}.parquet"
+
+
+def rejects_path(out: Path, step: str, index: int) -> Path:
+    """Where the rejects of shard ``index`` of ``step`` live."""
+    return Path(out) / step / f"rejects-{index:05d}.parquet"
+
+
+def plan_tasks(workflow: Workflow, source: str | None, out: Path) -> list[ShardTask]:
+    """Turn a workflow into tasks, in dependency order, with their fingerprints."""
+    tasks: list[ShardTask] = []
+    by_step: dict[str, list[ShardTask]] = {}
+    for step in workflow.steps:
+        stage_cls = get_stage(step.stage)
+        stage = stage_cls.from_params(step.params)
+        step_tasks: list[ShardTask] = []
+        if isinstance(stage, SourceStage):
+            units = stage.list_units(source)
+            if not units:
+                raise RunError(f"step {step.name!r}: no inputs found under {source!r}")
+            per = max(1, stage.units_per_shard())
+            count = math.ceil(len(units) / per)
+            for i in range(count):
+                chunk = tuple(units[i * per : (i + 1) * per])
+                unit_fps = {u: stage.unit_fingerprint(u) for u in chunk}
+                fp = task_fingerprint(stage_cls, stage.params(), unit_fps, i, count)
+                step_tasks.append(
+                    ShardTask(
+                        step=step.name,
+                        stage=step.stage,
+                        params=stage.params(),
+                        shard_index=i,
+                        shard_count=count,
+                        output=shard_path(out, step.name, i),
+                        rejects=rejects_path(out, step.name, i),
+                        units=chunk,
+                        input_fingerprints=unit_fps,
+                        fingerprint=fp,
+                    )
+                )
+        else:
+            counts = {role: len(by_step[up]) for role, up in step.inputs.items()}
+            if len(set(counts.values())) != 1:
+                raise RunError(f"step {step.name!r}: inputs have different shard counts {counts}")
+            count = next(iter(counts.values()))
+            for i in range(count):
+                ups = {role: by_step[up][i] for role, up in step.inputs.items()}
+                in_fps = {role: t.fingerprint for role, t in ups.items()}
+                fp = task_fingerprint(stage_cls, stage.params(), in_fps, i, count)
+                step_tasks.append(
+                    ShardTask(
+                        step=step.name,
+                        stage=step.stage,
+                        params=stage.params(),
+                        shard_index=i,
+                        shard_count=count,
+                        output=shard_path(out, step.name, i),
+                        rejects=rejects_path(out, step.name, i),
+                        inputs={role: t.output for role, t in ups.items()},
+                        input_fingerprints=in_fps,
+                        fingerprint=fp,
+                    )
+                )
+        by_step[step.name] = step_tasks
+        tasks += step_tasks
+    return tasks
+
+
+def _run_and_name_worker(task: ShardTask, *deps: Any) -> tuple[ShardResult, str]:
+    """Worker-side wrapper: run the task and say which worker ran it."""
+    from distributed import get_worker
+
+    try:
+        import torch
+
+        torch.set_num_threads(1)
+    except ImportError:  # pragma: no cover - torch is a hard dependency
+        pass
+    return run_shard_task(task), get_worker().name
+
+
+def local_cluster(n_workers: int | None = None, gpu_workers: int | None = None) -> Any:
+    """A local cluster of process workers; ``gpu_workers`` of them declare ``GPU: 1``.
+
+    ``gpu_workers`` defaults to the number of visible CUDA devices.
+    """
+    from distributed import Nanny, Scheduler, SpecCluster
+
+    if gpu_workers is None:
+        import torch
+
+        gpu_workers = torch.cuda.device_count()
+    if n_workers is None:
+        n_workers = max(1, min(os.cpu_count() or 1, 8))
+    workers: dict[str, dict[str, Any]] = {}
+    for i in range(n_workers):
+        options: dict[str, Any] = {"nthreads": 1, "silence_logs": logging.WARNING}
+        if i < gpu_workers:
+            options["resources"] = {"GPU": 1}
+            options["env"] = {"CUDA_VISIBLE_DEVICES": str(i)}
+        workers[f"{'gpu' if i < gpu_workers else 'cpu'}-{i}"] = {"cls": Nanny, "options": options}
+    scheduler = {"cls": Scheduler, "options": {"dashboard_address": None}}
+    return SpecCluster(
+        workers=workers, scheduler=scheduler, silence_logs=logging.WARNING, asynchronous=False
+    )
+
+
+def run_workflow(
+    workflow: Workflow,
+    out: Path,
+    source: str | None = None,
+    scheduler: str | None = None,
+    n_workers: int | None = None,
+    gpu_workers: int | None = None,
+    progress: Callable[[ShardResult, int, int], None] | None = None,
+) -> RunSummary:
+    """Run every (step, shard) task of ``workflow`` on a Dask cluster; see the module doc."""
+    from distributed import Client, as_completed
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "workflow.resolved.yaml").write_text(
+        yaml.safe_dump({**workflow.to_dict(), "input": source}, sort_keys=False)
+    )
+    tasks = plan_tasks(workflow, source, out)
+    cluster = None
+    if scheduler is None:
+        cluster = local_cluster(n_workers, gpu_workers)
+        client = Client(cluster)
+    else:
+        client = Client(scheduler)
+    try:
+        gpu_capable = _workers_with_gpu(client)
+        futures: dict[tuple[str, int], Any] = {}
+        keys: dict[Any, str] = {}
+        for task in tasks:
+            step = workflow.step(task.step)
+            resources = dict(step.resources)
+            if resources.get("GPU") and not gpu_capable:
+                warnings.warn(
+                    f"step {task.step!r} asks for a GPU but no worker declares one: "
+                    "running it on CPU workers",
+                    stacklevel=2,
+                )
+                resources.pop("GPU")
+            deps = [futures[(up, task.shard_index)] for up in step.inputs.values()]
+            key = f"{task.step}-{task.shard_index:05d}-{task.fingerprint}"
+            future = client.submit(
+                _run_and_name_worker, task, *deps, key=key, resources=resources or None, pure=False
+            )
+            futures[(task.step, task.shard_index)] = future
+            keys[future] = key
+        results: list[ShardResult] = []
+        workers: dict[str, str] = {}
+        failures: list[str] = []
+        for future in as_completed(list(futures.values())):
+            key = keys[future]
+            try:
+                result, worker = future.result()
+            except Exception as exc:  # report every failed task, not just the first
+                failures.append(f"{key.rsplit('-', 1)[0]}: {type(exc).__name__}: {exc}")
+                continue
+            results.append(result)
+            workers[key] = worker
+            if progress is not None:
+                progress(result, len(results) + len(failures), len(tasks))
+    finally:
+        client.close()
+        if cluster is not None:
+            cluster.close()
+    _write_run_records(out, tasks, results)
+    if failures:
+        raise RunError(f"{len(failures)} task(s) failed:\n  - " + "\n  - ".join(failures))
+    return RunSummary(out=out, results=results, workers=workers)
+
+
+def _workers_with_gpu(client: Any) -> bool:
+    info = client.scheduler_info(n_workers=-1)["workers"]
+    return any(w.get("resources", {}).get("GPU", 0) > 0 for w in info.values())
+
+
+def _write_run_records(out: Path, tasks: Sequence[ShardTask], results: list[ShardResult]) -> None:
+    """Write ``manifest.json`` and the merged ``rejects.parquet`` of the run."""
+    manifest = {
+        "tasks": [json.loads(json.dumps(asdict(t), default=str)) for t in tasks],
+        "results": [asdict(r) for r in results],
+    }
+    (out / "manifest.json").write_text(json.dumps(manifest, indent=1, default=str))
+    with ShardWriter(out / "rejects.parquet", REJECTS, stage="runner") as writer:
+        for task in tasks:
+            if task.rejects.is_file():
+                with ShardReader(task.rejects, REJECTS) as reader:
+                    for row in reader.iter_rows():
+                        writer.write_row(row)

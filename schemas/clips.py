@@ -1,0 +1,144 @@
+"""The ``clips`` schema: what ``ingest`` writes, one row per clip.
+
+Per-frame arrays are list columns with one entry per frame; images, masks, depth and videos are
+encoded bytes (see :mod:`egosim.pipeline.media`): RGB video as H.264 MP4, masks and depth as
+lossless FFV1 video, single images as PNG. Optional columns hold ground truth when the source has
+it (the synthetic world, EgoDex) and are null otherwise.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any
+
+import numpy as np
+import pyarrow as pa
+
+from egosim.schemas.base import Column, ShardSchema
+from egosim.schemas.invariants import se3_problems
+
+POSE = pa.list_(pa.float64(), 16)  # row-major 4x4
+HAND_JOINTS_PER_FRAME = pa.list_(pa.float32(), 2 * 21 * 3)
+
+
+def _check_counts(row: Mapping[str, Any]) -> list[str]:
+    problems: list[str] = []
+    t = row["num_frames"]
+    if t is None or t < 1:
+        return [f"num_frames must be >= 1, got {t}"]
+    for name in ("timestamps", "world_from_cam", "hand_joints", "hand_valid", "hand_confidence"):
+        value = row.get(name)
+        if value is not None and len(value) != t:
+            problems.append(f"{name} has {len(value)} entries, num_frames is {t}")
+    poses = row.get("object_poses")
+    if poses is not None:
+        n = row.get("num_objects") or 0
+        if len(poses) != t * n:
+            problems.append(f"object_poses has {len(poses)} entries, expected {t} x {n}")
+    ts = np.asarray(row["timestamps"], dtype=np.float64)
+    if len(ts) > 1 and not np.all(np.diff(ts) > 0):
+        problems.append("timestamps are not strictly increasing")
+    if not np.all(np.isfinite(ts)):
+        problems.append("timestamps contain NaN or infinite values")
+    return problems
+
+
+def _check_camera(row: Mapping[str, Any]) -> list[str]:
+    problems: list[str] = []
+    w, h, fps = row["width"], row["height"], row["fps"]
+    if w < 1 or h < 1:
+        problems.append(f"width and height must be positive, got {w}x{h}")
+    if not (np.isfinite(fps) and fps > 0):
+        problems.append(f"fps must be positive, got {fps}")
+    fx, fy, cx, cy = row["intrinsics"]
+    if not np.all(np.isfinite([fx, fy, cx, cy])) or fx <= 0 or fy <= 0:
+        problems.append(f"intrinsics must be finite with fx, fy > 0, got {[fx, fy, cx, cy]}")
+    elif not (0 < cx < w and 0 < cy < h):
+        problems.append(f"principal point ({cx}, {cy}) lies outside the {w}x{h} image")
+    return problems
+
+
+def _check_poses(row: Mapping[str, Any]) -> list[str]:
+    poses = row.get("world_from_cam")
+    if poses is None:
+        return []
+    mats = np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4)
+    return [f"world_from_cam: {p}" for p in se3_problems(mats)]
+
+
+def _check_hands(row: Mapping[str, Any]) -> list[str]:
+    joints = row.get("hand_joints")
+    problems: list[str] = []
+    if joints is not None:
+        arr = np.asarray(joints, dtype=np.float64)
+        valid = row.get("hand_valid")
+        if valid is not None:
+            mask = np.repeat(np.asarray(valid, dtype=bool), 21 * 3, axis=1)  # (T, 126)
+            arr = arr[mask]
+        if not np.all(np.isfinite(arr)):
+            problems.append("hand_joints of valid hands contain NaN or infinite values")
+    conf = row.get("hand_confidence")
+    if conf is not None:
+        c = np.asarray(conf, dtype=np.float64)
+        if np.any((c < 0) | (c > 1)):
+            problems.append("hand_confidence outside [0, 1]")
+    return problems
+
+
+CLIPS = ShardSchema(
+    name="clips",
+    version=1,
+    doc="Standardised clips: video, timing, intrinsics and optional ground truth, one per row.",
+    columns=(
+        Column("clip_id", pa.string(), "Unique clip id within the dataset."),
+        Column("source", pa.string(), "Ingest source: video, frames, synthetic, egodex, mcap."),
+        Column("source_uri", pa.string(), "File or recording the clip came from; '' if generated."),
+        Column("fps", pa.float64(), "Frames per second of the stored frames."),
+        Column("num_frames", pa.int32(), "Number of frames T."),
+        Column("width", pa.int32(), "Frame width W in pixels."),
+        Column("height", pa.int32(), "Frame height H in pixels."),
+        Column("timestamps", pa.list_(pa.float64()), "(T,) seconds from the source's start."),
+        Column(
+            "intrinsics", pa.list_(pa.float64(), 4), "fx, fy, cx, cy in pixels of stored frames."
+        ),
+        Column("video", pa.binary(), "RGB frames as H.264 MP4 bytes (yuv420p)."),
+        Column(
+            "world_from_cam", pa.list_(POSE), "(T, 16) camera-to-world, OpenCV axes.", True
+        ),
+        Column("depth", pa.binary(), "(T, H, W) z-depth, lossless FFV1 uint16 video.", True),
+        Column(
+            "depth_unit_m",
+            pa.float64(),
+            "Metres per uint16 step of the depth columns; 0 means unknown depth.",
+            True,
+        ),
+        Column("static_video", pa.binary(), "Same camera path, no hands, H.264 MP4.", True),
+        Column("static_depth", pa.binary(), "Depth of the static scene, FFV1 uint16.", True),
+        Column("first_frame_clean", pa.binary(), "Hand-free first frame, RGB PNG.", True),
+        Column(
+            "hand_joints",
+            pa.list_(HAND_JOINTS_PER_FRAME),
+            "(T, 2*21*3) world metres, hand 0 left, 1 right, MANO joint order.",
+            True,
+        ),
+        Column(
+            "hand_valid", pa.list_(pa.list_(pa.bool_(), 2)), "(T, 2) hand present.", True
+        ),
+        Column(
+            "hand_confidence",
+            pa.list_(pa.list_(pa.float32(), 42)),
+            "(T, 2*21) per-joint confidence in [0, 1].",
+            True,
+        ),
+        Column("hand_mask", pa.binary(), "(T, H, W) 1 = hand/arm, lossless FFV1 video.", True),
+        Column(
+            "object_mask", pa.binary(), "(T, H, W) object instance id, lossless FFV1.", True
+        ),
+        Column("num_objects", pa.int32(), "Number of tracked objects N.", True),
+        Column(
+            "object_poses", pa.list_(POSE), "(T*N, 16) world_from_object, frame-major.", True
+        ),
+        Column("text", pa.string(), "Text description of the interaction.", True),
+    ),
+    validators=(_check_counts, _check_camera, _check_poses, _check_hands),
+)

@@ -1,0 +1,212 @@
+"""EgoDex episodes (``N.hdf5`` + ``N.mp4``) read into a :class:`~egosim.pipeline.records.Clip`.
+
+EgoDex (Apple, 2025) layout, one episode per stem in a task folder:
+
+- ``camera/intrinsic`` (3, 3) pinhole matrix in pixels of the 1920x1080 video.
+- ``transforms/<name>`` (T, 4, 4) world-frame poses (ARKit world, y up, metres) of ``camera`` and
+  of every tracked joint: upper body (``hip``, ``spine1..7``, ``neck1..4``, ``<side>Shoulder``,
+  ``<side>Arm``, ``<side>Forearm``) and 25 per hand (``<side>Hand`` is the wrist).
+- ``confidences/<name>`` (T,) in 0..1 for every transform except ``camera``. The wrist's value
+  says whether the hand is tracked at all; finger values are relative to the wrist.
+- File attributes: ``llm_description`` (and ``description``, ``task``, ``session_name``, ...).
+
+``transforms/camera`` is camera-to-world with the camera axes already in OpenCV's order (x right,
+y down, z forward): EgoDex's own utilities and independent overlays project
+``inv(camera) @ joint`` straight through ``camera/intrinsic`` with hands at z > 0. The axis change
+lives in :data:`EGODEX_CAM_FROM_CAM` (identity) so that both directions share one definition;
+:func:`read_egodex_clip` checks it on every file (hands must lie in front of the camera).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+from egosim.pipeline.geometry import invert_se3, transform_points
+from egosim.pipeline.media import MediaError, probe_video_file, read_video_file
+from egosim.pipeline.records import NUM_HAND_JOINTS, Clip
+from egosim.pipeline.stage import ClipRejected
+
+EGODEX_SIDES = ("left", "right")  # hand 0, hand 1
+# Joint name suffixes in our 21-joint MANO order (wrist; thumb, index, middle, ring, little chains,
+# each knuckle -> tip). The four finger metacarpals of ARKit's 25-joint hand are not in this order.
+_SUFFIXES_21 = (
+    "Hand",
+    "ThumbKnuckle",
+    "ThumbIntermediateBase",
+    "ThumbIntermediateTip",
+    "ThumbTip",
+    "IndexFingerKnuckle",
+    "IndexFingerIntermediateBase",
+    "IndexFingerIntermediateTip",
+    "IndexFingerTip",
+    "MiddleFingerKnuckle",
+    "MiddleFingerIntermediateBase",
+    "MiddleFingerIntermediateTip",
+    "MiddleFingerTip",
+    "RingFingerKnuckle",
+    "RingFingerIntermediateBase",
+    "RingFingerIntermediateTip",
+    "RingFingerTip",
+    "LittleFingerKnuckle",
+    "LittleFingerIntermediateBase",
+    "LittleFingerIntermediateTip",
+    "LittleFingerTip",
+)
+# EgoDex/ARKit joint name -> (hand index, our joint index): the one mapping table, 42 entries.
+EGODEX_HAND_JOINTS: dict[str, tuple[int, int]] = {
+    f"{side}{suffix}": (hand, joint)
+    for hand, side in enumerate(EGODEX_SIDES)
+    for joint, suffix in enumerate(_SUFFIXES_21)
+}
+# Finger metacarpals (dropped on read) -> our index of the knuckle they precede.
+EGODEX_METACARPALS = {
+    "IndexFingerMetacarpal": 5,
+    "MiddleFingerMetacarpal": 9,
+    "RingFingerMetacarpal": 13,
+    "LittleFingerMetacarpal": 17,
+}
+# EgoDex camera axes expressed in ours (OpenCV): identity, see the module docstring. Were EgoDex's
+# camera ARKit-style (y up, z backward) this would be diag(1, -1, -1, 1).
+EGODEX_CAM_FROM_CAM = np.eye(4)
+MIN_IN_FRONT_FRACTION = 0.5  # below this share of valid joints at z > 0 the convention is wrong
+
+
+def egodex_camera_to_ours(world_from_egodex_cam: np.ndarray) -> np.ndarray:
+    """``(T, 4, 4)`` EgoDex ``transforms/camera`` -> our ``world_from_cam`` (OpenCV axes)."""
+    return np.asarray(world_from_egodex_cam, dtype=np.float64) @ EGODEX_CAM_FROM_CAM
+
+
+def ours_to_egodex_camera(world_from_cam: np.ndarray) -> np.ndarray:
+    """Our ``(T, 4, 4)`` ``world_from_cam`` -> EgoDex ``transforms/camera``."""
+    return np.asarray(world_from_cam, dtype=np.float64) @ invert_se3(EGODEX_CAM_FROM_CAM)
+
+
+def _attr_text(value: object) -> str | None:
+    """A string file attribute as ``str`` (h5py may give bytes or a numpy scalar)."""
+    if isinstance(value, bytes):
+        value = value.decode("utf-8", errors="replace")
+    text = str(value).strip() if value is not None else ""
+    return text if text and text != "None" else None
+
+
+def _read_hdf5(path: Path) -> tuple[dict[str, np.ndarray], int, str | None]:
+    """Every array the clip needs from one EgoDex hdf5 file, checked for presence and shape.
+
+    Returns ``(arrays by dataset key as float64, frame count T, llm_description or None)``.
+    """
+    names = list(EGODEX_HAND_JOINTS)
+    keys = ["camera/intrinsic", "transforms/camera"]
+    keys += [f"transforms/{n}" for n in names] + [f"confidences/{n}" for n in names]
+    try:
+        with h5py.File(path, "r") as f:
+            missing = [k for k in keys if k not in f]
+            if missing:
+                shown = ", ".join(repr(k) for k in missing[:8])
+                more = f" and {len(missing) - 8} more" if len(missing) > 8 else ""
+                raise ClipRejected(f"{path}: missing dataset(s) {shown}{more}")
+            data = {k: np.asarray(f[k][()], dtype=np.float64) for k in keys}
+            text = _attr_text(f.attrs.get("llm_description"))
+    except ClipRejected:
+        raise
+    except (OSError, KeyError, ValueError, TypeError) as exc:
+        raise ClipRejected(f"{path}: cannot read EgoDex hdf5 file: {exc}") from exc
+    t = data["transforms/camera"].shape[0]
+    problems = []
+    if data["camera/intrinsic"].shape != (3, 3):
+        problems.append(f"'camera/intrinsic' shape {data['camera/intrinsic'].shape} != (3, 3)")
+    for key in keys[1:]:
+        shape = (t, 4, 4) if key.startswith("transforms/") else (t,)
+        if data[key].shape != shape:
+            problems.append(f"{key!r} shape {data[key].shape} != {shape}")
+    if t == 0:
+        problems.append("'transforms/camera' holds no frames")
+    if problems:
+        raise ClipRejected(f"{path}: " + "; ".join(problems))
+    return data, t, text
+
+
+def read_egodex_clip(
+    hdf5_path: Path, clip_id: str | None = None, min_wrist_confidence: float = 0.0
+) -> Clip:
+    """Read one EgoDex episode (``hdf5_path`` and the sibling ``.mp4``) into a :class:`Clip`.
+
+    Hands: 21 joints each via :data:`EGODEX_HAND_JOINTS` (finger metacarpals dropped), positions
+    from the transforms' translations. A hand is valid in a frame where its wrist confidence is
+    finite and above ``min_wrist_confidence`` and all its 21 positions are finite; non-finite
+    positions and confidences become 0. Real EgoDex marks untracked joints with a floor near 0.003,
+    so pass ~0.1 to drop them. ``clip_id`` defaults to ``<task folder>_<stem>``.
+
+    Raises :class:`ClipRejected` naming the file for a missing or unreadable file, a missing
+    dataset, a non-finite camera pose, an hdf5/mp4 frame-count mismatch, or hands that lie mostly
+    behind the camera (a camera-convention error).
+    """
+    hdf5_path = Path(hdf5_path)
+    if not hdf5_path.is_file():
+        raise ClipRejected(f"{hdf5_path}: EgoDex hdf5 file does not exist")
+    mp4_path = hdf5_path.with_suffix(".mp4")
+    if not mp4_path.is_file():
+        raise ClipRejected(f"{hdf5_path}: sibling video {mp4_path.name} is missing")
+    data, t, text = _read_hdf5(hdf5_path)
+
+    cam = data["transforms/camera"]  # (T, 4, 4) world_from_egodex_cam
+    bad = np.flatnonzero(~np.isfinite(cam).all(axis=(1, 2)))
+    if bad.size:
+        raise ClipRejected(
+            f"{hdf5_path}: 'transforms/camera' is not finite in {bad.size} of {t} frames "
+            f"(first {bad[:5].tolist()})"
+        )
+    world_from_cam = egodex_camera_to_ours(cam)  # (T, 4, 4)
+
+    joints = np.zeros((t, 2, NUM_HAND_JOINTS, 3))
+    confidence = np.zeros((t, 2, NUM_HAND_JOINTS))
+    for name, (hand, joint) in EGODEX_HAND_JOINTS.items():
+        joints[:, hand, joint] = data[f"transforms/{name}"][:, :3, 3]  # (T, 3)
+        confidence[:, hand, joint] = data[f"confidences/{name}"]
+    finite = np.isfinite(joints).all(axis=(2, 3))  # (T, 2)
+    wrist_conf = confidence[:, :, 0]  # (T, 2)
+    valid = finite & np.isfinite(wrist_conf) & (wrist_conf > min_wrist_confidence)
+    joints = np.where(np.isfinite(joints), joints, 0.0)
+    confidence = np.where(np.isfinite(confidence), confidence, 0.0)
+
+    if valid.any():
+        cam_from_world = invert_se3(world_from_cam)  # (T, 4, 4)
+        z = np.concatenate(
+            [transform_points(cam_from_world[i], joints[i][valid[i]])[..., 2] for i in range(t)]
+        )  # (N * 21,) depth of every valid joint
+        in_front = float(np.mean(z > 0))
+        if in_front < MIN_IN_FRONT_FRACTION:
+            raise ClipRejected(
+                f"{hdf5_path}: only {in_front:.0%} of valid hand joints are in front of the "
+                "camera; the camera convention looks wrong (expected camera-to-world with "
+                "x right, y down, z forward)"
+            )
+
+    try:
+        frames, _ = read_video_file(mp4_path)
+        fps = probe_video_file(mp4_path).fps
+    except MediaError as exc:
+        raise ClipRejected(f"{hdf5_path}: {exc}") from exc
+    if len(frames) != t:
+        raise ClipRejected(
+            f"{hdf5_path}: frame count mismatch: hdf5 has {t} frames, {mp4_path.name} has "
+            f"{len(frames)}"
+        )
+
+    k = data["camera/intrinsic"]
+    return Clip(
+        clip_id=clip_id or f"{hdf5_path.parent.name}_{hdf5_path.stem}",
+        source="egodex",
+        source_uri=str(hdf5_path),
+        fps=float(fps),
+        timestamps=np.arange(t, dtype=np.float64) / fps,
+        intrinsics=np.array([k[0, 0], k[1, 1], k[0, 2], k[1, 2]], dtype=np.float64),
+        frames=frames,
+        world_from_cam=world_from_cam,
+        hand_joints=joints.astype(np.float32),
+        hand_valid=valid,
+        hand_confidence=confidence.astype(np.float32),
+        text=text,
+    )

@@ -1,0 +1,84 @@
+"""Ingest backend for folders of image frames (sorted by file name, fps given)."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Protocol
+
+import cv2
+import numpy as np
+
+from egosim.pipeline.records import Clip
+from egosim.pipeline.stage import ClipRejected
+from egosim.stages.ingest.standardise import plan_resize, resample_windows
+from egosim.stages.ingest.video_source import ClipFormat, source_intrinsics
+
+IMAGE_SUFFIXES = frozenset({".jpg", ".jpeg", ".png", ".bmp", ".webp"})
+
+
+class FramesFormat(ClipFormat, Protocol):
+    """Ingest parameters for frame folders."""
+
+    frames_fps: float
+
+
+def _images(folder: Path) -> list[Path]:
+    return sorted(p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES)
+
+
+def find_frame_folders(path: Path) -> list[Path]:
+    """``path`` itself if it holds images, else every sub-folder (recursively) that does."""
+    if path.is_file():
+        return []
+    if _images(path):
+        return [path]
+    return sorted(p for p in path.rglob("*") if p.is_dir() and _images(p))
+
+
+def _read_rgb(path: Path) -> np.ndarray:
+    image = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if image is None:
+        raise ClipRejected(f"cannot read image {path}")
+    return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
+
+
+def read_frame_clips(folder: Path, cfg: FramesFormat) -> Iterator[Clip]:
+    """Cut a folder of frames into standardised clips."""
+    if not cfg.frames_fps > 0:
+        raise ClipRejected(f"frame folder {folder}: set frames_fps, the rate the frames were taken")
+    files = _images(folder)
+    if not files:
+        raise ClipRejected(f"frame folder {folder} holds no images")
+    first = _read_rgb(files[0])
+    height, width = first.shape[:2]
+    plan = plan_resize(width, height, cfg.width, cfg.height)
+    intrinsics = plan.intrinsics(source_intrinsics(cfg, width, height))
+
+    def frames() -> Iterator[tuple[float, np.ndarray]]:
+        for i, f in enumerate(files):
+            image = first if i == 0 else _read_rgb(f)
+            if image.shape[:2] != (height, width):
+                raise ClipRejected(f"{f}: size {image.shape[:2]} differs from {(height, width)}")
+            yield i / cfg.frames_fps, plan.apply(image)
+
+    count = 0
+    windows = resample_windows(
+        frames(), cfg.fps, cfg.num_frames, cfg.stride, cfg.max_clips_per_source
+    )
+    for window in windows:
+        count += 1
+        yield Clip(
+            clip_id=f"{folder.name}-w{window.index:03d}",
+            source="frames",
+            source_uri=str(folder),
+            fps=cfg.fps,
+            timestamps=window.timestamps,
+            intrinsics=intrinsics,
+            frames=window.frames,
+        ).check()
+    if count == 0:
+        raise ClipRejected(
+            f"frame folder {folder}: {len(files)} frames at {cfg.frames_fps} fps are shorter "
+            f"than one {cfg.num_frames}-frame clip at {cfg.fps} fps"
+        )

@@ -1,0 +1,54 @@
+"""Ingest backend for the built-in synthetic world (no input files needed)."""
+
+from __future__ import annotations
+
+from typing import Protocol
+
+from egosim.pipeline.records import Clip
+from egosim.pipeline.stage import ClipRejected
+from egosim.stages.world.clip import render_clip
+from egosim.stages.world.config import WorldConfig
+
+
+class SyntheticFormat(Protocol):
+    """Ingest parameters the synthetic source reads (an ``IngestConfig`` satisfies it)."""
+
+    fps: float
+    num_frames: int
+    height: int
+    width: int
+    synthetic_count: int
+    synthetic_mode: str
+    synthetic_articulated_every: int
+    seed: int
+
+
+def list_units(cfg: SyntheticFormat) -> list[str]:
+    """One unit per generated clip: ``synthetic:<mode>:<seed>[:articulated]``."""
+    units = []
+    for i in range(cfg.synthetic_count):
+        every = cfg.synthetic_articulated_every
+        articulated = every > 0 and i % every == every - 1
+        suffix = ":articulated" if articulated else ""
+        units.append(f"synthetic:{cfg.synthetic_mode}:{cfg.seed + i}{suffix}")
+    return units
+
+
+def render_unit(spec: str, cfg: SyntheticFormat) -> Clip:
+    """Render the clip a unit spec (``<mode>:<seed>[:articulated]``) names."""
+    parts = spec.split(":")
+    try:
+        mode, seed = parts[0], int(parts[1])
+    except (IndexError, ValueError) as exc:
+        raise ClipRejected(f"bad synthetic unit {spec!r}") from exc
+    world = WorldConfig(
+        seed=seed,
+        mode=mode,
+        height=cfg.height,
+        width=cfg.width,
+        num_frames=cfg.num_frames,
+        fps=cfg.fps,
+        articulated="articulated" in parts[2:],
+    )
+    kind = "art" if world.articulated else mode
+    return render_clip(world, clip_id=f"synth-{kind}-{seed:05d}")

@@ -1,0 +1,186 @@
+"""CPU ray-cast renderer of the world (open3d ``RaycastingScene``).
+
+Rays leave the camera centre through pixel centres ``(j + 0.5, i + 0.5)`` with camera-frame
+direction ``((u - cx) / fx, (v - cy) / fy, 1)``: with that unnormalised direction the hit distance
+that open3d returns is exactly the z-depth. Shading is Lambertian (one directional light plus
+ambient), without shadows, so a hand changes only the pixels that it covers. Texture colours are
+looked up from the hit point in the body's local frame (tri-planar by the dominant local normal
+axis), so textures stick to moving objects.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import open3d as o3d
+
+from egosim.pipeline.geometry import invert_se3, pixel_grid, project_points, transform_points
+from egosim.stages.world.meshes import Mesh
+from egosim.stages.world.scene import Body, Scene
+
+LIGHT_DIR = np.array([0.35, -0.45, 0.82]) / np.linalg.norm([0.35, -0.45, 0.82])  # towards light
+AMBIENT, DIFFUSE = 0.42, 0.58
+_OTHER_AXES = np.array([[1, 2], [0, 2], [0, 1]])  # surface coordinates for each dominant axis
+
+
+@dataclass
+class Layer:
+    """One ray-cast layer of an image: colour, depth and which body each pixel shows."""
+
+    rgb: np.ndarray  # (H, W, 3) float32 shaded colour in [0, 1]
+    depth: np.ndarray  # (H, W) float32 z-depth, inf where nothing was hit
+    ids: np.ndarray  # (H, W) int16 body index (layer-specific meaning), -1 where nothing was hit
+
+
+def _shade(normals: np.ndarray, dirs: np.ndarray) -> np.ndarray:
+    """Lambertian factor ``(n,)`` float32, with normals turned to face the viewer."""
+    n_dot_l = normals @ LIGHT_DIR.astype(np.float32)  # (n,)
+    towards_viewer = np.einsum("ij,ij->i", normals, dirs) < 0  # (n,)
+    lit = np.where(towards_viewer, n_dot_l, -n_dot_l)
+    return AMBIENT + DIFFUSE * np.clip(lit, 0.0, 1.0)
+
+
+class WorldRenderer:
+    """Renders a :class:`Scene` (and optionally hand meshes) for one camera model."""
+
+    def __init__(
+        self, scene: Scene, intrinsics: np.ndarray, height: int, width: int, nthreads: int = 0
+    ) -> None:
+        """Prepare rays for ``(height, width)`` pixels; ``nthreads`` 0 lets open3d choose."""
+        self.nthreads = nthreads
+        fx, fy, cx, cy = np.asarray(intrinsics, dtype=np.float64)
+        uv = pixel_grid(height, width).reshape(-1, 2)  # (H*W, 2)
+        self.dirs_cam = np.stack(
+            [(uv[:, 0] - cx) / fx, (uv[:, 1] - cy) / fy, np.ones(len(uv))], axis=1
+        )  # (H*W, 3)
+        self.intrinsics = np.asarray(intrinsics, dtype=np.float64)
+        self.height, self.width = height, width
+        self.scene = scene
+        self.bodies: list[Body] = scene.background + scene.objects
+        self._background_world = [
+            transform_points(b.pose, b.vertices).astype(np.float32) for b in scene.background
+        ]
+        self.num_background = len(scene.background)
+        if any(not np.array_equal(b.pose, np.eye(4)) for b in scene.background):
+            raise ValueError("background bodies must be modelled in world coordinates")
+        # All textures in one flat atlas; the extra last entry serves rays that hit nothing.
+        images = [b.texture.image.reshape(-1, 3) for b in self.bodies]
+        self._atlas = np.concatenate([*images, np.zeros((1, 3), np.uint8)])  # (sum S*S + 1, 3)
+        self._tex_offset = np.cumsum([0] + [len(im) for im in images]).astype(np.int64)
+        self._tex_size = np.array([b.texture.image.shape[0] for b in self.bodies] + [1])
+        self._tex_scale = np.array(
+            [1.0 / b.texture.texel_size for b in self.bodies] + [1.0], dtype=np.float32
+        )
+        self._cache_key: bytes | None = None
+        self._cache_scene: o3d.t.geometry.RaycastingScene | None = None
+
+    def _static_scene(self, object_poses: np.ndarray) -> o3d.t.geometry.RaycastingScene:
+        """Ray-casting scene of background plus objects at ``object_poses (N, 4, 4)``."""
+        key = np.ascontiguousarray(object_poses).tobytes()
+        if key != self._cache_key:
+            rc = o3d.t.geometry.RaycastingScene()
+            for verts, body in zip(self._background_world, self.scene.background, strict=True):
+                rc.add_triangles(verts, body.triangles.astype(np.uint32))
+            for pose, body in zip(object_poses, self.scene.objects, strict=True):
+                verts = transform_points(pose, body.vertices).astype(np.float32)
+                rc.add_triangles(verts, body.triangles.astype(np.uint32))
+            self._cache_key, self._cache_scene = key, rc
+        return self._cache_scene
+
+    def rays(self, world_from_cam: np.ndarray, index: np.ndarray | None = None) -> np.ndarray:
+        """World rays ``(n, 6)`` float32 for all pixels or the flat pixel ``index``."""
+        dirs = self.dirs_cam if index is None else self.dirs_cam[index]
+        dirs_world = dirs @ world_from_cam[:3, :3].T  # (n, 3)
+        origin = np.broadcast_to(world_from_cam[:3, 3], dirs_world.shape)
+        return np.concatenate([origin, dirs_world], axis=1).astype(np.float32)
+
+    def render_static(
+        self, world_from_cam: np.ndarray, object_poses: np.ndarray, rays: np.ndarray | None = None
+    ) -> Layer:
+        """Background and objects seen from ``world_from_cam``; ids index ``self.bodies``.
+
+        ``rays`` (from :meth:`rays` for the same camera) may be passed to avoid recomputing them.
+        """
+        rays = self.rays(world_from_cam) if rays is None else rays  # (H*W, 6)
+        hit = self._static_scene(object_poses).cast_rays(rays, nthreads=self.nthreads)
+        depth = hit["t_hit"].numpy()  # (H*W,)
+        found = np.isfinite(depth)
+        body = np.where(found, hit["geometry_ids"].numpy(), len(self.bodies)).astype(np.int64)
+        normals = hit["primitive_normals"].numpy()  # (H*W, 3) float32
+        dirs = rays[:, 3:]
+        local = rays[:, :3] + np.where(found, depth, 0.0)[:, None] * dirs  # (H*W, 3) world
+        local_normals = normals.copy()
+        # Background bodies are modelled in world coordinates; objects need their own frame.
+        on_object = np.flatnonzero((body >= self.num_background) & found)
+        for k, pose in enumerate(object_poses):
+            idx = on_object[body[on_object] == self.num_background + k]
+            rot = pose[:3, :3].astype(np.float32)
+            local[idx] = (local[idx] - pose[:3, 3].astype(np.float32)) @ rot
+            local_normals[idx] = normals[idx] @ rot
+        axis = np.argmax(np.abs(local_normals), axis=1)  # (H*W,) dominant normal axis
+        a = np.where(axis == 0, local[:, 1], local[:, 0])  # tri-planar surface coordinates
+        b = np.where(axis == 2, local[:, 1], local[:, 2])
+        scale = self._tex_scale[body]  # (H*W,) texels per metre
+        size = self._tex_size[body]  # (H*W,)
+        col = np.floor(a * scale).astype(np.int64) + 97 * axis  # a different patch per face direction
+        row = np.floor(b * scale).astype(np.int64)
+        albedo = self._atlas[self._tex_offset[body] + (row % size) * size + col % size]  # (n, 3)
+        shade = _shade(normals, dirs) * (1.0 / 255.0)  # (H*W,)
+        rgb = np.where(found[:, None], albedo * shade[:, None], 0.0).astype(np.float32)
+        ids = np.where(found, body, -1).astype(np.int16)
+        return Layer(
+            rgb.reshape(self.height, self.width, 3),
+            depth.reshape(self.height, self.width),
+            ids.reshape(self.height, self.width),
+        )
+
+    def _covered_pixels(self, world_from_cam: np.ndarray, parts: list[Mesh]) -> np.ndarray:
+        """Flat indices of the pixels inside the image bounding box of any part's vertices."""
+        h, w = self.height, self.width
+        covered = np.zeros((h, w), bool)
+        cam_from_world = invert_se3(world_from_cam)
+        for verts, _ in parts:
+            cam = transform_points(cam_from_world, verts)  # (V, 3)
+            if np.all(cam[:, 2] <= 0):
+                continue
+            if np.any(cam[:, 2] <= 1e-3):  # crosses the camera plane: cast every ray
+                return np.arange(h * w)
+            uv, _ = project_points(cam, self.intrinsics)  # (V, 2)
+            c0, r0 = np.clip(np.floor(uv.min(axis=0)) - 1, 0, [w, h]).astype(int)
+            c1, r1 = np.clip(np.ceil(uv.max(axis=0)) + 1, 0, [w, h]).astype(int)
+            covered[r0:r1, c0:c1] = True
+        return np.flatnonzero(covered)
+
+    def render_meshes(
+        self, world_from_cam: np.ndarray, parts: list[Mesh], colours: np.ndarray
+    ) -> Layer:
+        """Flat-coloured world meshes ``parts`` (e.g. hands, forearms); ids index ``parts``.
+
+        Only the rays inside the image bounding boxes of the parts are cast.
+        """
+        h, w = self.height, self.width
+        depth = np.full(h * w, np.inf, np.float32)
+        ids = np.full(h * w, -1, np.int16)
+        rgb = np.zeros((h * w, 3), np.float32)
+        index = self._covered_pixels(world_from_cam, parts)  # (n,)
+        if len(index):
+            rc = o3d.t.geometry.RaycastingScene()
+            for verts, faces in parts:
+                rc.add_triangles(verts.astype(np.float32), faces.astype(np.uint32))
+            rays = self.rays(world_from_cam, index)  # (n, 6)
+            hit = rc.cast_rays(rays, nthreads=self.nthreads)
+            t_hit = hit["t_hit"].numpy()
+            ok = np.isfinite(t_hit)
+            sel = index[ok]
+            part = hit["geometry_ids"].numpy()[ok].astype(np.int64)
+            depth[sel] = t_hit[ok]
+            ids[sel] = part
+            shade = _shade(hit["primitive_normals"].numpy()[ok], rays[ok, 3:])
+            rgb[sel] = colours[part] * shade[:, None]
+        return Layer(rgb.reshape(h, w, 3), depth.reshape(h, w), ids.reshape(h, w))
+
+
+def to_uint8(rgb: np.ndarray) -> np.ndarray:
+    """Float colour in [0, 1] to ``uint8`` (rounded)."""
+    return (np.clip(rgb, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)

@@ -1,0 +1,80 @@
+"""Shared fixtures: tiny hand-built clips and small video files with known content."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from egosim.pipeline.geometry import intrinsics_from_fov, look_at
+from egosim.pipeline.media import write_video_file
+from egosim.pipeline.records import Clip
+
+SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+
+
+def smooth_frames(num_frames: int, height: int, width: int, seed: int = 0) -> np.ndarray:
+    """Frames of a moving luminance pattern with a slow colour tint (like natural video)."""
+    rng = np.random.default_rng(seed)
+    v, u = np.mgrid[0:height, 0:width].astype(np.float64)
+    phase = rng.uniform(0, 2 * np.pi)
+    tint = rng.uniform(0.7, 1.0, 3)
+    frames = []
+    for t in range(num_frames):
+        luma = 127 + 90 * np.sin(u / 7 + v / 11 + phase + 0.2 * t) * np.cos(v / 17 - 0.1 * t)
+        frames.append(luma[..., None] * tint + 20 * np.sin(u / width * np.pi)[..., None])
+    return np.clip(np.stack(frames), 0, 255).astype(np.uint8)
+
+
+def make_clip(
+    clip_id: str = "c0", num_frames: int = 6, height: int = 24, width: int = 32, seed: int = 0
+) -> Clip:
+    """A small valid clip with every optional column filled."""
+    rng = np.random.default_rng(seed)
+    t = num_frames
+    poses = np.stack([look_at([0.02 * i, -0.5, 0.6], [0, 0, 0]) for i in range(t)])
+    return Clip(
+        clip_id=clip_id,
+        source="synthetic",
+        source_uri="",
+        fps=16.0,
+        timestamps=np.arange(t) / 16.0,
+        intrinsics=intrinsics_from_fov(width, height, 70.0),
+        frames=smooth_frames(t, height, width, seed),
+        world_from_cam=poses,
+        depth=rng.uniform(0.3, 2.0, (t, height, width)).astype(np.float32),
+        static_frames=smooth_frames(t, height, width, seed + 1),
+        static_depth=rng.uniform(0.3, 2.0, (t, height, width)).astype(np.float32),
+        first_frame_clean=smooth_frames(1, height, width, seed + 1)[0],
+        hand_joints=rng.normal(0, 0.1, (t, 2, 21, 3)).astype(np.float32),
+        hand_valid=np.ones((t, 2), dtype=bool),
+        hand_confidence=np.ones((t, 2, 21), dtype=np.float32),
+        hand_mask=(rng.random((t, height, width)) > 0.7).astype(np.uint8),
+        object_mask=rng.integers(0, 4, (t, height, width), dtype=np.uint8),
+        object_poses=np.tile(np.eye(4), (t, 3, 1, 1)),
+        text="a hand picks up a box",
+    )
+
+
+@pytest.fixture
+def clip() -> Clip:
+    """One small clip with all ground truth."""
+    return make_clip()
+
+
+@pytest.fixture
+def video_file(tmp_path: Path) -> Path:
+    """A 2-second 30 fps 96x128 video (60 frames) of moving patterns."""
+    path = tmp_path / "videos" / "moving.mp4"
+    path.parent.mkdir()
+    write_video_file(path, smooth_frames(60, 96, 128), fps=30.0)
+    return path
+
+
+def shared_data(*parts: str) -> Path:
+    """A path under ../shared/data, skipping the test when it is absent."""
+    path = SHARED_DATA.joinpath(*parts)
+    if not path.exists():
+        pytest.skip(f"{path} is absent")
+    return path
