@@ -13,6 +13,8 @@ Every stage that needs one of these calls the function here; nothing is copied i
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
@@ -191,3 +193,20 @@ def umeyama(
     scale = float(np.trace(np.diag(d) @ sign) / var_src) if with_scale else 1.0
     trans = mu_dst - scale * rot @ mu_src
     return scale, rot, trans
+
+
+def project_points_torch(points_cam: Any, intrinsics: FloatArray) -> tuple[Any, Any]:
+    """Torch twin of :func:`project_points` for renderers: ``points_cam (..., 3)`` tensor.
+
+    Same convention and formula, on the tensor's device and dtype. Returns ``(uv (..., 2),
+    depth (...,))``; points with ``depth <= 0`` get NaN pixels, as in :func:`project_points`.
+    torch is imported lazily so that this module stays light for numpy-only stages.
+    """
+    import torch
+
+    fx, fy, cx, cy = (float(v) for v in np.asarray(intrinsics, dtype=np.float64).reshape(4))
+    z = points_cam[..., 2]  # (...,)
+    safe_z = torch.where(z > 0, z, torch.full_like(z, float("nan")))
+    u = points_cam[..., 0] / safe_z * fx + cx
+    v = points_cam[..., 1] / safe_z * fy + cy
+    return torch.stack([u, v], dim=-1), z

@@ -19,6 +19,8 @@ from egosim.stages.world.hands import axis_rotation, hand_joints_local
 from egosim.stages.world.scene import PLACE_HI, PLACE_LO, TABLE_TOP_Z, Scene, lid_pose, spot_is_free
 
 GRASP_CURL = 0.5  # finger closure while holding
+REST_CURL = 0.15  # finger closure of a relaxed hand
+REST_CURL_MAX = 0.3  # the idle hand's closure varies up to this
 LEFT_SIDE, RIGHT_SIDE = -1, 1  # hand index 0 is left, 1 is right
 
 
@@ -67,10 +69,15 @@ def _grip_point(curl: float) -> np.ndarray:
 
 
 def _rest_pose(side: int, rng: np.random.Generator) -> np.ndarray:
-    """A relaxed hand resting just above the table on the near edge of the workspace."""
-    y = -side * rng.uniform(0.15, 0.22)
-    rot = _rot_zy(side * np.deg2rad(rng.uniform(5.0, 20.0)), np.deg2rad(10.0))
-    return make_se3(rot, [-0.22 + rng.uniform(-0.02, 0.03), y, TABLE_TOP_Z + 0.035])
+    """A relaxed hand just above the table on the near edge of the workspace.
+
+    Its height keeps every joint at least 1.5 cm above the table for any curl up to
+    ``REST_CURL_MAX`` (joints are bone axes; the capsules around them are thinner than that).
+    """
+    rot = _rot_zy(side * np.deg2rad(rng.uniform(5.0, 20.0)), np.deg2rad(8.0))
+    lowest = min(float((rot @ hand_joints_local(c, side).T)[2].min()) for c in (0.0, REST_CURL_MAX))
+    xy = [-0.22 + rng.uniform(-0.02, 0.03), -side * rng.uniform(0.15, 0.22)]
+    return make_se3(rot, [*xy, TABLE_TOP_Z + 0.015 - lowest])
 
 
 def script_interaction(scene: Scene, seed: int, num_frames: int, articulated: bool) -> Interaction:
@@ -95,7 +102,9 @@ def script_interaction(scene: Scene, seed: int, num_frames: int, articulated: bo
             edge = poses[k, target, :3, :3] @ edge_local + poses[k, target, :3, 3]
             rot = axis_rotation(-poses[k, target, :3, 1], 0.4 * angle[k]) @ hand_rot0
             grasp[k] = make_se3(rot, edge - rot @ grip)
-        curl_r = 0.15 + (GRASP_CURL - 0.15) * (_phase(u, 0.24, 0.3) - _phase(u, 0.78, 0.84))
+        curl_r = REST_CURL + (GRASP_CURL - REST_CURL) * (
+            _phase(u, 0.24, 0.3) - _phase(u, 0.78, 0.84)
+        )
         text = f"the right hand opens the lid of the {base.colour} box"
         reach = _blend(rest_r, grasp[0], _phase(u, 0.0, 0.28))
         release_end = 0.84
@@ -137,7 +146,9 @@ def script_interaction(scene: Scene, seed: int, num_frames: int, articulated: bo
         held = (u >= 0.36) & (u < 0.8)
         moved = u >= 0.42  # lift and move both start at 0.42 or later
         poses[moved, target] = grasp[moved] @ hand_from_object
-        curl_r = 0.15 + (GRASP_CURL - 0.15) * (_phase(u, 0.3, 0.36) - _phase(u, 0.8, 0.86))
+        curl_r = REST_CURL + (GRASP_CURL - REST_CURL) * (
+            _phase(u, 0.3, 0.36) - _phase(u, 0.8, 0.86)
+        )
         text = f"the right hand picks up the {obj.name} and places it {where}"
         reach = _blend(rest_r, grasp0, _phase(u, 0.0, 0.32))
         release_end = 0.86
@@ -159,7 +170,9 @@ def script_interaction(scene: Scene, seed: int, num_frames: int, articulated: bo
     left = np.repeat(rest_l[None], t, axis=0)
     left[:, 0, 3] += sway
     left[:, 2, 3] += 0.3 * np.abs(sway)
-    curl_l = 0.2 + 0.1 * np.sin(2 * np.pi * (0.7 * u + rng.uniform(0, 1)))
+    curl_l = 0.2 + 0.1 * np.sin(  # stays in [0.1, REST_CURL_MAX]
+        2 * np.pi * (0.7 * u + rng.uniform(0, 1))
+    )
     return Interaction(
         world_from_hand=np.stack([left, right], axis=1),
         curl=np.stack([curl_l, curl_r], axis=1),

@@ -69,6 +69,7 @@ class WorldRenderer:
         self._atlas = np.concatenate([*images, np.zeros((1, 3), np.uint8)])  # (sum S*S + 1, 3)
         self._tex_offset = np.cumsum([0] + [len(im) for im in images]).astype(np.int64)
         self._tex_size = np.array([b.texture.image.shape[0] for b in self.bodies] + [1])
+        self._tex_centre = self._tex_size // 2  # surface origin at the texture's centre: no seam
         self._tex_scale = np.array(
             [1.0 / b.texture.texel_size for b in self.bodies] + [1.0], dtype=np.float32
         )
@@ -123,8 +124,9 @@ class WorldRenderer:
         b = np.where(axis == 2, local[:, 1], local[:, 2])
         scale = self._tex_scale[body]  # (H*W,) texels per metre
         size = self._tex_size[body]  # (H*W,)
-        col = np.floor(a * scale).astype(np.int64) + 97 * axis  # a different patch per face direction
-        row = np.floor(b * scale).astype(np.int64)
+        col = np.floor(a * scale).astype(np.int64) + self._tex_centre[body]
+        col += 97 * axis  # a different patch of the texture per face direction
+        row = np.floor(b * scale).astype(np.int64) + self._tex_centre[body]
         albedo = self._atlas[self._tex_offset[body] + (row % size) * size + col % size]  # (n, 3)
         shade = _shade(normals, dirs) * (1.0 / 255.0)  # (H*W,)
         rgb = np.where(found[:, None], albedo * shade[:, None], 0.0).astype(np.float32)

@@ -1,0 +1,109 @@
+"""Stage registry, config building and workflow checks (every problem reported at once)."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any, Literal
+
+import pytest
+
+from egosim.pipeline.stage import (
+    ClipStage,
+    ConfigError,
+    StageConfig,
+    StageError,
+    build_config,
+    get_stage,
+    register_stage,
+    registered_stages,
+)
+from egosim.pipeline.workflow import WorkflowError, parse_workflow
+from egosim.schemas import CLIPS, REJECTS
+
+
+class NeedsRejects(ClipStage):
+    """A test stage whose input schema no built-in stage writes (``rejects``)."""
+
+    name = "test_needs_rejects"
+    description = "test only"
+    inputs = {"table": REJECTS}
+    output = CLIPS
+
+    def process(self, rows: Mapping[str, Mapping[str, Any]]) -> dict[str, Any]:
+        raise NotImplementedError
+
+
+if "test_needs_rejects" not in registered_stages():
+    register_stage(NeedsRejects)
+
+
+@dataclass(frozen=True)
+class DemoConfig(StageConfig):
+    count: int = 1  # an integer
+    ratio: float = 0.5  # a float
+    flag: bool = False  # a boolean
+    mode: Literal["a", "b"] = "a"  # a choice
+    sizes: tuple[int, ...] = ()  # a tuple
+    path: str | None = None  # optional
+
+
+def test_registry_refuses_duplicates_and_unknown_names() -> None:
+    with pytest.raises(StageError, match="already registered"):
+        register_stage(get_stage("ingest"))
+    with pytest.raises(StageError, match="unknown stage 'nope'"):
+        get_stage("nope")
+
+
+def test_build_config_converts_strings_and_reports_all_problems() -> None:
+    cfg = build_config(
+        DemoConfig,
+        {"count": "3", "ratio": "0.25", "flag": "true", "mode": "b", "sizes": "1,2", "path": "x"},
+        "demo",
+    )
+    assert cfg == DemoConfig(3, 0.25, True, "b", (1, 2), "x")
+    with pytest.raises(ConfigError) as err:
+        build_config(DemoConfig, {"count": "many", "mode": "c", "colour": 1}, "demo")
+    message = str(err.value)
+    assert "unknown parameter 'colour'" in message
+    assert "'count'" in message and "'mode'" in message
+
+
+def test_ingest_config_checks_values() -> None:
+    with pytest.raises(ConfigError, match="num_frames must be >= 1, got 0"):
+        get_stage("ingest").from_params({"num_frames": 0})
+
+
+def test_workflow_reports_every_problem_before_running() -> None:
+    data = {
+        "name": "bad",
+        "colour": "blue",
+        "steps": {
+            "ingest": {"stage": "ingest", "params": {"fsp": 16}, "retries": 2},
+            "ghost": {"stage": "no_such_stage"},
+            "table": {"stage": "test_needs_rejects", "inputs": {"table": "ingest"}},
+            "orphan": {"stage": "test_needs_rejects", "inputs": {"table": "missing_step"}},
+        },
+    }
+    with pytest.raises(WorkflowError) as err:
+        parse_workflow(data, overrides=["ingest.fps=abc", "nostep.x=1"])
+    message = str(err.value)
+    for expected in (
+        "unknown workflow key 'colour'",
+        "step 'ingest': unknown key 'retries'",
+        "unknown parameter 'fsp'",
+        "parameter 'fps'",
+        "unknown step 'nostep'",
+        "unknown stage 'no_such_stage'",
+        "needs schema 'rejects' v1 but step 'ingest' writes 'clips' v1",
+        "unknown step 'missing_step'",
+    ):
+        assert expected in message, expected
+
+
+def test_workflow_orders_steps_and_applies_overrides() -> None:
+    wf = parse_workflow(
+        {"steps": {"ingest": {"params": {"fps": 8}}}}, overrides=["ingest.num_frames=9"]
+    )
+    assert [s.name for s in wf.steps] == ["ingest"]
+    assert wf.steps[0].params == {"fps": 8, "num_frames": "9"}
