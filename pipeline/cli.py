@@ -206,6 +206,49 @@ def stages() -> None:
         typer.echo(f"  params: {params}")
 
 
+@app.command()
+def synth(
+    out: Annotated[Path, typer.Option("--out", help="Output folder.")],
+    n: Annotated[int, typer.Option("--n", help="Number of clips.")] = 4,
+    mode: Annotated[str, typer.Option("--mode", help="tabletop or wild.")] = "tabletop",
+    fmt: Annotated[str, typer.Option("--format", help="shards or egodex.")] = "shards",
+    seed: Annotated[int, typer.Option("--seed", help="First seed.")] = 0,
+    height: Annotated[int, typer.Option(help="Frame height.")] = 480,
+    width: Annotated[int, typer.Option(help="Frame width.")] = 832,
+    frames: Annotated[int, typer.Option(help="Frames per clip.")] = 61,
+    fps: Annotated[float, typer.Option(help="Frames per second.")] = 16.0,
+    per_shard: Annotated[int, typer.Option(help="Clips per shard (shards format).")] = 4,
+) -> None:
+    """Render clips from the synthetic world as clips shards or EgoDex HDF5+MP4 files."""
+    from egosim.pipeline.clip_io import write_clips
+    from egosim.stages.world import WorldConfig, render_clip
+    from egosim.stages.world.egodex_export import write_egodex
+
+    try:
+        if fmt not in ("shards", "egodex"):
+            raise StageError(f"--format must be shards or egodex, got {fmt!r}")
+        if n < 1 or per_shard < 1:
+            raise StageError(f"--n and --per-shard must be >= 1, got {n} and {per_shard}")
+        configs = [
+            WorldConfig(
+                seed=seed + i, mode=mode, height=height, width=width, num_frames=frames, fps=fps
+            )
+            for i in range(n)
+        ]
+        if fmt == "egodex":
+            for i, cfg in enumerate(configs):
+                hdf5, _ = write_egodex(render_clip(cfg), out / f"synthetic_{mode}", stem=str(i))
+                typer.echo(f"wrote {hdf5}")
+            return
+        for start in range(0, n, per_shard):
+            path = out / f"shard-{start // per_shard:05d}.parquet"
+            clips = (render_clip(c) for c in configs[start : start + per_shard])
+            count = write_clips(path, clips, stage="synth", params={"mode": mode, "seed": seed})
+            typer.echo(f"wrote {path} ({count} clips)")
+    except (*USER_ERRORS, ValueError) as exc:
+        raise _fail(exc) from exc
+
+
 def main() -> None:  # pragma: no cover - console entry point
     """Console entry point."""
     app()

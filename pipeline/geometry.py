@@ -195,18 +195,24 @@ def umeyama(
     return scale, rot, trans
 
 
-def project_points_torch(points_cam: Any, intrinsics: FloatArray) -> tuple[Any, Any]:
-    """Torch twin of :func:`project_points` for renderers: ``points_cam (..., 3)`` tensor.
+def project_world_points_torch(
+    points_world: Any, cam_from_world: Any, intrinsics: FloatArray
+) -> tuple[Any, Any, Any]:
+    """Torch twin of :func:`project_world_points` for renderers, channel-first for speed.
 
-    Same convention and formula, on the tensor's device and dtype. Returns ``(uv (..., 2),
-    depth (...,))``; points with ``depth <= 0`` get NaN pixels, as in :func:`project_points`.
-    torch is imported lazily so that this module stays light for numpy-only stages.
+    ``points_world (3, N)`` tensor (rows x, y, z: contiguous rows make the transform one small
+    matmul), ``cam_from_world (4, 4)`` tensor on the same device and dtype. Same convention as
+    :func:`project_points` (``u = fx x / z + cx``), folded into one ``K [R | t]`` product. Returns
+    ``(u (N,), v (N,), depth (N,))``; points with ``depth <= 0`` get NaN pixels. torch is imported
+    lazily so that this module stays light for numpy-only stages.
     """
     import torch
 
-    fx, fy, cx, cy = (float(v) for v in np.asarray(intrinsics, dtype=np.float64).reshape(4))
-    z = points_cam[..., 2]  # (...,)
-    safe_z = torch.where(z > 0, z, torch.full_like(z, float("nan")))
-    u = points_cam[..., 0] / safe_z * fx + cx
-    v = points_cam[..., 1] / safe_z * fy + cy
-    return torch.stack([u, v], dim=-1), z
+    k = torch.as_tensor(
+        intrinsics_matrix(intrinsics), dtype=cam_from_world.dtype, device=cam_from_world.device
+    )
+    proj = k @ cam_from_world[:3]  # (3, 4) pixels from world
+    homog = torch.addmm(proj[:, 3:], proj[:, :3], points_world)  # (3, N)
+    z = homog[2]  # (N,) camera z, since K's last row is (0, 0, 1)
+    safe_z = torch.where(z > 0, z, float("nan"))  # (N,)
+    return homog[0] / safe_z, homog[1] / safe_z, z

@@ -1,7 +1,7 @@
 """Media codecs: videos as bytes through PyAV, single images as PNG through OpenCV.
 
-- RGB video: H.264 (libx264, yuv420p) in MP4, lossy, deterministic; odd sizes are padded by
-  edge replication and cropped back on decode.
+- RGB video: H.264 (libx264, yuv420p) in MP4, lossy; odd sizes are padded by edge replication
+  and cropped back on decode.
 - Masks and depth: FFV1 in Matroska, lossless (``gray`` for uint8, ``gray16le`` for uint16).
 - Depth in metres is quantised to uint16 steps of ``unit`` metres (0 = unknown depth).
 - Single images: PNG, lossless.
@@ -37,25 +37,13 @@ def _pad(frames: np.ndarray, multiple: int) -> np.ndarray:
     return np.pad(frames, ((0, 0), (0, pad_h), (0, pad_w), (0, 0)), mode="edge")
 
 
-def _yuv420_frame(image: np.ndarray) -> av.VideoFrame:
-    """RGB ``(H, W, 3)`` to a yuv420p frame whose row padding is zeroed.
-
-    libx264 reads the bytes past each row's width; left uninitialised they made the same frames
-    encode to different bytes from run to run (measured). Zeroing them makes encoding
-    deterministic.
-    """
-    frame = av.VideoFrame.from_ndarray(image, format="rgb24").reformat(format="yuv420p")
-    for plane in frame.planes:
-        rows = np.frombuffer(memoryview(plane), dtype=np.uint8)  # writable view of the plane
-        rows = rows[: plane.line_size * plane.height].reshape(plane.height, plane.line_size)
-        rows[:, plane.width :] = 0
-    return frame
-
-
 def encode_rgb_video(frames: np.ndarray, fps: float, crf: int = DEFAULT_CRF) -> bytes:
-    """Encode ``(T, H, W, 3)`` uint8 RGB frames as H.264 MP4 bytes (same frames, same bytes).
+    """Encode ``(T, H, W, 3)`` uint8 RGB frames as H.264 MP4 bytes.
 
-    Odd sizes are padded to even (edge replication); decode with the true size to crop.
+    Odd sizes are padded to even by edge replication; decode with the true size to crop.
+    libx264's bytes were measured to vary slightly between runs on the same frames (even with
+    one thread), so nothing may rely on H.264 bytes being reproducible: fingerprints hash
+    recipes, not bytes, and the lossless codecs below are exact.
     """
     if frames.ndim != 4 or frames.shape[-1] != 3 or frames.dtype != np.uint8:
         raise MediaError(f"RGB video must be (T, H, W, 3) uint8, got {frames.shape} {frames.dtype}")
@@ -63,19 +51,14 @@ def encode_rgb_video(frames: np.ndarray, fps: float, crf: int = DEFAULT_CRF) -> 
         raise MediaError("cannot encode a video with no frames")
     padded = _pad(frames, 2)
     buffer = io.BytesIO()
-    # bitexact: no creation time or encoder version in the header, so same frames, same bytes.
+    # bitexact: no creation time or muxer version in the header.
     with av.open(buffer, mode="w", format="mp4", options={"fflags": "+bitexact"}) as container:
         stream = container.add_stream("libx264", rate=Fraction(fps).limit_denominator(1001))
         stream.width, stream.height = padded.shape[2], padded.shape[1]
         stream.pix_fmt = "yuv420p"
-        stream.options = {
-            "crf": str(crf),
-            "preset": "medium",
-            "x264-params": "threads=1:lookahead-threads=1:sliced-threads=0",
-        }
-        stream.codec_context.thread_count = 1
+        stream.options = {"crf": str(crf), "preset": "medium"}
         for index, image in enumerate(padded):
-            frame = _yuv420_frame(image)
+            frame = av.VideoFrame.from_ndarray(image, format="rgb24")
             frame.pts = index
             for packet in stream.encode(frame):
                 container.mux(packet)

@@ -11,9 +11,10 @@ from egosim.schemas.base import (
     schema_identity,
 )
 from egosim.schemas.clips import CLIPS
+from egosim.schemas.poses import POSES
 from egosim.schemas.rejects import REJECTS
 
-SCHEMAS: dict[str, ShardSchema] = {s.name: s for s in (CLIPS, REJECTS)}
+SCHEMAS: dict[str, ShardSchema] = {s.name: s for s in (CLIPS, REJECTS, POSES)}
 
 
 def get_schema(name: str) -> ShardSchema:
@@ -26,6 +27,7 @@ def get_schema(name: str) -> ShardSchema:
 
 __all__ = [
     "CLIPS",
+    "POSES",
     "REJECTS",
     "SCHEMAS",
     "Column",

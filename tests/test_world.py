@@ -82,11 +82,9 @@ def test_depth_is_z_depth_against_a_hand_built_camera() -> None:
     np.testing.assert_allclose(layer.depth, 2.0, rtol=1e-6)
     world = transform_points(cam, unproject_depth(layer.depth, k))  # (H, W, 3)
     np.testing.assert_allclose(world[..., 2], 0.0, atol=1e-5)
-    # Pixel (i, j) looks through u = j + 0.5: the centre pixel's ray hits below the eye + offset.
-    np.testing.assert_allclose(
-        world[30, 40, :2] - [1.5, 1.5],
-        np.abs([0.0, 0.0]) + 0.005 * np.array([0, 0]) + (world[30, 40, :2] - [1.5, 1.5]),
-    )
+    # Hand-computed: camera x is world -y and camera y is world -x here; pixel (30, 40) has its
+    # centre at (u, v) = (40.5, 30.5), i.e. 0.5 px right of and below the principal point.
+    np.testing.assert_allclose(world[30, 40], [1.495, 1.495, 0.0], atol=1e-5)
     uv, z = project_world_points(world[0, 0], cam, k)
     np.testing.assert_allclose(uv, [0.5, 0.5], atol=1e-4)
     np.testing.assert_allclose(z, 2.0, rtol=1e-6)

@@ -92,7 +92,10 @@ class IngestStage(SourceStage):
         if cfg.source in ("auto", "egodex"):
             units += [f"egodex:{p}" for p in _find(path, {".hdf5", ".h5"})]
         if cfg.source in ("auto", "video"):
-            units += [f"video:{p}" for p in _find(path, video_source.VIDEO_SUFFIXES)]
+            videos = _find(path, video_source.VIDEO_SUFFIXES)
+            if cfg.source == "auto":  # an EgoDex episode's video belongs to its .hdf5
+                videos = [v for v in videos if not _egodex_video(v)]
+            units += [f"video:{p}" for p in videos]
         if cfg.source in ("auto", "frames") and not units:
             units += [f"frames:{p}" for p in frames_source.find_frame_folders(path)]
         return units
@@ -125,6 +128,10 @@ class IngestStage(SourceStage):
             yield synthetic_source.render_unit(rest, cfg)
         else:
             raise ClipRejected(f"unknown ingest unit {unit!r}")
+
+
+def _egodex_video(video: Path) -> bool:
+    return any(video.with_suffix(s).is_file() for s in (".hdf5", ".h5"))
 
 
 def _find(path: Path, suffixes: set[str] | frozenset[str]) -> list[Path]:

@@ -60,7 +60,9 @@ def render_clip(config: WorldConfig, clip_id: str | None = None) -> Clip:
     Frames, depth and masks are deterministic functions of the config. ``static_frames`` use the
     same camera path without hands and with every object at its initial pose, so
     ``first_frame_clean == static_frames[0]``; outside the hand mask, the interaction video equals
-    the static video bit for bit until the first object moves.
+    the static video bit for bit until the first object moves. ``hand_valid`` is True where at
+    least one pixel of that hand (or its forearm) is visible; ``object_mask`` holds object
+    instance ids ``1..N`` (index into ``object_poses`` plus one) where no hand covers them.
     """
     t, h, w = config.num_frames, config.height, config.width
     scene = build_scene(config.seed, config.articulated)

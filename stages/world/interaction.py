@@ -32,7 +32,7 @@ class Interaction:
     curl: np.ndarray  # (T, 2) finger closure in [0, 1]
     object_poses: np.ndarray  # (T, N, 4, 4) world_from_object
     target: int  # index of the object the right hand moves (the lid when articulated)
-    held: np.ndarray  # (T,) bool: the target is attached to the right hand
+    held: np.ndarray  # (T,) bool: the right hand grips the target (rigidly, when picking)
     text: str  # caption
 
 
@@ -95,7 +95,8 @@ def script_interaction(scene: Scene, seed: int, num_frames: int, articulated: bo
         heading = np.arctan2(*(base.pose[:2, 3] - rest_r[:2, 3])[::-1])
         hand_rot0 = _rot_zy(heading, np.deg2rad(35.0))
         angle = np.deg2rad(rng.uniform(85.0, 105.0)) * _phase(u, 0.38, 0.72)  # (T,)
-        held = (u >= 0.3) & (u < 0.78)
+        hold_start = 0.3
+        held = (u >= hold_start) & (u < 0.78)
         grasp = np.zeros((t, 4, 4))
         for k in range(t):
             poses[k, target] = lid_pose(base.pose, base.size, angle[k])
@@ -143,7 +144,8 @@ def script_interaction(scene: Scene, seed: int, num_frames: int, articulated: bo
         lift = _phase(u, 0.42, 0.58) - _phase(u, 0.62, 0.76)  # (T,) up, then down
         grasp = _blend(grasp0, end_hand, move)  # (T, 4, 4)
         grasp[:, 2, 3] += 0.1 * lift
-        held = (u >= 0.36) & (u < 0.8)
+        hold_start = 0.36
+        held = (u >= hold_start) & (u < 0.8)
         moved = u >= 0.42  # lift and move both start at 0.42 or later
         poses[moved, target] = grasp[moved] @ hand_from_object
         curl_r = REST_CURL + (GRASP_CURL - REST_CURL) * (
@@ -157,9 +159,8 @@ def script_interaction(scene: Scene, seed: int, num_frames: int, articulated: bo
     released[:3, 3] += [-0.05, 0.0, 0.06]
     let_go = _blend(grasp[-1], released, _phase(u, release_end - 0.06, release_end))
     back = _blend(released, rest_r, _phase(u, release_end, 1.0))
-    first_held = int(np.argmax(held))
     right = np.where(
-        (np.arange(t) < first_held)[:, None, None],
+        (u < hold_start)[:, None, None],
         reach,
         np.where(
             held[:, None, None], grasp, np.where((u < release_end)[:, None, None], let_go, back)

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 import open3d as o3d
 
@@ -73,21 +74,23 @@ class WorldRenderer:
         self._tex_scale = np.array(
             [1.0 / b.texture.texel_size for b in self.bodies] + [1.0], dtype=np.float32
         )
-        self._cache_key: bytes | None = None
-        self._cache_scene: o3d.t.geometry.RaycastingScene | None = None
+        # Ray-casting scenes by object poses: the most recent two (initial and current poses).
+        self._scenes: dict[bytes, o3d.t.geometry.RaycastingScene] = {}
 
     def _static_scene(self, object_poses: np.ndarray) -> o3d.t.geometry.RaycastingScene:
         """Ray-casting scene of background plus objects at ``object_poses (N, 4, 4)``."""
         key = np.ascontiguousarray(object_poses).tobytes()
-        if key != self._cache_key:
+        if key not in self._scenes:
             rc = o3d.t.geometry.RaycastingScene()
             for verts, body in zip(self._background_world, self.scene.background, strict=True):
                 rc.add_triangles(verts, body.triangles.astype(np.uint32))
             for pose, body in zip(object_poses, self.scene.objects, strict=True):
                 verts = transform_points(pose, body.vertices).astype(np.float32)
                 rc.add_triangles(verts, body.triangles.astype(np.uint32))
-            self._cache_key, self._cache_scene = key, rc
-        return self._cache_scene
+            if len(self._scenes) >= 2:
+                del self._scenes[next(iter(self._scenes))]
+            self._scenes[key] = rc
+        return self._scenes[key]
 
     def rays(self, world_from_cam: np.ndarray, index: np.ndarray | None = None) -> np.ndarray:
         """World rays ``(n, 6)`` float32 for all pixels or the flat pixel ``index``."""
@@ -138,9 +141,13 @@ class WorldRenderer:
         )
 
     def _covered_pixels(self, world_from_cam: np.ndarray, parts: list[Mesh]) -> np.ndarray:
-        """Flat indices of the pixels inside the image bounding box of any part's vertices."""
+        """Flat indices of the pixels that any part may cover (conservative).
+
+        A mesh's image lies inside the convex hull of its projected vertices when it is wholly in
+        front of the camera; the hull is filled and grown by one pixel.
+        """
         h, w = self.height, self.width
-        covered = np.zeros((h, w), bool)
+        covered = np.zeros((h, w), np.uint8)
         cam_from_world = invert_se3(world_from_cam)
         for verts, _ in parts:
             cam = transform_points(cam_from_world, verts)  # (V, 3)
@@ -149,9 +156,13 @@ class WorldRenderer:
             if np.any(cam[:, 2] <= 1e-3):  # crosses the camera plane: cast every ray
                 return np.arange(h * w)
             uv, _ = project_points(cam, self.intrinsics)  # (V, 2)
-            c0, r0 = np.clip(np.floor(uv.min(axis=0)) - 1, 0, [w, h]).astype(int)
-            c1, r1 = np.clip(np.ceil(uv.max(axis=0)) + 1, 0, [w, h]).astype(int)
-            covered[r0:r1, c0:c1] = True
+            if np.all(uv < -1) or np.all(uv[:, 0] > w + 1) or np.all(uv[:, 1] > h + 1):
+                continue
+            # OpenCV draws pixel (i, j) at integer (x=j, y=i): shift by the 0.5 centre offset.
+            fixed = np.rint((np.clip(uv, -4 * w, 4 * w) - 0.5) * 4).astype(np.int32)  # 2 bits
+            hull = cv2.convexHull(fixed)
+            cv2.fillConvexPoly(covered, hull, 1, lineType=cv2.LINE_8, shift=2)
+        covered = cv2.dilate(covered, np.ones((3, 3), np.uint8))
         return np.flatnonzero(covered)
 
     def render_meshes(

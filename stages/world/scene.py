@@ -2,8 +2,9 @@
 
 World frame: metres, z up, floor at z = 0. The person stands on the -x side of the table and looks
 towards +x, so their right is -y. Every body is a mesh in its own local frame plus a pose
-``world_from_object``; objects (the movable bodies) have their local origin at the centre of their
-footprint, on the table.
+``world_from_object``. Background bodies are modelled in world coordinates (identity pose);
+objects (the movable bodies) have their local origin at the centre of their footprint on the
+table, except a lid, whose origin is on its hinge line.
 """
 
 from __future__ import annotations

@@ -1,0 +1,77 @@
+"""The dataset workflow on the synthetic world, and the EgoDex path through ingest."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+from typer.testing import CliRunner
+
+from egosim.pipeline.check import check_shard
+from egosim.pipeline.cli import app
+from egosim.pipeline.clip_io import read_clips
+from egosim.pipeline.runner import run_workflow
+from egosim.pipeline.workflow import load_workflow
+from egosim.stages.ingest.stage import IngestConfig, IngestStage
+from egosim.stages.world import WorldConfig, render_clip
+from egosim.stages.world.egodex_export import write_egodex
+
+REPO = Path(__file__).resolve().parents[1]
+TINY = ["height=64", "width=112", "num_frames=6", "fps=8"]
+
+
+def test_dataset_workflow_builds_checked_shards_from_the_synthetic_world(tmp_path: Path) -> None:
+    overrides = [f"ingest.{kv}" for kv in [*TINY, "synthetic_count=3", "units_per_shard=2"]]
+    wf = load_workflow(REPO / "workflows" / "dataset.yaml", overrides)
+    out = tmp_path / "data"
+    summary = run_workflow(wf, out, n_workers=2, gpu_workers=0)
+    shards = sorted((out / "ingest").glob("shard-*.parquet"))
+    assert len(shards) == 2 and summary.rejected == 0
+    assert all(check_shard(s) == [] for s in shards)
+    clips = [c for s in shards for c in read_clips(s)]
+    assert [c.clip_id for c in clips] == [
+        "synth-tabletop-00000",
+        "synth-tabletop-00001",
+        "synth-art-00002",
+    ]
+    truth = render_clip(WorldConfig(seed=1, height=64, width=112, num_frames=6, fps=8.0))
+    np.testing.assert_array_equal(clips[1].world_from_cam, truth.world_from_cam)
+    np.testing.assert_array_equal(clips[1].hand_mask, truth.hand_mask)
+    np.testing.assert_allclose(clips[1].hand_joints, truth.hand_joints, atol=1e-6)
+
+
+def test_egodex_files_ingest_back_to_the_ground_truth(tmp_path: Path) -> None:
+    truth = render_clip(WorldConfig(seed=4, height=64, width=112, num_frames=8, fps=8.0))
+    write_egodex(truth, tmp_path / "egodex" / "pick", stem="0")
+    stage = IngestStage(IngestConfig(height=64, width=112, num_frames=8, fps=8.0))
+    (unit,) = stage.list_units(str(tmp_path / "egodex"))
+    assert unit.startswith("egodex:")
+    (clip,) = list(stage._clips(unit))
+    assert clip.source == "egodex"
+    np.testing.assert_allclose(clip.world_from_cam, truth.world_from_cam, atol=1e-5)
+    valid = truth.hand_valid
+    np.testing.assert_allclose(clip.hand_joints[valid], truth.hand_joints[valid], atol=1e-5)
+    np.testing.assert_allclose(clip.intrinsics, truth.intrinsics, rtol=1e-6)
+
+
+def test_egodex_file_with_a_missing_key_is_rejected_by_name(tmp_path: Path) -> None:
+    import h5py
+
+    truth = render_clip(WorldConfig(seed=5, height=64, width=112, num_frames=8, fps=8.0))
+    hdf5, _ = write_egodex(truth, tmp_path / "pick", stem="0")
+    with h5py.File(hdf5, "a") as fh:
+        del fh["transforms/camera"]
+    result = CliRunner().invoke(
+        app,
+        [
+            "stage", "ingest", "--input", str(tmp_path), "--output", str(tmp_path / "o.parquet"),
+            *[a for kv in TINY for a in ("--param", kv)],
+        ],
+    )
+    assert result.exit_code == 0, result.output
+    assert "0 rows, 1 rejected" in result.output
+    from egosim.pipeline.shards import ShardReader
+
+    with ShardReader(tmp_path / "o.rejects.parquet") as reader:
+        (row,) = list(reader.iter_rows())
+    assert "transforms/camera" in row["reason"] and "0.hdf5" in row["reason"]
