@@ -39,7 +39,9 @@ def row_from_clip(clip: Clip, crf: int = media.DEFAULT_CRF) -> dict[str, Any]:
         "world_from_cam": _opt(clip.world_from_cam, lambda a: a.reshape(t, 16).tolist()),
         "depth": _opt(clip.depth, lambda a: media.encode_depth_video(a, unit)),
         "depth_unit_m": unit,
-        "static_video": _opt(clip.static_frames, lambda a: media.encode_rgb_video(a, clip.fps, crf)),
+        "static_video": _opt(
+            clip.static_frames, lambda a: media.encode_rgb_video(a, clip.fps, crf)
+        ),
         "static_depth": _opt(clip.static_depth, lambda a: media.encode_depth_video(a, unit)),
         "first_frame_clean": _opt(clip.first_frame_clean, media.encode_png),
         "hand_joints": _opt(

@@ -32,7 +32,7 @@ class ConfigError(StageError, ValueError):
     """Stage parameters are unknown or invalid; the message lists every problem."""
 
 
-class ClipRejected(StageError):
+class ClipRejected(StageError):  # noqa: N818 (a verdict on a clip, not a failure)
     """A stage cannot process one clip (or input unit); goes to the rejects table."""
 
 
@@ -161,9 +161,9 @@ def coerce(value: Any, annotation: Any) -> Any:
     origin = typing.get_origin(annotation)
     args = typing.get_args(annotation)
     if origin in (typing.Union, types.UnionType):
-        if value is None or (isinstance(value, str) and value.lower() in ("none", "null")):
-            if type(None) in args:
-                return None
+        is_none = value is None or (isinstance(value, str) and value.lower() in ("none", "null"))
+        if is_none and type(None) in args:
+            return None
         errors = []
         for arg in (a for a in args if a is not type(None)):
             try:

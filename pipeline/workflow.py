@@ -165,13 +165,18 @@ def _check_edges(steps: dict[str, Step], problems: list[str]) -> None:
                     f"(stage {step.stage!r} takes {list(expected)})"
                 )
             elif upstream not in steps:
-                problems.append(f"step {step.name!r}: input {role!r} names unknown step {upstream!r}")
+                problems.append(
+                    f"step {step.name!r}: input {role!r} names unknown step {upstream!r}"
+                )
             else:
                 try:
                     produced = get_stage(steps[upstream].stage).output
                 except StageError:
                     continue
-                if produced.name != expected[role].name or produced.version != expected[role].version:
+                if (
+                    produced.name != expected[role].name
+                    or produced.version != expected[role].version
+                ):
                     problems.append(
                         f"step {step.name!r}: input {role!r} needs schema "
                         f"{expected[role].name!r} v{expected[role].version} but step "

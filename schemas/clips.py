@@ -102,9 +102,7 @@ CLIPS = ShardSchema(
             "intrinsics", pa.list_(pa.float64(), 4), "fx, fy, cx, cy in pixels of stored frames."
         ),
         Column("video", pa.binary(), "RGB frames as H.264 MP4 bytes (yuv420p)."),
-        Column(
-            "world_from_cam", pa.list_(POSE), "(T, 16) camera-to-world, OpenCV axes.", True
-        ),
+        Column("world_from_cam", pa.list_(POSE), "(T, 16) camera-to-world, OpenCV axes.", True),
         Column("depth", pa.binary(), "(T, H, W) z-depth, lossless FFV1 uint16 video.", True),
         Column(
             "depth_unit_m",
@@ -121,9 +119,7 @@ CLIPS = ShardSchema(
             "(T, 2*21*3) world metres, hand 0 left, 1 right, MANO joint order.",
             True,
         ),
-        Column(
-            "hand_valid", pa.list_(pa.list_(pa.bool_(), 2)), "(T, 2) hand present.", True
-        ),
+        Column("hand_valid", pa.list_(pa.list_(pa.bool_(), 2)), "(T, 2) hand present.", True),
         Column(
             "hand_confidence",
             pa.list_(pa.list_(pa.float32(), 42)),
@@ -131,13 +127,9 @@ CLIPS = ShardSchema(
             True,
         ),
         Column("hand_mask", pa.binary(), "(T, H, W) 1 = hand/arm, lossless FFV1 video.", True),
-        Column(
-            "object_mask", pa.binary(), "(T, H, W) object instance id, lossless FFV1.", True
-        ),
+        Column("object_mask", pa.binary(), "(T, H, W) object instance id, lossless FFV1.", True),
         Column("num_objects", pa.int32(), "Number of tracked objects N.", True),
-        Column(
-            "object_poses", pa.list_(POSE), "(T*N, 16) world_from_object, frame-major.", True
-        ),
+        Column("object_poses", pa.list_(POSE), "(T*N, 16) world_from_object, frame-major.", True),
         Column("text", pa.string(), "Text description of the interaction.", True),
     ),
     validators=(_check_counts, _check_camera, _check_poses, _check_hands),

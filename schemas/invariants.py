@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 
-def se3_problems(transform: FloatArray, tol: float = 1e-4) -> list[str]:
+def se3_problems(transform: np.ndarray, tol: float = 1e-4) -> list[str]:
     """Describe why ``transform (..., 4, 4)`` is not a valid rigid transform; empty when it is."""
     transform = np.asarray(transform, dtype=np.float64)
     problems: list[str] = []

@@ -64,7 +64,12 @@ def test_egodex_file_with_a_missing_key_is_rejected_by_name(tmp_path: Path) -> N
     result = CliRunner().invoke(
         app,
         [
-            "stage", "ingest", "--input", str(tmp_path), "--output", str(tmp_path / "o.parquet"),
+            "stage",
+            "ingest",
+            "--input",
+            str(tmp_path),
+            "--output",
+            str(tmp_path / "o.parquet"),
             *[a for kv in TINY for a in ("--param", kv)],
         ],
     )

@@ -57,14 +57,14 @@ def test_video_file_becomes_standard_clips(video_file: Path) -> None:
 def test_short_video_is_rejected_with_the_reason(tmp_path: Path) -> None:
     path = tmp_path / "short.mp4"
     write_video_file(path, smooth_frames(5, 32, 32), fps=30.0)
-    with pytest.raises(ClipRejected, match="short.mp4 is shorter than one clip"):
+    with pytest.raises(ClipRejected, match=r"short\.mp4 is shorter than one clip"):
         list(read_video_clips(path, IngestConfig(**SMALL)))
 
 
 def test_unreadable_video_is_rejected_naming_the_file(tmp_path: Path) -> None:
     path = tmp_path / "broken.mp4"
     path.write_bytes(b"\x00\x00\x00\x18ftypmp42 this is not a video")
-    with pytest.raises(ClipRejected, match="broken.mp4"):
+    with pytest.raises(ClipRejected, match=r"broken\.mp4"):
         list(read_video_clips(path, IngestConfig(**SMALL)))
 
 

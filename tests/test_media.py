@@ -60,7 +60,7 @@ def test_truncated_video_file_names_the_file(tmp_path) -> None:
     path = tmp_path / "cut.mp4"
     data = media.encode_rgb_video(smooth_frames(20, 32, 32), fps=10.0)
     path.write_bytes(data[: len(data) // 3])
-    with pytest.raises(media.MediaError, match="cut.mp4"):
+    with pytest.raises(media.MediaError, match=r"cut\.mp4"):
         media.read_video_file(path)
 
 

@@ -59,7 +59,9 @@ def test_wrong_schema_name_or_version_raises_typed_error(tmp_path: Path) -> None
         pass
     with pytest.raises(SchemaCompatibilityError, match="'rejects' version 1, expected 'clips'"):
         list(read_clips(path))
-    old = CLIPS.arrow.with_metadata({b"egosim.schema.name": b"clips", b"egosim.schema.version": b"0"})
+    old = CLIPS.arrow.with_metadata(
+        {b"egosim.schema.name": b"clips", b"egosim.schema.version": b"0"}
+    )
     pq.write_table(pa.Table.from_pylist([], schema=old), tmp_path / "old.parquet")
     with pytest.raises(SchemaCompatibilityError, match="version 0"):
         open_shard(tmp_path / "old.parquet", CLIPS)
@@ -70,7 +72,7 @@ def test_truncated_or_missing_shard_raises_corrupt_error(tmp_path: Path) -> None
     write_clips(path, [make_clip()])
     data = path.read_bytes()
     path.write_bytes(data[: len(data) // 2])
-    with pytest.raises(CorruptShardError, match="s.parquet"):
+    with pytest.raises(CorruptShardError, match=r"s\.parquet"):
         open_shard(path, CLIPS)
     assert "not a readable Parquet shard" in check_shard(path)[0]
     with pytest.raises(CorruptShardError, match="does not exist"):
@@ -82,9 +84,9 @@ def test_row_validation_lists_every_problem(tmp_path: Path) -> None:
     row["fps"] = -1.0
     row["timestamps"] = row["timestamps"][:-1]
     row["intrinsics"] = [10.0, 10.0, 500.0, 5.0]
-    with pytest.raises(RowValidationError) as err:
-        with ShardWriter(tmp_path / "bad.parquet", CLIPS, stage="t") as writer:
-            writer.write_row(row)
+    writer = ShardWriter(tmp_path / "bad.parquet", CLIPS, stage="t")
+    with pytest.raises(RowValidationError) as err, writer:
+        writer.write_row(row)
     message = str(err.value)
     assert "fps must be positive" in message
     assert "timestamps has 5 entries" in message

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any, Literal
+from typing import Any, ClassVar, Literal
 
 import pytest
 
@@ -19,7 +19,7 @@ from egosim.pipeline.stage import (
     registered_stages,
 )
 from egosim.pipeline.workflow import WorkflowError, parse_workflow
-from egosim.schemas import CLIPS, REJECTS
+from egosim.schemas import CLIPS, REJECTS, ShardSchema
 
 
 class NeedsRejects(ClipStage):
@@ -27,7 +27,7 @@ class NeedsRejects(ClipStage):
 
     name = "test_needs_rejects"
     description = "test only"
-    inputs = {"table": REJECTS}
+    inputs: ClassVar[Mapping[str, ShardSchema]] = {"table": REJECTS}
     output = CLIPS
 
     def process(self, rows: Mapping[str, Mapping[str, Any]]) -> dict[str, Any]:

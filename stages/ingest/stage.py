@@ -63,7 +63,9 @@ class IngestConfig(StageConfig):
         if self.intrinsics and len(self.intrinsics) != 4:
             problems.append(f"intrinsics must be 4 values fx, fy, cx, cy, got {self.intrinsics}")
         if not 1.0 < self.horizontal_fov_deg < 179.0:
-            problems.append(f"horizontal_fov_deg must be in (1, 179), got {self.horizontal_fov_deg}")
+            problems.append(
+                f"horizontal_fov_deg must be in (1, 179), got {self.horizontal_fov_deg}"
+            )
         if problems:
             raise ConfigError("; ".join(problems))
 

@@ -44,7 +44,9 @@ class ResizePlan:
         if nearest:
             interp = cv2.INTER_NEAREST
         scaled = cv2.resize(frame, size, interpolation=interp)
-        return scaled[self.crop_y : self.crop_y + self.height, self.crop_x : self.crop_x + self.width]
+        return scaled[
+            self.crop_y : self.crop_y + self.height, self.crop_x : self.crop_x + self.width
+        ]
 
     def intrinsics(self, source_intrinsics: np.ndarray) -> np.ndarray:
         """Intrinsics of the output given those of the source frame."""
