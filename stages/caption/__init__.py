@@ -1,0 +1,1 @@
+"""The ``caption`` stage: a text prompt per clip."""
