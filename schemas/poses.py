@@ -17,8 +17,7 @@ from egosim.schemas.clips import POSE
 from egosim.schemas.invariants import se3_problems
 
 JITTER_DOC = (
-    "Jitter = RMS over frames 1..T-2 of the norm of the second difference {what}; "
-    "0 when T < 3."
+    "Jitter = RMS over frames 1..T-2 of the norm of the second difference {what}; 0 when T < 3."
 )
 
 
@@ -84,8 +83,7 @@ POSES = ShardSchema(
             "jitter_before_deg",
             pa.float64(),
             JITTER_DOC.format(
-                what="of the input rotation (angle between consecutive relative rotations), "
-                "degrees"
+                what="of the input rotation (angle between consecutive relative rotations), degrees"
             ),
         ),
         Column(

@@ -21,7 +21,6 @@ normalised, hemisphere-aligned quaternion average.
 from __future__ import annotations
 
 import numpy as np
-from scipy.ndimage import median_filter
 
 from egosim.pipeline.geometry import (
     make_se3,
@@ -57,6 +56,15 @@ def jitter(world_from_cam: np.ndarray) -> tuple[float, float]:
     if len(sd_t) == 0:
         return 0.0, 0.0
     return float(np.sqrt(np.mean(sd_t**2)) * 1e3), float(np.sqrt(np.mean(sd_r**2)))
+
+
+def _running_median(values: np.ndarray, size: int) -> np.ndarray:
+    """Median of ``size`` consecutive values around each entry of ``values (L,)``; near the ends
+    the window shifts inwards (no padding, which would repeat an end spike)."""
+    windows = np.lib.stride_tricks.sliding_window_view(values, size)  # (L - size + 1, size)
+    medians = np.median(windows, axis=1)  # (L - size + 1,)
+    start = np.clip(np.arange(len(values)) - size // 2, 0, len(values) - size)
+    return medians[start]
 
 
 def _two_sided_flags(sd: np.ndarray, threshold: np.ndarray) -> np.ndarray:
@@ -97,7 +105,7 @@ def detect_outliers(
     size = min(window, len(sd_t))
     flags = np.zeros(t, dtype=bool)
     for sd, floor in ((sd_t, min_translation_m), (sd_r, min_rotation_deg)):
-        level = median_filter(sd, size=size, mode="nearest")  # (T-2,) local noise + motion
+        level = _running_median(sd, size)  # (T-2,) local noise + motion level
         thr = np.maximum(ratio * level, floor)  # (T-2,)
         per_frame = np.concatenate([thr[:1], thr, thr[-1:]])  # (T,) threshold at frame i
         flags |= _two_sided_flags(sd, per_frame)
