@@ -30,6 +30,13 @@ $(STAMP): pyproject.toml
 	$(BIN)/pip install -q --upgrade pip
 	$(BIN)/pip install -q torch==$(TORCH_VERSION)
 	$(BIN)/pip install -q -e ".[dev]"
+	# MediaPipe Hands (hands stage backend `mediapipe`): only 0.10.21 ships its models in the wheel.
+	# Its declared deps would downgrade numpy to 1.x (breaking pyarrow), add a second OpenCV
+	# (opencv-contrib-python) and jax: install it without them, plus the few it really imports.
+	# protobuf stays in pyproject's range (>=5.29.6 for foxglove, <6: protobuf 7 breaks Hands()).
+	$(BIN)/pip install -q --no-deps mediapipe==0.10.21
+	$(BIN)/pip install -q "absl-py>=2,<3" "flatbuffers>=24,<26" "attrs>=19.1" "matplotlib>=3.8,<4" \
+		"protobuf>=5.29.6,<6"
 	touch $(STAMP)
 
 test: setup

@@ -20,7 +20,6 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from egosim.schemas.invariants import se3_problems as se3_problems  # re-exported
 
-
 FloatArray = np.ndarray
 
 
@@ -55,7 +54,7 @@ def make_se3(rotation: FloatArray, translation: FloatArray) -> FloatArray:
     """Stack ``R (..., 3, 3)`` and ``t (..., 3)`` into ``(..., 4, 4)`` homogeneous matrices."""
     rotation = np.asarray(rotation, dtype=np.float64)
     translation = np.asarray(translation, dtype=np.float64)
-    out = np.zeros(rotation.shape[:-2] + (4, 4))
+    out = np.zeros((*rotation.shape[:-2], 4, 4))
     out[..., :3, :3] = rotation
     out[..., :3, 3] = translation
     out[..., 3, 3] = 1.0
@@ -77,9 +76,7 @@ def transform_points(transform: FloatArray, points: FloatArray) -> FloatArray:
     return points @ transform[:3, :3].T + transform[:3, 3]
 
 
-def project_points(
-    points_cam: FloatArray, intrinsics: FloatArray
-) -> tuple[FloatArray, FloatArray]:
+def project_points(points_cam: FloatArray, intrinsics: FloatArray) -> tuple[FloatArray, FloatArray]:
     """Project camera-frame points ``(..., 3)`` to pixels.
 
     Returns ``(uv (..., 2), depth (...,))``. Points with ``depth <= 0`` get NaN pixels: callers
@@ -138,14 +135,14 @@ def quat_from_matrix(rotation: FloatArray) -> FloatArray:
     """Rotation matrices ``(..., 3, 3)`` to unit quaternions ``(..., 4)`` in ``(w, x, y, z)``."""
     rotation = np.asarray(rotation, dtype=np.float64)
     flat = Rotation.from_matrix(rotation.reshape(-1, 3, 3)).as_quat(scalar_first=True)
-    return flat.reshape(rotation.shape[:-2] + (4,))
+    return flat.reshape((*rotation.shape[:-2], 4))
 
 
 def matrix_from_quat(quat: FloatArray) -> FloatArray:
     """Quaternions ``(..., 4)`` in ``(w, x, y, z)`` (normalised first) to ``(..., 3, 3)``."""
     quat = np.asarray(quat, dtype=np.float64)
     flat = Rotation.from_quat(quat.reshape(-1, 4), scalar_first=True).as_matrix()
-    return flat.reshape(quat.shape[:-1] + (3, 3))
+    return flat.reshape((*quat.shape[:-1], 3, 3))
 
 
 def quat_align_hemisphere(quat: FloatArray) -> FloatArray:

@@ -1,7 +1,7 @@
 """Media codecs: videos as bytes through PyAV, single images as PNG through OpenCV.
 
-- RGB video: H.264 (libx264, yuv420p) in MP4, lossy; odd sizes are padded by edge replication
-  and cropped back on decode.
+- RGB video: H.264 (libx264, yuv420p) in MP4, lossy but reproducible (same frames, same
+  bytes); odd sizes are padded by edge replication and cropped back on decode.
 - Masks and depth: FFV1 in Matroska, lossless (``gray`` for uint8, ``gray16le`` for uint16).
 - Depth in metres is quantised to uint16 steps of ``unit`` metres (0 = unknown depth).
 - Single images: PNG, lossless.
@@ -38,12 +38,9 @@ def _pad(frames: np.ndarray, multiple: int) -> np.ndarray:
 
 
 def encode_rgb_video(frames: np.ndarray, fps: float, crf: int = DEFAULT_CRF) -> bytes:
-    """Encode ``(T, H, W, 3)`` uint8 RGB frames as H.264 MP4 bytes.
+    """Encode ``(T, H, W, 3)`` uint8 RGB frames as H.264 MP4 bytes (same frames, same bytes).
 
     Odd sizes are padded to even by edge replication; decode with the true size to crop.
-    libx264's bytes were measured to vary slightly between runs on the same frames (even with
-    one thread), so nothing may rely on H.264 bytes being reproducible: fingerprints hash
-    recipes, not bytes, and the lossless codecs below are exact.
     """
     if frames.ndim != 4 or frames.shape[-1] != 3 or frames.dtype != np.uint8:
         raise MediaError(f"RGB video must be (T, H, W, 3) uint8, got {frames.shape} {frames.dtype}")
@@ -56,7 +53,14 @@ def encode_rgb_video(frames: np.ndarray, fps: float, crf: int = DEFAULT_CRF) -> 
         stream = container.add_stream("libx264", rate=Fraction(fps).limit_denominator(1001))
         stream.width, stream.height = padded.shape[2], padded.shape[1]
         stream.pix_fmt = "yuv420p"
-        stream.options = {"crf": str(crf), "preset": "medium"}
+        # cpu-independent: libx264 otherwise picks code paths by the CPU it detects, and the
+        # same frames were measured to encode to different bytes from run to run here.
+        stream.options = {
+            "crf": str(crf),
+            "preset": "medium",
+            "x264-params": "threads=1:cpu-independent=1",
+        }
+        stream.codec_context.thread_count = 1
         for index, image in enumerate(padded):
             frame = av.VideoFrame.from_ndarray(image, format="rgb24")
             frame.pts = index

@@ -10,11 +10,33 @@ from egosim.schemas.base import (
     ShardSchema,
     schema_identity,
 )
+from egosim.schemas.captions import CAPTIONS
 from egosim.schemas.clips import CLIPS
+from egosim.schemas.depth_camera import DEPTH_CAMERA
+from egosim.schemas.hand_mask import HAND_MASK
+from egosim.schemas.hands import HANDS
+from egosim.schemas.inpaint import INPAINT
+from egosim.schemas.keypoints import KEYPOINTS
 from egosim.schemas.poses import POSES
 from egosim.schemas.rejects import REJECTS
+from egosim.schemas.scene import SCENE_CLOUD, SCENE_RENDER
 
-SCHEMAS: dict[str, ShardSchema] = {s.name: s for s in (CLIPS, REJECTS, POSES)}
+SCHEMAS: dict[str, ShardSchema] = {
+    s.name: s
+    for s in (
+        CLIPS,
+        REJECTS,
+        CAPTIONS,
+        DEPTH_CAMERA,
+        POSES,
+        SCENE_CLOUD,
+        SCENE_RENDER,
+        HANDS,
+        KEYPOINTS,
+        HAND_MASK,
+        INPAINT,
+    )
+}
 
 
 def get_schema(name: str) -> ShardSchema:
@@ -27,6 +49,7 @@ def get_schema(name: str) -> ShardSchema:
 
 __all__ = [
     "CLIPS",
+    "DEPTH_CAMERA",
     "POSES",
     "REJECTS",
     "SCHEMAS",

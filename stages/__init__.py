@@ -1,6 +1,24 @@
 """Built-in stages. Importing this package registers every stage (one line per stage)."""
 
 from egosim.pipeline.stage import register_stage
+from egosim.stages.caption.stage import CaptionStage
+from egosim.stages.depth_camera.stage import DepthCameraStage
+from egosim.stages.hand_mask.stage import HandMaskStage
+from egosim.stages.hands.stage import HandsStage
 from egosim.stages.ingest.stage import IngestStage
+from egosim.stages.inpaint.stage import InpaintStage
+from egosim.stages.keypoint_render.stage import KeypointRenderStage
+from egosim.stages.pose_clean.stage import PoseCleanStage
+from egosim.stages.scene_cloud.stage import SceneCloudStage
+from egosim.stages.scene_render.stage import SceneRenderStage
 
 register_stage(IngestStage)
+register_stage(CaptionStage)
+register_stage(PoseCleanStage)
+register_stage(SceneCloudStage)
+register_stage(SceneRenderStage)
+register_stage(HandsStage)
+register_stage(KeypointRenderStage)
+register_stage(HandMaskStage)
+register_stage(InpaintStage)
+register_stage(DepthCameraStage)

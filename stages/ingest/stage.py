@@ -5,6 +5,8 @@ Sources (``source`` parameter; ``auto`` picks per input path):
 - ``video``: a video file or a folder of video files (any fps, any size);
 - ``frames``: a folder of image files (or a folder of such folders), with ``frames_fps`` given;
 - ``egodex``: EgoDex ``.hdf5`` + ``.mp4`` pairs (a file or a folder searched recursively);
+- ``mcap``: Foxglove MCAP recordings (``.mcap``: images, calibration, frame transforms; see
+  :mod:`egosim.stages.ingest.mcap_source`);
 - ``synthetic``: the built-in synthetic world, ``synthetic_count`` clips (no input needed).
 
 Units are the input files (or folders of frames, or synthetic seeds); ``units_per_shard`` of them
@@ -25,8 +27,9 @@ from egosim.pipeline.stage import ClipRejected, ConfigError, SourceStage, StageC
 from egosim.schemas import CLIPS
 from egosim.stages.ingest import frames_source, synthetic_source, video_source
 from egosim.stages.ingest.egodex import read_egodex_clip
+from egosim.stages.ingest.mcap_source import read_mcap_clip
 
-SourceKind = Literal["auto", "video", "frames", "egodex", "synthetic"]
+SourceKind = Literal["auto", "video", "frames", "egodex", "mcap", "synthetic"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -77,7 +80,7 @@ class IngestStage(SourceStage):
     description = "standardise videos, frame folders, EgoDex or the synthetic world into clips"
     config_class = IngestConfig
     output = CLIPS
-    backends = ("video", "frames", "egodex", "synthetic")
+    backends = ("video", "frames", "egodex", "mcap", "synthetic")
     config: IngestConfig
 
     def list_units(self, source: str | None) -> list[str]:
@@ -98,6 +101,8 @@ class IngestStage(SourceStage):
             if cfg.source == "auto":  # an EgoDex episode's video belongs to its .hdf5
                 videos = [v for v in videos if not _egodex_video(v)]
             units += [f"video:{p}" for p in videos]
+        if cfg.source in ("auto", "mcap"):
+            units += [f"mcap:{p}" for p in _find(path, {".mcap"})]
         if cfg.source in ("auto", "frames") and not units:
             units += [f"frames:{p}" for p in frames_source.find_frame_folders(path)]
         return units
@@ -126,6 +131,8 @@ class IngestStage(SourceStage):
             yield from frames_source.read_frame_clips(Path(rest), cfg)
         elif kind == "egodex":
             yield from video_source.standardise_clip(read_egodex_clip(Path(rest)), cfg)
+        elif kind == "mcap":
+            yield from video_source.standardise_clip(read_mcap_clip(Path(rest)), cfg)
         elif kind == "synthetic":
             yield synthetic_source.render_unit(rest, cfg)
         else:

@@ -2,17 +2,18 @@
 
 A point cloud ``(N, 3)`` in world metres with RGB colours is rendered through pinhole cameras
 ``world_from_cam (T, 4, 4)`` (OpenCV axes, intrinsics ``fx, fy, cx, cy``). Each point lands on the
-pixel that contains its projection (pixel centres at integer + 0.5, so pixel ``floor(u), floor(v)``);
+pixel that contains its projection (centres at integer + 0.5: pixel ``floor(u), floor(v)``);
 the nearest point per pixel wins. The z-test is one ``scatter_reduce(amin)`` over an int64 key
 ``float32_bits(depth) << 24 | point_index``: positive float32 depths order like their bit patterns,
 so the key orders by depth first and breaks ties by index, and the winner's index comes back from
 the low 24 bits (hence at most 2**24 points per cloud).
 
 Near points cover more than one pixel: with ``max_splat_radius > 0`` and per-point world sizes
-(``point_size``, the side of the pixel each point was unprojected from), a point whose projected
-footprint ``f * size / depth`` exceeds one pixel is also written to the neighbouring pixels within
-``radius = min(max_splat_radius, round((footprint - 1) / 2))`` (a square splat), which closes the
-cracks that appear when the camera moves towards the surface.
+(``point_size``, the side of the pixel each point was unprojected from), a second pass splats
+every point whose footprint ``fx * size / depth`` is about a pixel or more over a square of
+radius ``min(max_splat_radius, ceil((footprint - 0.9) / 2))``, and pixels that the one-pixel pass
+left empty take the nearest of those: the cracks that appear when the camera moves towards the
+surface close, while pixels with a direct hit keep it.
 """
 
 from __future__ import annotations
@@ -22,11 +23,11 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from egosim.pipeline.geometry import invert_se3, project_points_torch, se3_problems
+from egosim.pipeline.geometry import invert_se3, project_world_points_torch, se3_problems
 
 INDEX_BITS = 24  # low bits of the z-buffer key that hold the point index
 MAX_POINTS = 1 << INDEX_BITS  # largest cloud the key can address
-_EMPTY = torch.iinfo(torch.int64).max  # key of a pixel no point landed on
+EMPTY_KEY = torch.iinfo(torch.int64).max  # key of a pixel no point landed on
 
 
 class SplatError(ValueError):
@@ -71,59 +72,126 @@ def _check_inputs(
     k = np.asarray(intrinsics, dtype=np.float64)
     if k.shape != (4,) or not np.all(np.isfinite(k)) or k[0] <= 0 or k[1] <= 0:
         problems.append(f"intrinsics must be 4 finite values with fx, fy > 0, got {k.tolist()}")
-    if height < 1 or width < 1:
-        problems.append(f"image size must be positive, got {height}x{width}")
+    if height < 1 or width < 1 or height * width >= MAX_POINTS:
+        problems.append(f"image size must be positive and below 2**24 pixels, got {height}x{width}")
     if problems:
         raise SplatError("; ".join(problems))
 
 
+@dataclass(frozen=True)
+class DeviceCloud:
+    """A cloud laid out for fast splatting on one device (see :func:`to_device_cloud`)."""
+
+    points: torch.Tensor  # (3, N) float32 world metres, channel-first
+    colours: torch.Tensor  # (N,) int32: RGBA bytes packed, A = 0, one gather per pixel
+    index: torch.Tensor  # (N,) int64 0..N-1, the low bits of every z-buffer key
+    size: torch.Tensor | None  # (N,) float32 world size of each point in metres, or None
+
+
+def to_device_cloud(
+    points_world: np.ndarray,
+    colours: np.ndarray,
+    point_size: np.ndarray | None = None,
+    device: str = "cpu",
+) -> DeviceCloud:
+    """Move a cloud ``(N, 3)`` + colours ``(N, 3)`` uint8 (+ sizes ``(N,)``) to ``device``."""
+    dev = torch.device(device)
+    n = len(points_world)
+    rgba = np.zeros((n, 4), dtype=np.uint8)  # (N, 4)
+    rgba[:, :3] = colours
+    return DeviceCloud(
+        points=torch.as_tensor(np.ascontiguousarray(points_world.T), dtype=torch.float32).to(dev),
+        colours=torch.as_tensor(rgba.view(np.int32).reshape(n)).to(dev),  # (N,)
+        index=torch.arange(n, dtype=torch.int64, device=dev),
+        size=None if point_size is None else torch.tensor(point_size, dtype=torch.float32).to(dev),
+    )
+
+
+SEE_THROUGH_MARGIN = 0.05  # relative depth gap beyond which a wide splat hides a direct hit
+
+
 def splat_frame(
-    points_world: torch.Tensor,
+    cloud: DeviceCloud,
     cam_from_world: torch.Tensor,
     intrinsics: np.ndarray,
     height: int,
     width: int,
-    point_size: torch.Tensor | None = None,
     max_splat_radius: int = 0,
     near: float = 1e-3,
 ) -> torch.Tensor:
-    """Z-buffer one frame; returns the winning keys ``(H*W,)`` int64 (``_EMPTY`` where none).
+    """Z-buffer one frame; returns the winning keys ``(H*W,)`` int64 (``EMPTY_KEY`` where none).
 
-    ``points_world (N, 3)`` float32 and ``cam_from_world (4, 4)`` float32 share a device.
-    Decode the keys with :func:`decode_keys`.
+    ``cam_from_world (4, 4)`` float32 on the cloud's device. Decode with :func:`decode_keys`.
     """
-    n = points_world.shape[0]
-    device = points_world.device
-    points_cam = points_world @ cam_from_world[:3, :3].T + cam_from_world[:3, 3]  # (N, 3)
-    uv, z = project_points_torch(points_cam, intrinsics)  # (N, 2), (N,)
-    front = z > near  # (N,)
-    uv = torch.nan_to_num(uv, nan=-1.0, posinf=-1.0, neginf=-1.0).floor_()  # (N, 2) pixel
-    # Clamp before the int cast so huge values near the camera plane cannot overflow.
-    u = uv[:, 0].clamp_(-1, width).to(torch.int64)  # (N,)
-    v = uv[:, 1].clamp_(-1, height).to(torch.int64)  # (N,)
-    inside = front & (u >= 0) & (u < width) & (v >= 0) & (v < height)  # (N,)
-    depth_bits = z.to(torch.float32).view(torch.int32).to(torch.int64)  # (N,) monotone in z > 0
-    keys = (depth_bits << INDEX_BITS) | torch.arange(n, device=device, dtype=torch.int64)  # (N,)
+    u, v, z = project_world_points_torch(cloud.points, cam_from_world, intrinsics)  # (N,) each
+    # NaN (behind the camera) fails every comparison, so it is never inside.
+    inside = (z > near) & (u >= 0) & (u < width) & (v >= 0) & (v < height)  # (N,)
+    u, v = u.floor(), v.floor()  # (N,) pixel column and row, float
     dump = height * width  # one extra slot collects every point that lands nowhere
-    buffer = torch.full((dump + 1,), _EMPTY, dtype=torch.int64, device=device)
-    pix = torch.where(inside, v * width + u, dump)  # (N,)
+    # float32 holds every pixel index exactly (H*W < 2**24 is checked by the caller).
+    pix = torch.where(inside, v * width + u, float(dump)).to(torch.int64)  # (N,)
+    depth_bits = z.view(torch.int32).to(torch.int64)  # (N,) monotone in z for z > 0
+    keys = (depth_bits << INDEX_BITS) | cloud.index  # (N,)
+    buffer = torch.full((dump + 1,), EMPTY_KEY, dtype=torch.int64, device=keys.device)
     buffer.scatter_reduce_(0, pix, keys, reduce="amin")
-    if max_splat_radius > 0 and point_size is not None:
-        fx = float(np.asarray(intrinsics, dtype=np.float64)[0])
-        footprint = point_size * fx / z.clamp(min=near)  # (N,) pixels covered by the point
-        radius = ((footprint - 1.0) * 0.5).round().clamp_(0, max_splat_radius).to(torch.int64)
-        big = torch.nonzero(front & (radius > 0) & (u > -1) & (v > -1)).squeeze(1)  # (M,)
-        if big.numel() > 0:
-            u_b, v_b, r_b, k_b = u[big], v[big], radius[big], keys[big]  # (M,) each
-            for dv in range(-max_splat_radius, max_splat_radius + 1):
-                for du in range(-max_splat_radius, max_splat_radius + 1):
-                    if du == 0 and dv == 0:
-                        continue
-                    uu, vv = u_b + du, v_b + dv  # (M,)
-                    ok = (max(abs(du), abs(dv)) <= r_b) & (uu >= 0) & (uu < width)
-                    ok &= (vv >= 0) & (vv < height)
-                    buffer.scatter_reduce_(0, torch.where(ok, vv * width + uu, dump), k_b, "amin")
+    if max_splat_radius > 0 and cloud.size is not None:
+        _splat_wide(
+            buffer, cloud.size, u, v, z, keys, intrinsics, width, height, max_splat_radius, near
+        )
     return buffer[:dump]
+
+
+def _splat_wide(
+    buffer: torch.Tensor,
+    size: torch.Tensor,
+    u: torch.Tensor,
+    v: torch.Tensor,
+    z: torch.Tensor,
+    keys: torch.Tensor,
+    intrinsics: np.ndarray,
+    width: int,
+    height: int,
+    max_radius: int,
+    near: float,
+) -> None:
+    """Fill pixels that the one-pixel pass left empty (or saw through) with wider splats.
+
+    A point's footprint is ``f = fx * size / z`` pixels; it covers the square of radius
+    ``ceil((f - 0.9) / 2)`` (capped at ``max_radius``): radius 1 as soon as the camera is about
+    as close as the source camera was, where the one-pixel pass leaves cracks. Only pixels with
+    no direct hit take a wide splat, so direct hits keep their exact colour; among the wide
+    candidates the z-test still picks the nearest. A direct hit more than
+    ``SEE_THROUGH_MARGIN`` (relative) behind the nearest wide splat on its pixel is replaced by
+    it: that hit is a farther surface seen through a crack of the nearer one.
+    """
+    fx = float(np.asarray(intrinsics, dtype=np.float64)[0])
+    footprint = size * fx / z.clamp(min=near)  # (N,) pixels covered by each point
+    radius = ((footprint - 0.9) * 0.5).ceil().clamp(0, max_radius)  # (N,) float
+    near_side = (z > near) & (radius > 0) & (u >= -max_radius) & (u < width + max_radius)
+    near_side &= (v >= -max_radius) & (v < height + max_radius)
+    big = torch.nonzero(near_side).squeeze(1)  # (M,)
+    if big.numel() == 0:
+        return
+    u_b = u[big].to(torch.int64)  # (M,)
+    v_b = v[big].to(torch.int64)  # (M,)
+    r_b, k_b = radius[big].to(torch.int64), keys[big]  # (M,) each
+    dump = height * width
+    wide = torch.full_like(buffer, EMPTY_KEY)  # (H*W+1,)
+    for dv in range(-max_radius, max_radius + 1):
+        for du in range(-max_radius, max_radius + 1):
+            if du == 0 and dv == 0:
+                continue
+            uu, vv = u_b + du, v_b + dv  # (M,)
+            ok = (r_b >= max(abs(du), abs(dv))) & (uu >= 0) & (uu < width)
+            ok &= (vv >= 0) & (vv < height)
+            wide.scatter_reduce_(0, torch.where(ok, vv * width + uu, dump), k_b, "amin")
+    empty = buffer == EMPTY_KEY  # (H*W+1,)
+    # A direct hit well behind a wide splat is a farther surface seen through a crack of a
+    # nearer one: the nearer surface covers the pixel (see-through removal).
+    _, _, hit_depth = decode_keys(buffer)  # (H*W+1,)
+    wide_hit, _, wide_depth = decode_keys(wide)  # (H*W+1,)
+    see_through = ~empty & wide_hit & (wide_depth < hit_depth * (1.0 - SEE_THROUGH_MARGIN))
+    buffer.copy_(torch.where(empty | see_through, wide, buffer))
 
 
 def decode_keys(keys: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -131,11 +199,22 @@ def decode_keys(keys: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.T
 
     ``index`` and ``depth`` are 0 where ``hit`` is False.
     """
-    hit = keys != _EMPTY  # (P,)
-    safe = torch.where(hit, keys, torch.zeros_like(keys))  # (P,)
+    hit = keys != EMPTY_KEY  # (P,)
+    safe = torch.where(hit, keys, 0)  # (P,)
     index = safe & (MAX_POINTS - 1)  # (P,)
     depth = (safe >> INDEX_BITS).to(torch.int32).view(torch.float32)  # (P,)
     return hit, index, depth
+
+
+def shade(
+    cloud: DeviceCloud, keys: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """One z-buffered frame's ``(rgb (P, 3) uint8, hit (P,) bool, depth (P,) float32)``."""
+    hit, index, depth = decode_keys(keys)  # (P,) each
+    packed = cloud.colours.index_select(0, index)  # (P,) int32 RGBA
+    packed = torch.where(hit, packed, 0)  # (P,) black where nothing landed
+    rgb = packed.view(torch.uint8).view(-1, 4)[:, :3]  # (P, 3)
+    return rgb, hit, depth
 
 
 def render_point_cloud(
@@ -166,10 +245,8 @@ def render_point_cloud(
     _check_inputs(points_world, colours, world_from_cam, intrinsics, height, width, point_size)
     if max_splat_radius < 0:
         raise SplatError(f"max_splat_radius must be >= 0, got {max_splat_radius}")
-    dev = torch.device(device)
-    pts = torch.as_tensor(points_world, dtype=torch.float32, device=dev)  # (N, 3)
-    rgb = torch.as_tensor(colours.astype(np.uint8), device=dev)  # (N, 3)
-    size = None if point_size is None else torch.as_tensor(point_size, device=dev)  # (N,)
+    cloud = to_device_cloud(points_world, colours, point_size, device)
+    dev = cloud.points.device
     cam_from_world = torch.as_tensor(invert_se3(world_from_cam), dtype=torch.float32, device=dev)
     t = len(world_from_cam)
     out_rgb = torch.zeros((t, height * width, 3), dtype=torch.uint8, device=dev)
@@ -177,12 +254,9 @@ def render_point_cloud(
     out_depth = torch.zeros((t, height * width), dtype=torch.float32, device=dev)
     for i in range(t):
         keys = splat_frame(
-            pts, cam_from_world[i], intrinsics, height, width, size, max_splat_radius, near
-        )  # (H*W,)
-        hit, index, depth = decode_keys(keys)  # (H*W,) each
-        out_rgb[i] = rgb[index] * hit[:, None]
-        out_vis[i] = hit
-        out_depth[i] = depth
+            cloud, cam_from_world[i], intrinsics, height, width, max_splat_radius, near
+        )
+        out_rgb[i], out_vis[i], out_depth[i] = shade(cloud, keys)  # (H*W, 3), (H*W,), (H*W,)
     return SplatResult(
         rgb=out_rgb.reshape(t, height, width, 3).cpu().numpy(),
         visible=out_vis.reshape(t, height, width).cpu().numpy(),

@@ -54,7 +54,8 @@ class WorldRenderer:
         uv = pixel_grid(height, width).reshape(-1, 2)  # (H*W, 2)
         self.dirs_cam = np.stack(
             [(uv[:, 0] - cx) / fx, (uv[:, 1] - cy) / fy, np.ones(len(uv))], axis=1
-        )  # (H*W, 3)
+        ).astype(np.float32)  # (H*W, 3)
+        self._dirs_cam_t = np.ascontiguousarray(self.dirs_cam.T)  # (3, H*W) for fast rotation
         self.intrinsics = np.asarray(intrinsics, dtype=np.float64)
         self.height, self.width = height, width
         self.scene = scene
@@ -65,17 +66,49 @@ class WorldRenderer:
         self.num_background = len(scene.background)
         if any(not np.array_equal(b.pose, np.eye(4)) for b in scene.background):
             raise ValueError("background bodies must be modelled in world coordinates")
-        # All textures in one flat atlas; the extra last entry serves rays that hit nothing.
-        images = [b.texture.image.reshape(-1, 3) for b in self.bodies]
-        self._atlas = np.concatenate([*images, np.zeros((1, 3), np.uint8)])  # (sum S*S + 1, 3)
-        self._tex_offset = np.cumsum([0] + [len(im) for im in images]).astype(np.int64)
-        self._tex_size = np.array([b.texture.image.shape[0] for b in self.bodies] + [1])
-        self._tex_centre = self._tex_size // 2  # surface origin at the texture's centre: no seam
+        self._fx = float(self.intrinsics[0])
+        self._pyramids = [_mip_pyramid(b.texture.image) for b in self.bodies]
+        self._tex_centre = np.array([b.texture.image.shape[0] // 2 for b in self.bodies] + [0])
         self._tex_scale = np.array(
             [1.0 / b.texture.texel_size for b in self.bodies] + [1.0], dtype=np.float32
         )
         # Ray-casting scenes by object poses: the most recent two (initial and current poses).
         self._scenes: dict[bytes, o3d.t.geometry.RaycastingScene] = {}
+
+    def _sample(
+        self, body: np.ndarray, u: np.ndarray, v: np.ndarray, lod: np.ndarray
+    ) -> np.ndarray:
+        """Filtered texture colour ``(n, 3)`` float32 in [0, 255] at level-0 texel ``(u, v)``.
+
+        Bilinear (``cv2.remap``, wrapping) within the nearest mip level of ``lod`` (log2 of the
+        pixel footprint in texels); the sentinel body ``len(self.bodies)`` samples black.
+        """
+        out = np.zeros((len(body), 3), np.float32)
+        level = np.rint(lod).astype(np.int64)  # (n,)
+        for b, pyramid in enumerate(self._pyramids):
+            idx = np.flatnonzero(body == b)
+            if not len(idx):
+                continue
+            lev = np.clip(level[idx], 0, len(pyramid) - 1)  # (m,)
+            for k in np.unique(lev):
+                sel = idx[lev == k] if len(pyramid) > 1 else idx
+                inv = np.float32(2.0**-k)
+                # cv2.remap wants maps under 32767 rows: lay the m samples out in rows of 1024.
+                m = len(sel)
+                rows = -(-m // 1024)
+                map_x = np.zeros(rows * 1024, np.float32)
+                map_y = np.zeros(rows * 1024, np.float32)
+                map_x[:m] = u[sel] * inv - 0.5  # texel centres sit at integers for cv2
+                map_y[:m] = v[sel] * inv - 0.5
+                sampled = cv2.remap(
+                    pyramid[k],
+                    map_x.reshape(rows, 1024),
+                    map_y.reshape(rows, 1024),
+                    cv2.INTER_LINEAR,
+                    borderMode=cv2.BORDER_WRAP,
+                )  # (rows, 1024, 3)
+                out[sel] = sampled.reshape(-1, 3)[:m]
+        return out
 
     def _static_scene(self, object_poses: np.ndarray) -> o3d.t.geometry.RaycastingScene:
         """Ray-casting scene of background plus objects at ``object_poses (N, 4, 4)``."""
@@ -94,10 +127,11 @@ class WorldRenderer:
 
     def rays(self, world_from_cam: np.ndarray, index: np.ndarray | None = None) -> np.ndarray:
         """World rays ``(n, 6)`` float32 for all pixels or the flat pixel ``index``."""
-        dirs = self.dirs_cam if index is None else self.dirs_cam[index]
-        dirs_world = dirs @ world_from_cam[:3, :3].T  # (n, 3)
-        origin = np.broadcast_to(world_from_cam[:3, 3], dirs_world.shape)
-        return np.concatenate([origin, dirs_world], axis=1).astype(np.float32)
+        dirs_t = self._dirs_cam_t if index is None else self._dirs_cam_t[:, index]  # (3, n)
+        rays = np.empty((dirs_t.shape[1], 6), np.float32)
+        rays[:, :3] = world_from_cam[:3, 3]
+        rays[:, 3:] = (world_from_cam[:3, :3].astype(np.float32) @ dirs_t).T  # (n, 3)
+        return rays
 
     def render_static(
         self, world_from_cam: np.ndarray, object_poses: np.ndarray, rays: np.ndarray | None = None
@@ -126,11 +160,12 @@ class WorldRenderer:
         a = np.where(axis == 0, local[:, 1], local[:, 0])  # tri-planar surface coordinates
         b = np.where(axis == 2, local[:, 1], local[:, 2])
         scale = self._tex_scale[body]  # (H*W,) texels per metre
-        size = self._tex_size[body]  # (H*W,)
-        col = np.floor(a * scale).astype(np.int64) + self._tex_centre[body]
-        col += 97 * axis  # a different patch of the texture per face direction
-        row = np.floor(b * scale).astype(np.int64) + self._tex_centre[body]
-        albedo = self._atlas[self._tex_offset[body] + (row % size) * size + col % size]  # (n, 3)
+        u = a * scale + self._tex_centre[body] + 97 * axis  # (n,) level-0 texel coordinates;
+        v = b * scale + self._tex_centre[body]  # a different patch per face direction
+        # Pixel footprint on the surface in level-0 texels picks the mip level (no aliasing).
+        cos = np.abs(np.sum(normals * dirs, axis=1)) / np.linalg.norm(dirs, axis=1)
+        footprint = np.where(found, depth, 1.0) / self._fx / np.maximum(cos, 0.25) * scale
+        albedo = self._sample(body, u, v, np.log2(np.maximum(footprint, 1.0)))  # (n, 3)
         shade = _shade(normals, dirs) * (1.0 / 255.0)  # (H*W,)
         rgb = np.where(found[:, None], albedo * shade[:, None], 0.0).astype(np.float32)
         ids = np.where(found, body, -1).astype(np.int16)
@@ -192,6 +227,15 @@ class WorldRenderer:
             shade = _shade(hit["primitive_normals"].numpy()[ok], rays[ok, 3:])
             rgb[sel] = colours[part] * shade[:, None]
         return Layer(rgb.reshape(h, w, 3), depth.reshape(h, w), ids.reshape(h, w))
+
+
+def _mip_pyramid(image: np.ndarray) -> list[np.ndarray]:
+    """Box-filtered mip levels of a square texture, down to 1x1 (level ``l`` is 2**l coarser)."""
+    levels = [np.ascontiguousarray(image)]
+    while levels[-1].shape[0] > 1 and levels[-1].shape[1] > 1:
+        h, w = levels[-1].shape[:2]
+        levels.append(cv2.resize(levels[-1], (w // 2, h // 2), interpolation=cv2.INTER_AREA))
+    return levels
 
 
 def to_uint8(rgb: np.ndarray) -> np.ndarray:

@@ -1,0 +1,129 @@
+"""Evaluation metrics: PSNR, SSIM, Plücker-ray camera error, and LPIPS when weights exist locally.
+
+Videos are uint8 arrays (..., H, W, 3) or float arrays in [0, data_range]. Cameras follow the
+project convention (OpenCV axes, ``world_from_cam`` 4x4, ``intrinsics = (fx, fy, cx, cy)``,
+pixel centres at integer + 0.5; see ``egosim.pipeline.geometry``).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch.nn import functional as F  # noqa: N812 (the universal torch alias)
+
+from egosim.model.errors import ModelConfigError
+from egosim.pipeline.geometry import intrinsics_matrix, pixel_grid
+
+
+def _as_float(x: np.ndarray | torch.Tensor) -> torch.Tensor:
+    return torch.as_tensor(np.asarray(x)).double()
+
+
+def psnr(
+    pred: np.ndarray | torch.Tensor, target: np.ndarray | torch.Tensor, data_range: float = 255.0
+) -> float:
+    """Peak signal-to-noise ratio in dB over all elements (inf when identical)."""
+    a, b = _as_float(pred), _as_float(target)
+    if a.shape != b.shape:
+        raise ModelConfigError(f"psnr: shapes differ, got {tuple(a.shape)} and {tuple(b.shape)}")
+    mse = float(torch.mean((a - b) ** 2))
+    return float("inf") if mse == 0 else 10.0 * float(np.log10(data_range**2 / mse))
+
+
+def ssim(
+    pred: np.ndarray | torch.Tensor, target: np.ndarray | torch.Tensor, data_range: float = 255.0
+) -> float:
+    """Mean SSIM (Wang et al. 2004: 11x11 Gaussian window, sigma 1.5, K1 0.01, K2 0.03).
+
+    Inputs (..., H, W, C) or (..., H, W); computed per channel and image, averaged; the window
+    is applied 'valid' (no padding), as in the reference implementation.
+    """
+    a, b = _as_float(pred), _as_float(target)
+    if a.shape != b.shape:
+        raise ModelConfigError(f"ssim: shapes differ, got {tuple(a.shape)} and {tuple(b.shape)}")
+    if a.ndim == 2:
+        a, b = a[..., None], b[..., None]
+    h, w, c = a.shape[-3:]
+    if min(h, w) < 11:
+        raise ModelConfigError(f"ssim needs frames of at least 11x11 pixels, got {h}x{w}")
+    a = a.reshape(-1, h, w, c).permute(0, 3, 1, 2).reshape(-1, 1, h, w)  # (N*C, 1, H, W)
+    b = b.reshape(-1, h, w, c).permute(0, 3, 1, 2).reshape(-1, 1, h, w)
+    x = torch.arange(11, dtype=torch.float64) - 5.0
+    g = torch.exp(-(x**2) / (2 * 1.5**2))
+    g = g / g.sum()
+    win = (g[:, None] * g[None, :]).view(1, 1, 11, 11)
+    mu_a, mu_b = F.conv2d(a, win), F.conv2d(b, win)
+    s_aa = F.conv2d(a * a, win) - mu_a**2
+    s_bb = F.conv2d(b * b, win) - mu_b**2
+    s_ab = F.conv2d(a * b, win) - mu_a * mu_b
+    c1, c2 = (0.01 * data_range) ** 2, (0.03 * data_range) ** 2
+    num = (2 * mu_a * mu_b + c1) * (2 * s_ab + c2)
+    den = (mu_a**2 + mu_b**2 + c1) * (s_aa + s_bb + c2)
+    return float((num / den).mean())
+
+
+def plucker_rays(
+    intrinsics: np.ndarray, world_from_cam: np.ndarray, height: int, width: int
+) -> np.ndarray:
+    """Per-pixel Plücker coordinates (T, H, W, 6) = (d, c x d) with unit world direction d.
+
+    intrinsics: (4,) or (T, 4) ``(fx, fy, cx, cy)``; world_from_cam: (T, 4, 4).
+    ``d = normalise(R K^-1 [u, v, 1])`` at pixel centres, ``c`` the camera centre.
+    """
+    poses = np.asarray(world_from_cam, dtype=np.float64).reshape(-1, 4, 4)  # (T, 4, 4)
+    k = np.asarray(intrinsics, dtype=np.float64).reshape(-1, 4)
+    k = np.broadcast_to(k, (poses.shape[0], 4))  # (T, 4)
+    uv1 = np.concatenate([pixel_grid(height, width), np.ones((height, width, 1))], axis=-1)
+    rays = []
+    for kt, pose in zip(k, poses, strict=True):
+        d_cam = uv1 @ np.linalg.inv(intrinsics_matrix(kt)).T  # (H, W, 3)
+        d = d_cam @ pose[:3, :3].T  # (H, W, 3) world directions
+        d = d / np.linalg.norm(d, axis=-1, keepdims=True)
+        m = np.cross(np.broadcast_to(pose[:3, 3], d.shape), d)  # (H, W, 3) moment c x d
+        rays.append(np.concatenate([d, m], axis=-1))  # (H, W, 6)
+    return np.stack(rays)
+
+
+def camera_error(
+    intrinsics: np.ndarray,
+    world_from_cam_a: np.ndarray,
+    world_from_cam_b: np.ndarray,
+    height: int,
+    width: int,
+) -> float:
+    """Cam-ERR: mean over frames and pixels of the L2 distance between Plücker embeddings.
+
+    Both sequences use the same intrinsics; poses must be expressed in one world frame (align
+    and scale them first when they come from separate reconstructions).
+    """
+    a = plucker_rays(intrinsics, world_from_cam_a, height, width)
+    b = plucker_rays(intrinsics, world_from_cam_b, height, width)
+    if a.shape != b.shape:
+        raise ModelConfigError(f"camera_error: {a.shape[0]} vs {b.shape[0]} frames")
+    return float(np.linalg.norm(a - b, axis=-1).mean())
+
+
+def lpips_distance(
+    pred: np.ndarray, target: np.ndarray, weights: str | Path | None = None
+) -> float | None:
+    """LPIPS (AlexNet) when the ``lpips`` package and its weights are available locally, else None.
+
+    Nothing is downloaded: ``weights`` must point at a local ``alex.pth`` (LPIPS linear layers)
+    and torchvision's AlexNet weights must already be cached; otherwise the metric is skipped.
+    """
+    try:
+        import lpips  # type: ignore[import-not-found]
+    except ImportError:
+        return None
+    if weights is None or not Path(weights).is_file():
+        return None
+    try:
+        model = lpips.LPIPS(net="alex", pretrained=True, model_path=str(weights), verbose=False)
+    except Exception:  # backbone weights not cached locally: skip rather than download
+        return None
+    a = torch.as_tensor(np.asarray(pred)).float().permute(0, 3, 1, 2) / 127.5 - 1
+    b = torch.as_tensor(np.asarray(target)).float().permute(0, 3, 1, 2) / 127.5 - 1
+    with torch.no_grad():
+        return float(model(a, b).mean())

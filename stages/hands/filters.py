@@ -1,0 +1,183 @@
+"""Hand detection filters of the paper (Sec. 3.3.3): frame-wise de-duplication, temporal outliers.
+
+De-duplication: in each frame, every detection's 21 joints are projected with the clip's camera
+to a 2D box; detections whose boxes overlap with IoU above a threshold are linked, linked
+detections are grouped by breadth-first search, each group keeps its most confident detection,
+and then each side keeps its most confident survivor.
+
+Temporal outliers: a hand's position is the mean of its joints in *camera* coordinates; a frame
+whose incoming and outgoing speeds (``|p_t - p_{t-1}| * fps`` and ``|p_{t+1} - p_t| * fps``) both
+exceed ``max_speed`` is dropped. Frames without a valid neighbour on both sides are kept (they
+cannot be tested); a spike lasting two or more frames is not caught by this test.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+
+from egosim.pipeline.geometry import invert_se3, project_world_points, transform_points
+
+
+class HandFilterError(ValueError):
+    """Filter inputs disagree (shapes, frame counts) or are unusable (NaN poses)."""
+
+
+@dataclass
+class Detections:
+    """Up to ``K`` hand detections per frame (padded; ``present`` says which slots hold one)."""
+
+    joints: np.ndarray  # (T, K, 21, 3) float64 world metres
+    side: np.ndarray  # (T, K) int 0 = left, 1 = right
+    confidence: np.ndarray  # (T, K, 21) float per-joint confidence in [0, 1]
+    present: np.ndarray  # (T, K) bool slot holds a detection
+
+    def check(self, num_frames: int) -> None:
+        """Raise :class:`HandFilterError` when the arrays disagree with each other."""
+        t, k = self.present.shape
+        problems = []
+        if t != num_frames:
+            problems.append(f"detections cover {t} frames, the clip has {num_frames}")
+        if self.joints.shape != (t, k, 21, 3):
+            problems.append(f"joints shape {self.joints.shape} != ({t}, {k}, 21, 3)")
+        if self.side.shape != (t, k) or self.confidence.shape != (t, k, 21):
+            problems.append(f"side {self.side.shape} / confidence {self.confidence.shape} bad")
+        if problems:
+            raise HandFilterError("; ".join(problems))
+
+
+def box_iou(a: np.ndarray, b: np.ndarray) -> float:
+    """IoU of two boxes ``(u0, v0, u1, v1)`` in pixels; 0 when either is empty."""
+    iw = min(a[2], b[2]) - max(a[0], b[0])
+    ih = min(a[3], b[3]) - max(a[1], b[1])
+    if iw <= 0 or ih <= 0:
+        return 0.0
+    inter = iw * ih
+    union = (a[2] - a[0]) * (a[3] - a[1]) + (b[2] - b[0]) * (b[3] - b[1]) - inter
+    return float(inter / union) if union > 0 else 0.0
+
+
+def joint_boxes(
+    joints: np.ndarray, world_from_cam: np.ndarray, intrinsics: np.ndarray
+) -> np.ndarray:
+    """2D boxes ``(K, 4)`` of ``joints (K, 21, 3)`` world metres seen by one camera.
+
+    A box spans the joints in front of the camera; NaN when fewer than two joints are.
+    """
+    uv, _ = project_world_points(joints, world_from_cam, intrinsics)  # (K, 21, 2)
+    boxes = np.full((len(joints), 4), np.nan)
+    for i, pts in enumerate(uv):
+        ok = np.all(np.isfinite(pts), axis=1)
+        if ok.sum() >= 2:
+            boxes[i] = [*pts[ok].min(axis=0), *pts[ok].max(axis=0)]
+    return boxes
+
+
+def deduplicate(
+    det: Detections,
+    world_from_cam: np.ndarray,
+    intrinsics: np.ndarray,
+    iou_threshold: float = 0.5,
+) -> tuple[Detections, int]:
+    """Drop duplicate detections frame by frame; returns ``(kept detections, number dropped)``.
+
+    Groups are the connected components (breadth-first search) of the graph linking detections
+    whose projected boxes have IoU > ``iou_threshold``; each group keeps its most confident
+    member (mean joint confidence), then each side keeps its most confident survivor.
+    """
+    present = det.present.copy()
+    mean_conf = det.confidence.mean(axis=2)  # (T, K)
+    for t in range(present.shape[0]):
+        idx = np.flatnonzero(present[t])
+        if len(idx) < 2:
+            continue
+        boxes = joint_boxes(det.joints[t, idx], world_from_cam[t], intrinsics)  # (M, 4)
+        seen = np.zeros(len(idx), dtype=bool)
+        survivors = []
+        for start in range(len(idx)):
+            if seen[start]:
+                continue
+            group, queue = [], deque([start])
+            seen[start] = True
+            while queue:
+                i = queue.popleft()
+                group.append(i)
+                for j in range(len(idx)):
+                    if not seen[j] and _linked(boxes[i], boxes[j], iou_threshold):
+                        seen[j] = True
+                        queue.append(j)
+            survivors.append(max(group, key=lambda g: mean_conf[t, idx[g]]))
+        best_per_side: dict[int, int] = {}
+        for g in survivors:
+            side = int(det.side[t, idx[g]])
+            if (
+                side not in best_per_side
+                or mean_conf[t, idx[g]] > mean_conf[t, best_per_side[side]]
+            ):
+                best_per_side[side] = idx[g]
+        keep = set(best_per_side.values())
+        for i in idx:
+            present[t, i] = i in keep
+    removed = int(det.present.sum() - present.sum())
+    return Detections(det.joints, det.side, det.confidence, present), removed
+
+
+def _linked(a: np.ndarray, b: np.ndarray, threshold: float) -> bool:
+    if np.isnan(a).any() or np.isnan(b).any():
+        return False
+    return box_iou(a, b) > threshold
+
+
+def to_hands(det: Detections) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One detection per side per frame: ``(joints (T, 2, 21, 3), valid (T, 2), conf (T, 2, 21))``.
+
+    Raises :class:`HandFilterError` if a frame still has two detections of one side (run
+    :func:`deduplicate` first). Joints of invalid hands are NaN, confidences 0.
+    """
+    t = det.present.shape[0]
+    joints = np.full((t, 2, 21, 3), np.nan)
+    valid = np.zeros((t, 2), dtype=bool)
+    conf = np.zeros((t, 2, 21), dtype=np.float32)
+    for f, k in zip(*np.nonzero(det.present), strict=True):
+        side = int(det.side[f, k])
+        if valid[f, side]:
+            raise HandFilterError(f"frame {f} has two {('left', 'right')[side]} hands")
+        joints[f, side], valid[f, side], conf[f, side] = (
+            det.joints[f, k],
+            True,
+            det.confidence[f, k],
+        )
+    return joints, valid, conf
+
+
+def temporal_outliers(
+    joints: np.ndarray,
+    valid: np.ndarray,
+    world_from_cam: np.ndarray,
+    fps: float,
+    max_speed: float = 2.5,
+) -> np.ndarray:
+    """``(T, 2)`` True where a hand-frame is a bidirectional spike (see the module docstring).
+
+    ``joints (T, 2, 21, 3)`` world metres, ``valid (T, 2)``, ``world_from_cam (T, 4, 4)``,
+    ``max_speed`` metres per second in camera space.
+    """
+    t = joints.shape[0]
+    if world_from_cam.shape != (t, 4, 4) or valid.shape != (t, 2):
+        raise HandFilterError(
+            f"{t} frames of joints, poses {world_from_cam.shape}, valid {valid.shape}"
+        )
+    cam_from_world = invert_se3(world_from_cam)  # (T, 4, 4)
+    centre = np.stack(
+        [transform_points(cam_from_world[f], joints[f]).mean(axis=1) for f in range(t)]
+    )  # (T, 2, 3) hand centres in camera metres
+    out = np.zeros((t, 2), dtype=bool)
+    if t < 3:
+        return out
+    speed = np.linalg.norm(np.diff(centre, axis=0), axis=-1) * fps  # (T-1, 2)
+    both_valid = valid[:-1] & valid[1:]  # (T-1, 2) speed defined
+    fast = both_valid & (speed > max_speed)  # (T-1, 2)
+    out[1:-1] = fast[:-1] & fast[1:] & valid[1:-1]
+    return out

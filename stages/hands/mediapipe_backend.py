@@ -1,0 +1,370 @@
+"""Backend ``mediapipe``: MediaPipe Hands 2D landmarks lifted to 3D world joints.
+
+Steps, for one clip:
+
+1. **Detect** (:func:`detect_landmarks`): ``mediapipe.solutions.hands.Hands`` in video (tracking)
+   mode (``static_image_mode=False``), which finds far more hands on egocentric video than
+   per-image mode. Per frame up to two hands: 21 image landmarks (pixels), 21 world landmarks
+   (metres, about the hand's centre, camera-aligned axes, an average-hand size prior) and a
+   handedness label with its score.
+2. **Sides** (:func:`assign_sides`): MediaPipe's labels assume a mirrored (selfie) image, so on
+   egocentric video its "Left" is the real right hand, and the labels flip now and then. Detections
+   are linked into tracks (nearest centroid frame to frame); each track takes one side from its
+   swapped labels' summed scores plus an image-position vote (left half = left hand); two tracks
+   at the same time never share a side (the one further right becomes the right hand).
+3. **Bridge and smooth** (:func:`bridge_and_smooth`): gaps of up to ``max_gap`` frames inside a
+   track are filled by linear interpolation (lower confidence), then image and world landmarks
+   are smoothed over time with a Gaussian of ``smooth_sigma`` frames (landmarks jitter by a few
+   percent of the hand's size frame to frame).
+4. **Lift** (:func:`lift_to_camera`): the world landmarks are translated so that their projection
+   fits the 2D landmarks (linear least squares), then scaled about the camera centre (which keeps
+   that projection) so that their median depth equals the median depth observed under the 2D
+   landmarks; without depth the size prior of the world landmarks sets the distance. Then to world
+   with ``world_from_cam``.
+
+:func:`mediapipe_hands` runs all of it; :func:`mediapipe_detections` wraps it for the stage.
+MediaPipe is imported lazily: install it as ``make setup`` does (``--no-deps mediapipe==0.10.21``).
+"""
+
+from __future__ import annotations
+
+import itertools
+import warnings
+from dataclasses import dataclass
+
+import numpy as np
+
+from egosim.pipeline.geometry import transform_points
+from egosim.pipeline.records import LEFT, NUM_HAND_JOINTS, RIGHT, Clip
+from egosim.stages.hands.filters import Detections
+
+BRIDGED_CONFIDENCE_FACTOR = 0.5  # confidence of interpolated frames relative to detected ones
+MIDDLE_MCP = 9  # joint index of the middle finger's knuckle (hand size: wrist to it)
+
+
+class MediaPipeUnavailableError(ImportError):
+    """``mediapipe`` is not installed (install it as ``make setup`` does)."""
+
+
+@dataclass(frozen=True)
+class MediaPipeParams:
+    """Knobs of the MediaPipe backend."""
+
+    video_mode: bool = True  # tracking mode (False: every frame detected on its own)
+    min_detection_confidence: float = 0.3  # palm detector threshold
+    min_tracking_confidence: float = 0.5  # below it the tracker re-runs the palm detector
+    model_complexity: int = 1  # landmark model: 0 lite, 1 full
+    max_gap: int = 4  # frames of a track's gap filled by interpolation
+    smooth_sigma: float = 1.0  # Gaussian smoothing of landmarks over time, in frames; 0 = none
+    link_distance: float = 0.6  # max centroid jump between linked detections, in hand sizes
+    position_weight: float = 0.5  # weight of the image-position side vote vs the labels
+    swap_labels: bool = True  # egocentric video: MediaPipe's "Left" is the real right hand
+
+
+@dataclass
+class RawLandmarks:
+    """MediaPipe's output for a clip, up to ``K = 2`` detections per frame, unordered."""
+
+    uv: np.ndarray  # (T, K, 21, 2) float64 pixels (u right, v down)
+    world: np.ndarray  # (T, K, 21, 3) float64 metres about the hand's centre
+    label_right: np.ndarray  # (T, K) float64 score that this is the real right hand, in [0, 1]
+    present: np.ndarray  # (T, K) bool
+
+
+@dataclass
+class SideLandmarks:
+    """Landmarks per side (slot 0 = left, 1 = right)."""
+
+    uv: np.ndarray  # (T, 2, 21, 2) float64 pixels, NaN where absent
+    world: np.ndarray  # (T, 2, 21, 3) float64 metres, NaN where absent
+    confidence: np.ndarray  # (T, 2) float64 in [0, 1], 0 where absent
+    present: np.ndarray  # (T, 2) bool detected or bridged
+    detected: np.ndarray  # (T, 2) bool detected (not bridged)
+
+
+def _import_mediapipe():
+    try:
+        import mediapipe as mp
+    except ImportError as exc:
+        raise MediaPipeUnavailableError(
+            "the mediapipe backend needs mediapipe==0.10.21 (pip install --no-deps "
+            "mediapipe==0.10.21 absl-py flatbuffers attrs matplotlib 'protobuf>=5.29.6,<6')"
+        ) from exc
+    return mp
+
+
+def detect_landmarks(frames: np.ndarray, params: MediaPipeParams | None = None) -> RawLandmarks:
+    """Run MediaPipe Hands on ``frames (T, H, W, 3)`` uint8 RGB, in order."""
+    params = params or MediaPipeParams()
+    mp = _import_mediapipe()
+    t, h, w = frames.shape[:3]
+    out = RawLandmarks(
+        uv=np.full((t, 2, NUM_HAND_JOINTS, 2), np.nan),
+        world=np.full((t, 2, NUM_HAND_JOINTS, 3), np.nan),
+        label_right=np.full((t, 2), 0.5),
+        present=np.zeros((t, 2), dtype=bool),
+    )
+    with mp.solutions.hands.Hands(
+        static_image_mode=not params.video_mode,
+        max_num_hands=2,
+        model_complexity=params.model_complexity,
+        min_detection_confidence=params.min_detection_confidence,
+        min_tracking_confidence=params.min_tracking_confidence,
+    ) as hands:
+        for i in range(t):
+            result = hands.process(np.ascontiguousarray(frames[i]))
+            if not result.multi_hand_landmarks:
+                continue
+            triples = zip(
+                result.multi_hand_landmarks,
+                result.multi_hand_world_landmarks,
+                result.multi_handedness,
+                strict=True,
+            )
+            for k, (image_lm, world_lm, handedness) in enumerate(list(triples)[:2]):
+                out.uv[i, k] = [(p.x * w, p.y * h) for p in image_lm.landmark]
+                out.world[i, k] = [(p.x, p.y, p.z) for p in world_lm.landmark]
+                cls = handedness.classification[0]
+                says_right = cls.label == "Right"
+                is_right = says_right != params.swap_labels
+                out.label_right[i, k] = cls.score if is_right else 1.0 - cls.score
+                out.present[i, k] = True
+    return out
+
+
+def hand_size(uv: np.ndarray) -> np.ndarray:
+    """Hand size ``(...,)`` in pixels: the diagonal of the landmarks' box, ``uv (..., 21, 2)``."""
+    return np.linalg.norm(uv.max(axis=-2) - uv.min(axis=-2), axis=-1)
+
+
+def _centres(uv: np.ndarray) -> np.ndarray:
+    """Mean over joints of ``uv (T, K, 21, 2)`` -> ``(T, K, 2)``, NaN for absent slots."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN slots
+        return np.nanmean(uv, axis=2)
+
+
+def _tracks(raw: RawLandmarks, params: MediaPipeParams) -> list[list[tuple[int, int]]]:
+    """Link detections ``(frame, slot)`` into tracks by nearest centroid, across short gaps."""
+    centre = _centres(raw.uv)  # (T, K, 2)
+    size = hand_size(raw.uv)  # (T, K)
+    tracks: list[list[tuple[int, int]]] = []
+    open_tracks: list[int] = []  # indices into tracks still extendable
+    for f in range(raw.present.shape[0]):
+        dets = [k for k in np.flatnonzero(raw.present[f])]
+        candidates = []
+        for ti in open_tracks:
+            lf, lk = tracks[ti][-1]
+            if f - lf > params.max_gap + 1:
+                continue
+            for k in dets:
+                dist = np.linalg.norm(centre[f, k] - centre[lf, lk])
+                limit = params.link_distance * max(size[lf, lk], size[f, k]) * (f - lf)
+                if dist <= limit:
+                    candidates.append((dist, ti, k))
+        used_t: set[int] = set()
+        used_k: set[int] = set()
+        for _, ti, k in sorted(candidates):
+            if ti in used_t or k in used_k:
+                continue
+            tracks[ti].append((f, k))
+            used_t.add(ti)
+            used_k.add(k)
+        for k in dets:
+            if k not in used_k:
+                tracks.append([(f, k)])
+        open_tracks = [ti for ti, tr in enumerate(tracks) if f - tr[-1][0] <= params.max_gap + 1]
+    return tracks
+
+
+def assign_sides(
+    raw: RawLandmarks, width: int, params: MediaPipeParams | None = None
+) -> np.ndarray:
+    """Side per detection ``(T, K)`` int (0 left, 1 right, -1 none); see the module docstring."""
+    params = params or MediaPipeParams()
+    centre_u = _centres(raw.uv)[..., 0]  # (T, K)
+    side = np.full(raw.present.shape, -1, dtype=int)
+    tracks = _tracks(raw, params)
+    votes = []
+    for tr in tracks:
+        f, k = np.array(tr).T
+        label_vote = float(np.sum(2.0 * raw.label_right[f, k] - 1.0))  # > 0: right
+        position_vote = float(np.sum(np.clip(2.0 * centre_u[f, k] / width - 1.0, -1, 1)))
+        votes.append(label_vote + params.position_weight * position_vote)
+    # Longest tracks choose first; a side already taken in any shared frame goes to the other.
+    taken = np.zeros((raw.present.shape[0], 2), dtype=bool)  # (T, 2)
+    for ti in sorted(range(len(tracks)), key=lambda i: -len(tracks[i])):
+        f, k = np.array(tracks[ti]).T
+        want = RIGHT if votes[ti] > 0 else LEFT
+        other = 1 - want
+        for s in (want, other):
+            if not taken[f, s].any():
+                side[f, k] = s
+                taken[f, s] = True
+                break
+        else:  # both sides taken somewhere: per frame, the free side nearest its preference
+            for fi, ki in zip(f, k, strict=True):
+                for s in (want, other):
+                    if not taken[fi, s]:
+                        side[fi, ki] = s
+                        taken[fi, s] = True
+                        break
+    # Two hands in a frame: the one further right in the image is the right hand.
+    both = (side == LEFT).any(axis=1) & (side == RIGHT).any(axis=1)
+    for f in np.flatnonzero(both):
+        kl, kr = int(np.flatnonzero(side[f] == LEFT)[0]), int(np.flatnonzero(side[f] == RIGHT)[0])
+        if centre_u[f, kl] > centre_u[f, kr]:
+            side[f, kl], side[f, kr] = RIGHT, LEFT
+    return side
+
+
+def _gaussian_smooth(values: np.ndarray, ok: np.ndarray, sigma: float) -> np.ndarray:
+    """Smooth ``values (T, ...)`` over time within runs of ``ok (T,)``, edges renormalised."""
+    if sigma <= 0:
+        return values
+    radius = int(np.ceil(3 * sigma))
+    kernel = np.exp(-0.5 * (np.arange(-radius, radius + 1) / sigma) ** 2)  # (2r+1,)
+    out = values.copy()
+    t = len(values)
+    for f in np.flatnonzero(ok):
+        lo, hi = max(0, f - radius), min(t, f + radius + 1)
+        window = np.arange(lo, hi)
+        # Stay within the contiguous run around f.
+        run = ok[lo:hi].copy()
+        rel = f - lo
+        breaks = np.flatnonzero(~run)
+        if breaks.size:
+            left = breaks[breaks < rel]
+            right = breaks[breaks > rel]
+            run[: (left.max() + 1) if left.size else 0] = False
+            if right.size:
+                run[right.min() :] = False
+        wts = kernel[window - f + radius] * run  # (n,)
+        picked = np.nan_to_num(values[window[run]])  # frames outside the run have weight 0
+        out[f] = np.tensordot(wts[run] / wts[run].sum(), picked, axes=1)
+    return out
+
+
+def bridge_and_smooth(
+    raw: RawLandmarks, side: np.ndarray, params: MediaPipeParams | None = None
+) -> SideLandmarks:
+    """Per-side landmarks with gaps of ``max_gap`` frames bridged and jitter smoothed."""
+    params = params or MediaPipeParams()
+    t = raw.present.shape[0]
+    uv = np.full((t, 2, NUM_HAND_JOINTS, 2), np.nan)
+    world = np.full((t, 2, NUM_HAND_JOINTS, 3), np.nan)
+    conf = np.zeros((t, 2))
+    detected = np.zeros((t, 2), dtype=bool)
+    for f, k in zip(*np.nonzero(side >= 0), strict=True):
+        s = side[f, k]
+        uv[f, s], world[f, s], detected[f, s] = raw.uv[f, k], raw.world[f, k], True
+        # Detection confidence: how clearly the labels agree with the assigned side.
+        conf[f, s] = 0.5 + abs(raw.label_right[f, k] - 0.5)
+    present = detected.copy()
+    for s in range(2):
+        idx = np.flatnonzero(detected[:, s])
+        for a, b in itertools.pairwise(idx):
+            if 1 < b - a <= params.max_gap + 1:
+                for f in range(a + 1, b):
+                    w = (f - a) / (b - a)
+                    uv[f, s] = (1 - w) * uv[a, s] + w * uv[b, s]
+                    world[f, s] = (1 - w) * world[a, s] + w * world[b, s]
+                    conf[f, s] = BRIDGED_CONFIDENCE_FACTOR * min(conf[a, s], conf[b, s])
+                    present[f, s] = True
+        uv[:, s] = _gaussian_smooth(uv[:, s], present[:, s], params.smooth_sigma)
+        world[:, s] = _gaussian_smooth(world[:, s], present[:, s], params.smooth_sigma)
+    return SideLandmarks(uv, world, conf, present, detected)
+
+
+def depth_under(depth: np.ndarray, uv: np.ndarray) -> float:
+    """Median positive depth ``depth (H, W)`` at the pixels of ``uv (N, 2)``; NaN if none."""
+    h, w = depth.shape
+    cols = np.clip(np.floor(uv[:, 0]).astype(int), 0, w - 1)
+    rows = np.clip(np.floor(uv[:, 1]).astype(int), 0, h - 1)
+    values = depth[rows, cols]  # (N,)
+    values = values[np.isfinite(values) & (values > 0)]
+    return float(np.median(values)) if values.size else float("nan")
+
+
+def lift_to_camera(
+    uv: np.ndarray,
+    world_landmarks: np.ndarray,
+    intrinsics: np.ndarray,
+    observed_depth: float | None = None,
+    weights: np.ndarray | None = None,
+) -> np.ndarray:
+    """Camera joints ``(21, 3)`` from 2D ``uv (21, 2)`` and metric ``world_landmarks (21, 3)``.
+
+    Finds the translation ``t`` minimising the (depth-weighted) reprojection error of
+    ``world_landmarks + t`` in closed form: for each joint ``x_n (W_z + t_z) = W_x + t_x`` and
+    likewise for y, with ``x_n = (u - cx) / fx``. Then, when ``observed_depth`` (metres) is given,
+    scales the points about the camera centre so that their median depth equals it; the scaling
+    keeps every projection.
+    """
+    fx, fy, cx, cy = np.asarray(intrinsics, dtype=np.float64)
+    x_n = (uv[:, 0] - cx) / fx  # (21,)
+    y_n = (uv[:, 1] - cy) / fy  # (21,)
+    n = len(uv)
+    a = np.zeros((2 * n, 3))
+    b = np.zeros(2 * n)
+    a[:n, 0], a[:n, 2], b[:n] = 1.0, -x_n, x_n * world_landmarks[:, 2] - world_landmarks[:, 0]
+    a[n:, 1], a[n:, 2], b[n:] = 1.0, -y_n, y_n * world_landmarks[:, 2] - world_landmarks[:, 1]
+    if weights is not None:
+        wts = np.sqrt(np.concatenate([weights, weights]))  # (2N,)
+        a, b = a * wts[:, None], b * wts
+    t, *_ = np.linalg.lstsq(a, b, rcond=None)  # (3,)
+    points = world_landmarks + t  # (21, 3)
+    if observed_depth is not None and np.isfinite(observed_depth) and observed_depth > 0:
+        median_z = float(np.median(points[:, 2]))
+        if median_z > 0:
+            points = points * (observed_depth / median_z)
+    return points
+
+
+@dataclass
+class MediaPipeResult:
+    """World joints per side, and what MediaPipe saw (for diagnostics and tests)."""
+
+    joints: np.ndarray  # (T, 2, 21, 3) float64 world metres, NaN where invalid
+    valid: np.ndarray  # (T, 2) bool
+    confidence: np.ndarray  # (T, 2, 21) float64 in [0, 1]
+    landmarks: SideLandmarks  # smoothed per-side 2D/3D landmarks
+    raw: RawLandmarks  # unordered detections as MediaPipe gave them
+
+
+def mediapipe_hands(
+    frames: np.ndarray,
+    intrinsics: np.ndarray,
+    world_from_cam: np.ndarray | None = None,
+    depth: np.ndarray | None = None,
+    params: MediaPipeParams | None = None,
+) -> MediaPipeResult:
+    """Detect, assign sides, bridge, smooth and lift hands in one clip.
+
+    ``frames (T, H, W, 3)`` uint8 RGB, ``intrinsics (4,)``, ``world_from_cam (T, 4, 4)`` (None:
+    joints stay in camera coordinates), ``depth (T, H, W)`` metres with 0 = unknown (None: the
+    world landmarks' size prior sets the distance).
+    """
+    params = params or MediaPipeParams()
+    raw = detect_landmarks(frames, params)
+    side = assign_sides(raw, frames.shape[2], params)
+    lm = bridge_and_smooth(raw, side, params)
+    t = frames.shape[0]
+    joints = np.full((t, 2, NUM_HAND_JOINTS, 3), np.nan)
+    for f, s in zip(*np.nonzero(lm.present), strict=True):
+        observed = depth_under(depth[f], lm.uv[f, s]) if depth is not None else None
+        points_cam = lift_to_camera(lm.uv[f, s], lm.world[f, s], intrinsics, observed)
+        if world_from_cam is not None:
+            points_cam = transform_points(world_from_cam[f], points_cam)  # now world
+        joints[f, s] = points_cam
+    valid = lm.present & np.all(np.isfinite(joints), axis=(2, 3))
+    conf = np.repeat(np.where(valid, lm.confidence, 0.0)[..., None], NUM_HAND_JOINTS, axis=2)
+    return MediaPipeResult(joints, valid, conf, lm, raw)
+
+
+def mediapipe_detections(clip: Clip, params: MediaPipeParams | None = None) -> Detections:
+    """The stage's detections (``K = 2``, slot = side) from a decoded clip with poses."""
+    res = mediapipe_hands(clip.frames, clip.intrinsics, clip.world_from_cam, clip.depth, params)
+    side = np.tile(np.array([LEFT, RIGHT]), (clip.num_frames, 1))  # (T, 2)
+    joints = np.where(res.valid[..., None, None], res.joints, 0.0)
+    return Detections(joints=joints, side=side, confidence=res.confidence, present=res.valid)

@@ -1,0 +1,132 @@
+"""The ``hands`` stage: 3D hand joints per frame, de-duplicated and de-spiked.
+
+Backend ``given`` reads the clip's own joint labels (synthetic world, EgoDex); ``mediapipe``
+detects hands in the frames and lifts them to 3D (:mod:`egosim.stages.hands.mediapipe_backend`);
+``hamer`` imports HaMeR outputs (:mod:`egosim.stages.hands.hamer_backend`). The filters of
+:mod:`egosim.stages.hands.filters` run on every backend's detections: frame-wise
+de-duplication (projected joint boxes, IoU, breadth-first grouping, most confident per side) and
+temporal outlier removal (bidirectional speed test in camera space). Camera poses come from the
+clips row (``world_from_cam``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any, ClassVar, Literal
+
+import numpy as np
+
+from egosim.pipeline.clip_io import clip_from_row
+from egosim.pipeline.geometry import se3_problems
+from egosim.pipeline.stage import ClipRejected, ClipStage, ConfigError, StageConfig
+from egosim.schemas import CLIPS, ShardSchema
+from egosim.schemas.hands import HANDS
+from egosim.stages.hands.filters import (
+    Detections,
+    HandFilterError,
+    deduplicate,
+    temporal_outliers,
+    to_hands,
+)
+from egosim.stages.hands.given import NoHandLabelsError, given_detections
+from egosim.stages.hands.hamer_backend import HamerFileError, hamer_detections
+from egosim.stages.hands.mediapipe_backend import MediaPipeParams, mediapipe_detections
+
+
+@dataclasses.dataclass(frozen=True)
+class HandsConfig(StageConfig):
+    """Parameters of ``hands``."""
+
+    backend: Literal["given", "mediapipe", "hamer"] = "given"  # labels, MediaPipe or HaMeR files
+    hamer_dir: str = ""  # backend hamer: folder of <clip_id>.npz HaMeR outputs
+    mediapipe_video_mode: bool = True  # backend mediapipe: tracking mode (False: per image)
+    iou_threshold: float = 0.5  # boxes overlapping more than this are the same hand
+    max_speed: float = 2.5  # m/s in camera space; above it both ways = temporal outlier
+    despike: bool = True  # run the temporal outlier test
+
+    def __post_init__(self) -> None:
+        problems = []
+        if not 0.0 < self.iou_threshold < 1.0:
+            problems.append(f"iou_threshold must be in (0, 1), got {self.iou_threshold}")
+        if not (np.isfinite(self.max_speed) and self.max_speed > 0):
+            problems.append(f"max_speed must be > 0 m/s, got {self.max_speed}")
+        if self.backend == "hamer" and not self.hamer_dir:
+            problems.append("backend 'hamer' needs hamer_dir (a folder of <clip_id>.npz files)")
+        if problems:
+            raise ConfigError("; ".join(problems))
+
+
+def _detections(row: Mapping[str, Any], config: HandsConfig) -> Detections:
+    """Dispatch to the configured backend (mediapipe/hamer decode the row into a clip)."""
+    if config.backend == "given":
+        return given_detections(row)
+    clip = clip_from_row(row)
+    if config.backend == "mediapipe":
+        return mediapipe_detections(clip, MediaPipeParams(video_mode=config.mediapipe_video_mode))
+    return hamer_detections(clip, Path(config.hamer_dir) / f"{clip.clip_id}.npz")
+
+
+def clean_hands(
+    row: Mapping[str, Any], config: HandsConfig
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, int, int]:
+    """Run the backend and both filters on one clips row.
+
+    Returns ``(joints (T, 2, 21, 3), valid (T, 2), confidence (T, 2, 21), duplicates removed,
+    outliers removed)``; raises :class:`ClipRejected` naming the clip when it cannot.
+    """
+    cid = row["clip_id"]
+    t = int(row["num_frames"])
+    if row.get("world_from_cam") is None:
+        raise ClipRejected(f"clip {cid!r}: no camera poses (world_from_cam is null)")
+    poses = np.asarray(row["world_from_cam"], dtype=np.float64).reshape(-1, 4, 4)  # (T, 4, 4)
+    problems = se3_problems(poses)
+    if len(poses) != t:
+        problems.append(f"{len(poses)} poses for {t} frames")
+    if problems:
+        raise ClipRejected(f"clip {cid!r}: world_from_cam: " + "; ".join(problems))
+    intrinsics = np.asarray(row["intrinsics"], dtype=np.float64)
+    try:
+        det = _detections(row, config)
+        det.check(t)
+        det, dups = deduplicate(det, poses, intrinsics, config.iou_threshold)
+        joints, valid, conf = to_hands(det)
+        outliers = 0
+        if config.despike:
+            spikes = temporal_outliers(joints, valid, poses, float(row["fps"]), config.max_speed)
+            valid &= ~spikes
+            joints[spikes] = np.nan
+            conf[spikes] = 0.0
+            outliers = int(spikes.sum())
+    except (NoHandLabelsError, HandFilterError, HamerFileError) as exc:
+        raise ClipRejected(f"clip {cid!r}: {exc}") from exc
+    return joints, valid, conf, dups, outliers
+
+
+class HandsStage(ClipStage):
+    """3D hand joints per frame, de-duplicated and with temporal outliers removed."""
+
+    name = "hands"
+    description = "3D hand joints per frame from the clip's labels, de-duplicated and de-spiked"
+    config_class = HandsConfig
+    inputs: ClassVar[Mapping[str, ShardSchema]] = {"clips": CLIPS}
+    output = HANDS
+    backends = ("given", "mediapipe", "hamer")
+    config: HandsConfig
+
+    def process(self, rows: Mapping[str, Mapping[str, Any]]) -> dict[str, Any]:
+        """Clean the joints of one clip."""
+        row = rows["clips"]
+        t = int(row["num_frames"])
+        joints, valid, conf, dups, outliers = clean_hands(row, self.config)
+        return {
+            "clip_id": row["clip_id"],
+            "num_frames": t,
+            "backend": self.config.backend,
+            "hand_joints": joints.astype(np.float32).reshape(t, -1).tolist(),
+            "hand_valid": valid.tolist(),
+            "hand_confidence": conf.astype(np.float32).reshape(t, -1).tolist(),
+            "num_duplicates_removed": dups,
+            "num_outliers_removed": outliers,
+        }

@@ -1,0 +1,1 @@
+"""The ``inpaint`` stage: remove hands from a clip's first frame."""

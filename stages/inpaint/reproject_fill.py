@@ -1,0 +1,146 @@
+"""Fill the hand pixels of frame 0 from later frames reprojected through depth and pose.
+
+Method (backward warping, needs depth of frame 0 only):
+
+1. The surface behind the hand in frame 0 is unknown, so frame 0's depth inside the (dilated)
+   hand mask is replaced by an OpenCV (Telea) inpainting of the depth around it: a smooth
+   continuation of the table and objects the hand covers.
+2. Each masked pixel is lifted to 3D with that depth and projected into every later frame
+   (``world_from_cam`` and the intrinsics, with the shared geometry). A frame may fill a pixel
+   when the projection lands inside the image on a pixel that is not hand in that frame (its own
+   mask, dilated). When that frame's depth is known, the depth found there must also agree with
+   the predicted depth within ``depth_tolerance`` (relative): a moved object or an occluder is
+   rejected.
+3. Frames are tried by increasing time gap (closest first: least object motion and lighting
+   change); a pixel takes its colour (bilinear) from the first frame that may fill it.
+4. What no frame saw is filled by OpenCV inpainting (Telea) from the result.
+
+The result records, per pixel, the fill source (0 original, 1 reprojected, 2 OpenCV) and the
+frame index its colour came from.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from egosim.pipeline.geometry import (
+    invert_se3,
+    project_points,
+    transform_points,
+    unproject_depth,
+)
+from egosim.schemas.inpaint import FILL_OPENCV, FILL_ORIGINAL, FILL_REPROJECTED
+
+
+class InpaintInputError(ValueError):
+    """Frames, masks, depth or poses given to the fill disagree in shape or values."""
+
+
+@dataclass(frozen=True)
+class FillResult:
+    """A hand-free frame and where each pixel came from."""
+
+    image: np.ndarray  # (H, W, 3) uint8 RGB
+    fill_source: np.ndarray  # (H, W) uint8 codes FILL_* (0 original, 1 reprojected, 2 OpenCV)
+    source_frame: np.ndarray  # (H, W) uint16 frame index of each pixel's colour
+    filled: np.ndarray  # (H, W) bool pixels that were replaced (the dilated hand mask)
+
+
+def dilate(mask: np.ndarray, pixels: int) -> np.ndarray:
+    """Dilate a ``(H, W)`` or ``(T, H, W)`` 0/1 mask by a disk of radius ``pixels``."""
+    if pixels <= 0:
+        return mask.astype(np.uint8)
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * pixels + 1, 2 * pixels + 1))
+    if mask.ndim == 3:
+        return np.stack([cv2.dilate(m.astype(np.uint8), kernel) for m in mask])
+    return cv2.dilate(mask.astype(np.uint8), kernel)
+
+
+def opencv_fill(image: np.ndarray, mask: np.ndarray, radius: float = 5.0) -> np.ndarray:
+    """OpenCV Telea inpainting of ``image (H, W, 3)`` RGB where ``mask (H, W)`` is 1."""
+    bgr = cv2.cvtColor(image, cv2.COLOR_RGB2BGR)
+    out = cv2.inpaint(bgr, mask.astype(np.uint8), radius, cv2.INPAINT_TELEA)
+    return cv2.cvtColor(out, cv2.COLOR_BGR2RGB)
+
+
+def reproject_fill(
+    frames: np.ndarray,
+    hand_mask: np.ndarray,
+    depth0: np.ndarray,
+    world_from_cam: np.ndarray,
+    intrinsics: np.ndarray,
+    depth: np.ndarray | None = None,
+    dilate_px: int = 2,
+    depth_tolerance: float = 0.05,
+    inpaint_radius: float = 5.0,
+) -> FillResult:
+    """Remove the hand from ``frames[0]``; see the module docstring.
+
+    ``frames (T, H, W, 3)`` uint8 RGB, ``hand_mask (T, H, W)`` 1 = hand, ``depth0 (H, W)``
+    metres (0 = unknown), ``world_from_cam (T, 4, 4)``, ``intrinsics (4,)``, optional
+    ``depth (T, H, W)`` of every frame for the agreement test.
+    """
+    t, h, w = frames.shape[:3]
+    if hand_mask.shape != (t, h, w) or depth0.shape != (h, w) or world_from_cam.shape != (t, 4, 4):
+        raise InpaintInputError(
+            f"shapes disagree: frames {frames.shape}, hand_mask {hand_mask.shape}, depth0 "
+            f"{depth0.shape}, world_from_cam {world_from_cam.shape}"
+        )
+    masks = dilate(hand_mask > 0, dilate_px)  # (T, H, W)
+    target = masks[0] > 0  # (H, W) pixels to fill
+    image = frames[0].copy()
+    fill_source = np.zeros((h, w), np.uint8)
+    source_frame = np.zeros((h, w), np.uint16)
+    if not target.any():
+        return FillResult(image, fill_source, source_frame, target)
+    # 1. Depth behind the hand: inpaint frame 0's depth over the hand and unknown pixels.
+    unknown = (target | ~(depth0 > 0)).astype(np.uint8)
+    known_depth = depth0[unknown == 0]
+    if known_depth.size == 0:
+        raise InpaintInputError("frame 0 has no known depth outside the hand")
+    d0 = np.where(unknown > 0, 0.0, depth0).astype(np.float32)
+    d0 = cv2.inpaint(d0, unknown, inpaint_radius, cv2.INPAINT_TELEA)  # (H, W)
+    d0 = np.where(d0 > 0, d0, float(np.median(known_depth)))
+    # 2. Lift the masked pixels of frame 0 to the world.
+    ys, xs = np.nonzero(target)  # (M,)
+    points_cam0 = unproject_depth(d0, intrinsics)[ys, xs]  # (M, 3)
+    points_world = transform_points(world_from_cam[0], points_cam0)  # (M, 3)
+    todo = np.ones(len(ys), bool)  # (M,) still unfilled
+    colours = np.zeros((len(ys), 3), np.float64)
+    for k in range(1, t):  # 3. closest frames first
+        if not todo.any():
+            break
+        idx = np.nonzero(todo)[0]
+        cam_from_world = invert_se3(world_from_cam[k])
+        uv, z = project_points(transform_points(cam_from_world, points_world[idx]), intrinsics)
+        x = uv[:, 0] - 0.5  # (m,) OpenCV coordinates: pixel centre of column 0 is 0
+        y = uv[:, 1] - 0.5
+        ok = np.isfinite(x) & np.isfinite(y) & (x >= 0) & (x <= w - 1) & (y >= 0) & (y <= h - 1)
+        xi = np.clip(np.round(np.nan_to_num(x)).astype(int), 0, w - 1)
+        yi = np.clip(np.round(np.nan_to_num(y)).astype(int), 0, h - 1)
+        ok &= masks[k][yi, xi] == 0
+        if depth is not None:
+            seen = depth[k][yi, xi].astype(np.float64)
+            ok &= (seen <= 0) | (np.abs(seen - z) <= depth_tolerance * np.maximum(z, 1e-6))
+        if not ok.any():
+            continue
+        map_x = x[ok].astype(np.float32).reshape(-1, 1)
+        map_y = y[ok].astype(np.float32).reshape(-1, 1)
+        sampled = cv2.remap(frames[k], map_x, map_y, cv2.INTER_LINEAR, cv2.BORDER_REPLICATE)
+        colours[idx[ok]] = sampled.reshape(-1, 3)
+        source_frame[ys[idx[ok]], xs[idx[ok]]] = k
+        todo[idx[ok]] = False
+    done = ~todo
+    image[ys[done], xs[done]] = np.clip(np.round(colours[done]), 0, 255).astype(np.uint8)
+    fill_source[ys[done], xs[done]] = FILL_REPROJECTED
+    # 4. OpenCV for what no frame saw.
+    unseen = np.zeros((h, w), np.uint8)
+    unseen[ys[todo], xs[todo]] = 1
+    if unseen.any():
+        image = opencv_fill(image, unseen, inpaint_radius)
+        fill_source[unseen > 0] = FILL_OPENCV
+    fill_source[~target] = FILL_ORIGINAL
+    return FillResult(image, fill_source, source_frame, target)

@@ -1,0 +1,88 @@
+"""The ``keypoint_render`` stage: 2D keypoints, visibility and the skeleton video of each clip.
+
+Reads the ``clips`` row (intrinsics, ``world_from_cam``, size, fps) and the clip's ``hands``
+row; projects with :func:`egosim.stages.keypoint_render.draw.project_hands` (the clip's own
+camera: the same model as ``scene_render``) and draws the skeleton on black.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Mapping
+from typing import Any, ClassVar, Literal
+
+import numpy as np
+
+from egosim.pipeline import media
+from egosim.pipeline.geometry import se3_problems
+from egosim.pipeline.stage import ClipRejected, ClipStage, ConfigError, StageConfig
+from egosim.schemas import CLIPS, ShardSchema
+from egosim.schemas.hands import HANDS
+from egosim.schemas.keypoints import KEYPOINTS
+from egosim.stages.keypoint_render.draw import draw_skeleton_video, project_hands
+
+
+@dataclasses.dataclass(frozen=True)
+class KeypointRenderConfig(StageConfig):
+    """Parameters of ``keypoint_render``."""
+
+    variant: Literal["hand", "gripper"] = "hand"  # all 21 joints, or thumb + index chains
+    line_width_px: float = 3.0  # bone width in pixels at 0.5 m depth (scaled by 0.5 / depth)
+    near: float = 0.01  # joints closer than this camera z (metres) are not projected
+    crf: int = 18  # H.264 quality of the skeleton video
+
+    def __post_init__(self) -> None:
+        problems = []
+        if not 0.5 <= self.line_width_px <= 32:
+            problems.append(f"line_width_px must be in [0.5, 32], got {self.line_width_px}")
+        if not (np.isfinite(self.near) and self.near > 0):
+            problems.append(f"near must be > 0 metres, got {self.near}")
+        if not 0 <= self.crf <= 51:
+            problems.append(f"crf must be in [0, 51], got {self.crf}")
+        if problems:
+            raise ConfigError("; ".join(problems))
+
+
+class KeypointRenderStage(ClipStage):
+    """Project the cleaned joints with the clip's camera and draw the skeleton video."""
+
+    name = "keypoint_render"
+    description = "project hand joints with the clip's K and poses; draw the skeleton video"
+    config_class = KeypointRenderConfig
+    inputs: ClassVar[Mapping[str, ShardSchema]] = {"clips": CLIPS, "hands": HANDS}
+    output = KEYPOINTS
+    backends = ("opencv",)
+    config: KeypointRenderConfig
+
+    def process(self, rows: Mapping[str, Mapping[str, Any]]) -> dict[str, Any]:
+        """Project and draw one clip."""
+        clip, hands = rows["clips"], rows["hands"]
+        cid = clip["clip_id"]
+        t, h, w = int(clip["num_frames"]), int(clip["height"]), int(clip["width"])
+        if int(hands["num_frames"]) != t:
+            raise ClipRejected(f"clip {cid!r}: hands cover {hands['num_frames']} frames, not {t}")
+        if clip.get("world_from_cam") is None:
+            raise ClipRejected(f"clip {cid!r}: no camera poses (world_from_cam is null)")
+        poses = np.asarray(clip["world_from_cam"], dtype=np.float64).reshape(-1, 4, 4)
+        problems = se3_problems(poses)
+        if len(poses) != t:
+            problems.append(f"{len(poses)} poses for {t} frames")
+        if problems:
+            raise ClipRejected(f"clip {cid!r}: world_from_cam: " + "; ".join(problems))
+        joints = np.asarray(hands["hand_joints"], dtype=np.float64).reshape(t, 2, 21, 3)
+        valid = np.asarray(hands["hand_valid"], dtype=bool).reshape(t, 2)
+        cfg = self.config
+        proj = project_hands(joints, valid, poses, np.asarray(clip["intrinsics"]), h, w, cfg.near)
+        video = draw_skeleton_video(proj, h, w, cfg.variant, cfg.line_width_px)
+        return {
+            "clip_id": cid,
+            "num_frames": t,
+            "width": w,
+            "height": h,
+            "fps": float(clip["fps"]),
+            "variant": cfg.variant,
+            "keypoints_2d": proj.uv.astype(np.float32).reshape(t, -1).tolist(),
+            "keypoint_depth": proj.depth.astype(np.float32).reshape(t, -1).tolist(),
+            "keypoint_visible": proj.visible.reshape(t, -1).tolist(),
+            "skeleton_video": media.encode_rgb_video(video, float(clip["fps"]), cfg.crf),
+        }

@@ -1,0 +1,96 @@
+"""The ``scene_render`` stage: render each clip's scene cloud along its trajectory.
+
+Reads the ``clips`` row (poses ``world_from_cam``, intrinsics, size, fps) and the clip's
+``scene_cloud`` row; writes a scene video and a visibility mask video (1 = a scene point landed)
+made by :func:`egosim.stages.scene_render.splat.render_point_cloud`, the same torch code on CPU
+and GPU. Scene and hand conditions share the clips' intrinsics and poses.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Mapping
+from typing import Any, ClassVar
+
+import numpy as np
+
+from egosim.pipeline import media
+from egosim.pipeline.stage import ClipRejected, ClipStage, ConfigError, StageConfig
+from egosim.schemas import CLIPS, ShardSchema
+from egosim.schemas.scene import SCENE_CLOUD, SCENE_RENDER
+from egosim.stages.scene_cloud.stage import cloud_from_row
+from egosim.stages.scene_render.splat import SplatError, render_point_cloud
+
+
+@dataclasses.dataclass(frozen=True)
+class SceneRenderConfig(StageConfig):
+    """Parameters of ``scene_render``."""
+
+    device: str = "cpu"  # torch device of the renderer: "cpu", "cuda", "cuda:1", ...
+    max_splat_radius: int = 2  # widest square splat (pixels each side) for near points; 0 = off
+    near: float = 0.01  # points closer than this camera z (metres) are skipped
+    crf: int = 18  # H.264 quality of the scene video (lower = better, bigger)
+
+    def __post_init__(self) -> None:
+        problems = []
+        if not self.device or self.device.split(":")[0] not in ("cpu", "cuda", "mps", "xpu"):
+            problems.append(f"device must be a torch device string like 'cpu', got {self.device!r}")
+        if not 0 <= self.max_splat_radius <= 8:
+            problems.append(f"max_splat_radius must be in [0, 8], got {self.max_splat_radius}")
+        if not (np.isfinite(self.near) and self.near > 0):
+            problems.append(f"near must be > 0 metres, got {self.near}")
+        if not 0 <= self.crf <= 51:
+            problems.append(f"crf must be in [0, 51], got {self.crf}")
+        if problems:
+            raise ConfigError("; ".join(problems))
+
+
+class SceneRenderStage(ClipStage):
+    """Render the scene cloud along the clip's poses: scene video and visibility mask."""
+
+    name = "scene_render"
+    description = "render the scene cloud along the trajectory: scene video + visibility mask"
+    config_class = SceneRenderConfig
+    inputs: ClassVar[Mapping[str, ShardSchema]] = {"clips": CLIPS, "scene_cloud": SCENE_CLOUD}
+    output = SCENE_RENDER
+    backends = ("torch_splat",)
+    config: SceneRenderConfig
+
+    def process(self, rows: Mapping[str, Mapping[str, Any]]) -> dict[str, Any]:
+        """Render one clip."""
+        clip, cloud_row = rows["clips"], rows["scene_cloud"]
+        cid = clip["clip_id"]
+        t, h, w = int(clip["num_frames"]), int(clip["height"]), int(clip["width"])
+        if clip.get("world_from_cam") is None:
+            raise ClipRejected(f"clip {cid!r}: no camera poses (world_from_cam is null)")
+        poses = np.asarray(clip["world_from_cam"], dtype=np.float64)  # (T, 16)
+        if poses.shape != (t, 16):
+            raise ClipRejected(f"clip {cid!r}: {poses.shape[0]} poses for {t} frames")
+        cloud = cloud_from_row(cloud_row)
+        cfg = self.config
+        try:
+            result = render_point_cloud(
+                cloud.points,
+                cloud.colours,
+                poses.reshape(t, 4, 4),
+                np.asarray(clip["intrinsics"], dtype=np.float64),
+                h,
+                w,
+                point_size=cloud.point_size,
+                max_splat_radius=cfg.max_splat_radius,
+                near=cfg.near,
+                device=cfg.device,
+            )
+        except SplatError as exc:
+            raise ClipRejected(f"clip {cid!r}: {exc}") from exc
+        return {
+            "clip_id": cid,
+            "num_frames": t,
+            "width": w,
+            "height": h,
+            "fps": float(clip["fps"]),
+            "scene_video": media.encode_rgb_video(result.rgb, float(clip["fps"]), cfg.crf),
+            "visible": media.encode_mask_video(result.visible),
+            "visible_fraction": result.visible.reshape(t, -1).mean(axis=1).tolist(),
+            "splat_radius": cfg.max_splat_radius,
+        }

@@ -1,0 +1,157 @@
+"""hands: the given backend and the two filters (duplicates, temporal spikes)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from egosim.pipeline.clip_io import write_clips
+from egosim.pipeline.execute import ShardTask, run_shard_task
+from egosim.pipeline.shards import open_shard
+from egosim.pipeline.stage import ClipRejected
+from egosim.schemas.hands import HANDS
+from egosim.stages.hands.filters import (
+    Detections,
+    box_iou,
+    deduplicate,
+    temporal_outliers,
+    to_hands,
+)
+from egosim.stages.hands.stage import HandsStage
+from egosim.stages.world.camera_path import camera_path
+from egosim.stages.world.clip import hand_joints, render_clip
+from egosim.stages.world.config import WorldConfig
+from egosim.stages.world.interaction import script_interaction
+from egosim.stages.world.scene import build_scene
+
+FPS = 16.0
+K = np.array([300.0, 300.0, 208.0, 120.0])  # 416x240 pinhole
+
+
+@pytest.fixture(scope="module")
+def tracks() -> list[tuple[np.ndarray, np.ndarray]]:
+    """GT joints (T, 2, 21, 3) and poses (T, 4, 4) of two 61-frame synthetic clips."""
+    out = []
+    for seed, mode in ((3, "tabletop"), (4, "wild")):
+        scene = build_scene(seed, False)
+        joints = hand_joints(script_interaction(scene, seed, 61, False))
+        out.append((joints, camera_path(seed, mode, 61, FPS)))
+    return out
+
+
+def _detections(joints: np.ndarray) -> Detections:
+    t = len(joints)
+    return Detections(
+        joints=joints.astype(np.float64),
+        side=np.tile([0, 1], (t, 1)),
+        confidence=np.full((t, 2, 21), 0.9),
+        present=np.ones((t, 2), dtype=bool),
+    )
+
+
+def _add_duplicates(det: Detections, rng: np.random.Generator) -> tuple[Detections, np.ndarray]:
+    """Append two slots per frame: a jittered copy of a real hand, less confident, some with the
+    wrong side label. Returns the new detections and the (T, 4) mask of injected slots."""
+    t = det.present.shape[0]
+    joints = np.concatenate([det.joints, det.joints + rng.normal(0, 0.003, det.joints.shape)], 1)
+    side = np.concatenate([det.side, rng.integers(0, 2, (t, 2))], 1)
+    conf = np.concatenate([det.confidence, np.full((t, 2, 21), 0.5)], 1)
+    present = np.concatenate([det.present, rng.random((t, 2)) < 0.5], 1)
+    injected = np.zeros((t, 4), dtype=bool)
+    injected[:, 2:] = present[:, 2:]
+    return Detections(joints, side, conf, present), injected
+
+
+def test_box_iou() -> None:
+    assert box_iou(np.array([0, 0, 2, 2]), np.array([1, 1, 3, 3])) == pytest.approx(1 / 7)
+    assert box_iou(np.array([0, 0, 1, 1]), np.array([2, 2, 3, 3])) == 0.0
+
+
+def test_duplicates_removed_real_hands_kept(tracks) -> None:
+    rng = np.random.default_rng(0)
+    for joints, poses in tracks:
+        det, injected = _add_duplicates(_detections(joints), rng)
+        kept, removed = deduplicate(det, poses, K, iou_threshold=0.5)
+        assert removed == injected.sum()
+        assert not np.any(kept.present & injected)
+        np.testing.assert_array_equal(kept.present[:, :2], True)
+        out, valid, _ = to_hands(kept)
+        np.testing.assert_array_equal(out, joints)
+        assert valid.all()
+
+
+def test_spikes_removed_few_clean_frames_dropped(tracks) -> None:
+    rng = np.random.default_rng(1)
+    clean_dropped = clean_total = 0
+    for joints, poses in tracks:
+        valid = np.ones((len(joints), 2), dtype=bool)
+        clean = temporal_outliers(joints, valid, poses, FPS, max_speed=2.5)
+        clean_dropped += int(clean.sum())
+        clean_total += clean.size
+        spiked = joints.copy()
+        frames = np.arange(2, len(joints) - 2, 4)  # isolated spikes, never at the ends
+        hands = rng.integers(0, 2, len(frames))
+        offsets = rng.normal(size=(len(frames), 3))
+        offsets *= 0.3 / np.linalg.norm(offsets, axis=1, keepdims=True)  # 30 cm jumps
+        spiked[frames, hands] += offsets[:, None, :]
+        found = temporal_outliers(spiked, valid, poses, FPS, max_speed=2.5)
+        assert found[frames, hands].all()
+        others = found.copy()
+        others[frames, hands] = False
+        assert others.sum() <= 0.01 * others.size
+    assert clean_dropped <= 0.01 * clean_total
+
+
+def test_invalid_neighbours_are_not_tested() -> None:
+    t = 5
+    joints = np.zeros((t, 2, 21, 3))
+    joints[..., 2] = 0.5
+    joints[2, 0] += 1.0
+    poses = np.tile(np.eye(4), (t, 1, 1))
+    valid = np.ones((t, 2), dtype=bool)
+    assert temporal_outliers(joints, valid, poses, FPS)[2, 0]
+    valid[1, 0] = False
+    assert not temporal_outliers(joints, valid, poses, FPS).any()
+
+
+def test_stage_end_to_end(tmp_path: Path) -> None:
+    clip = render_clip(WorldConfig(seed=2, mode="tabletop", height=48, width=80, num_frames=6))
+    good = clip.hand_joints.copy()
+    clip.hand_joints[3, 1] += 0.8  # one spike, right hand, frame 3 (12.8 m/s both ways)
+    clips = tmp_path / "clips.parquet"
+    write_clips(clips, [clip])
+    out = tmp_path / "hands.parquet"
+    result = run_shard_task(
+        ShardTask(
+            step="hands",
+            stage="hands",
+            params={"backend": "given", "max_speed": 6.0},  # 6 frames: a fast script
+            shard_index=0,
+            shard_count=1,
+            output=out,
+            rejects=tmp_path / "hands.rejects.parquet",
+            inputs={"clips": clips},
+        )
+    )
+    assert result.rows == 1 and result.rejected == 0
+    with open_shard(out, HANDS) as reader:
+        row = next(reader.iter_rows())
+    with open_shard(clips) as reader:
+        clip_row = next(reader.iter_rows())
+    valid = np.asarray(row["hand_valid"])
+    joints = np.asarray(row["hand_joints"], dtype=np.float64).reshape(6, 2, 21, 3)
+    assert row["num_outliers_removed"] == 1 and not valid[3, 1]
+    assert np.isnan(joints[3, 1]).all()
+    keep = valid.copy()
+    np.testing.assert_allclose(joints[keep], good[keep], atol=1e-6)
+
+    # Poses that no shard writer accepts still reach process() from other callers: reject them.
+    for damage in ("nan", "scale"):
+        bad = dict(clip_row)
+        poses = np.asarray(bad["world_from_cam"], dtype=np.float64).copy()
+        poses[2, 0] = np.nan if damage == "nan" else 1.5
+        bad["world_from_cam"] = poses.tolist()
+        with pytest.raises(ClipRejected, match=clip.clip_id):
+            HandsStage().process({"clips": bad})

@@ -1,0 +1,151 @@
+"""Tests of the inpaint stage: reprojection fill vs OpenCV, bad input, diffusers adapter, shards."""
+
+from __future__ import annotations
+
+from functools import cache
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from egosim.pipeline import media
+from egosim.pipeline.clip_io import row_from_clip, write_clips
+from egosim.pipeline.execute import ShardTask, run_shard_task
+from egosim.pipeline.records import Clip
+from egosim.pipeline.shards import ShardReader
+from egosim.pipeline.stage import ClipRejected
+from egosim.schemas.inpaint import INPAINT
+from egosim.stages.inpaint.diffusers_backend import (
+    DiffusersInpainter,
+    composite_output,
+    prepare_inputs,
+)
+from egosim.stages.inpaint.reproject_fill import dilate, opencv_fill, reproject_fill
+from egosim.stages.inpaint.stage import InpaintConfig, InpaintStage
+from egosim.stages.world import WorldConfig, render_clip
+
+SEEDS = (0, 1, 3)
+
+
+@cache
+def world_clip(seed: int) -> Clip:
+    """A tiny synthetic clip (cached across the tests of this module)."""
+    return render_clip(WorldConfig(seed=seed, height=96, width=160, num_frames=12))
+
+
+def psnr(a: np.ndarray, b: np.ndarray, mask: np.ndarray) -> float:
+    """PSNR in dB of ``a`` against ``b`` over ``mask`` pixels."""
+    diff = a.astype(np.float64)[mask] - b.astype(np.float64)[mask]
+    return float(10 * np.log10(255.0**2 / max(np.mean(diff**2), 1e-12)))
+
+
+def test_reprojection_beats_opencv_alone() -> None:
+    gains = {}
+    for seed in SEEDS:
+        clip = world_clip(seed)
+        gt = clip.hand_mask[0] > 0
+        result = reproject_fill(
+            clip.frames, clip.hand_mask, clip.depth[0], clip.world_from_cam, clip.intrinsics
+        )
+        baseline = opencv_fill(clip.frames[0], dilate(clip.hand_mask[0], 2))
+        ours = psnr(result.image, clip.first_frame_clean, gt)
+        cv_only = psnr(baseline, clip.first_frame_clean, gt)
+        gains[seed] = (round(ours, 2), round(cv_only, 2), round(ours - cv_only, 2))
+        assert np.all(result.image[~result.filled] == clip.frames[0][~result.filled])
+        assert set(np.unique(result.fill_source[result.filled])) <= {1, 2}
+    mean_gain = float(np.mean([g[2] for g in gains.values()]))
+    # Measured (ours, OpenCV alone, gain dB): 0 (21.98, 17.28, 4.70), 1 (21.86, 17.64, 4.22),
+    # 3 (22.57, 19.21, 3.35); seed 2 gains only 1.3 dB (its forearm covers the same pixels
+    # in every frame).
+    assert mean_gain >= 2.0, f"PSNR gain {mean_gain:.2f} dB; per seed (ours, cv2, gain) {gains}"
+
+
+def test_no_hand_leaves_frame_untouched() -> None:
+    clip = world_clip(0)
+    empty = np.zeros_like(clip.hand_mask)
+    result = reproject_fill(clip.frames, empty, clip.depth[0], clip.world_from_cam, clip.intrinsics)
+    assert np.array_equal(result.image, clip.frames[0]) and not result.filled.any()
+
+
+def _mask_row(clip: Clip, masks: np.ndarray) -> dict:
+    return {"clip_id": clip.clip_id, "hand_mask": media.encode_mask_video(masks)}
+
+
+def test_clip_without_depth_is_rejected() -> None:
+    clip = world_clip(0)
+    row = row_from_clip(Clip(**{**clip.__dict__, "depth": None, "static_depth": None}))
+    with pytest.raises(ClipRejected, match=f"{clip.clip_id}.*no depth"):
+        InpaintStage().process({"clips": row, "hand_mask": _mask_row(clip, clip.hand_mask)})
+
+
+def test_stage_chain_through_shard_tasks(tmp_path: Path) -> None:
+    clips = tmp_path / "clips.parquet"
+    write_clips(clips, [world_clip(0)])
+
+    def task(stage: str, inputs: dict[str, Path]) -> ShardTask:
+        return ShardTask(
+            step=stage,
+            stage=stage,
+            params={},
+            shard_index=0,
+            shard_count=1,
+            output=tmp_path / f"{stage}.parquet",
+            rejects=tmp_path / f"{stage}-rejects.parquet",
+            inputs=inputs,
+        )
+
+    masks = task("hand_mask", {"clips": clips})
+    assert run_shard_task(masks).rows == 1
+    inpaint = task("inpaint", {"clips": clips, "hand_mask": masks.output})
+    result = run_shard_task(inpaint)
+    assert result.rows == 1 and result.rejected == 0
+    with ShardReader(inpaint.output, INPAINT) as reader:
+        row = next(reader.iter_rows())
+    INPAINT.validate_row(row)
+    image = media.decode_png(row["first_frame"])
+    source = media.decode_png(row["fill_source"])
+    assert image.shape == (96, 160, 3) and set(np.unique(source)) <= {0, 1, 2}
+    assert row["reprojected_fraction"] > 0.3
+
+
+def test_opencv_backend_marks_every_fill() -> None:
+    clip = world_clip(0)
+    stage = InpaintStage(InpaintConfig(backend="opencv"))
+    result = stage.fill(clip.frames, clip.hand_mask, None, clip.intrinsics, None)
+    assert np.all(result.fill_source[result.filled] == 2)
+
+
+def test_diffusers_pre_and_post_processing() -> None:
+    image = np.random.default_rng(0).integers(0, 255, (30, 45, 3), dtype=np.uint8)
+    mask = np.zeros((30, 45), np.uint8)
+    mask[5:10, 5:20] = 1
+    pil_image, pil_mask, size = prepare_inputs(image, mask)
+    assert size == (30, 45) and pil_image.size == (48, 32) and pil_mask.size == (48, 32)
+    assert np.asarray(pil_mask)[7, 7] == 255 and np.asarray(pil_mask)[20, 30] == 0
+    out = composite_output(Image.new("RGB", (48, 32), (9, 9, 9)), image, mask)
+    assert np.all(out[mask > 0] == 9) and np.array_equal(out[mask == 0], image[mask == 0])
+
+
+def test_diffusers_adapter_with_a_stand_in_pipeline() -> None:
+    calls = {}
+
+    def pipeline(**kwargs: object) -> SimpleNamespace:
+        calls.update(kwargs)
+        return SimpleNamespace(images=[Image.new("RGB", (48, 32), (200, 0, 0))])
+
+    image = np.zeros((30, 45, 3), np.uint8)
+    mask = np.zeros((30, 45), np.uint8)
+    mask[0:4, 0:4] = 1
+    out = DiffusersInpainter(pipeline=pipeline, prompt="table", steps=2).inpaint(image, mask)
+    assert calls["num_inference_steps"] == 2 and calls["height"] == 32
+    assert out[0, 0].tolist() == [200, 0, 0] and out[20, 20].tolist() == [0, 0, 0]
+
+
+def test_diffusers_backend_loads_from_local_path(tmp_path: Path) -> None:
+    pytest.importorskip("transformers")  # inpainting pipelines need its text encoders
+    from egosim.stages.inpaint.diffusers_backend import DiffusersBackendError
+
+    with pytest.raises(DiffusersBackendError):
+        DiffusersInpainter(str(tmp_path / "missing"))
