@@ -198,6 +198,7 @@ def stages() -> None:
     """List every stage with its backends, input and output schemas and parameters."""
     for name, cls in sorted(registered_stages().items()):
         ins = ", ".join(f"{r}:{s.name}v{s.version}" for r, s in cls.inputs.items()) or "-"
+        ins += "".join(f", [{r}:{s.name}v{s.version}]" for r, s in cls.optional_inputs.items())
         backends = ", ".join(cls.backends) or "-"
         typer.echo(f"{name}: {cls.description}")
         typer.echo(f"  inputs: {ins}  output: {cls.output.name}v{cls.output.version}")

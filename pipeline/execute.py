@@ -154,11 +154,15 @@ def _run_source(
 def _run_clips(
     stage: ClipStage, task: ShardTask, writer: ShardWriter, rejects: list[dict[str, Any]]
 ) -> None:
-    roles = list(stage.inputs)
-    missing = [r for r in roles if r not in task.inputs]
+    schemas = stage.input_schemas()
+    missing = [r for r in stage.inputs if r not in task.inputs]
     if missing:
         raise ValueError(f"stage {stage.name!r} needs input roles {missing}")
-    readers = {role: ShardReader(task.inputs[role], stage.inputs[role]) for role in roles}
+    unknown = [r for r in task.inputs if r not in schemas]
+    if unknown:
+        raise ValueError(f"stage {stage.name!r} has no input roles {unknown}")
+    roles = [r for r in schemas if r in task.inputs]  # required first: the primary is required
+    readers = {role: ShardReader(task.inputs[role], schemas[role]) for role in roles}
     primary, others = roles[0], roles[1:]
     indexes = {role: readers[role].row_group_of() for role in others}
     try:

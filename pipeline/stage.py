@@ -6,6 +6,8 @@ Two kinds of stage (see docs/design.md):
   It lists its units from the run's ``--input``; the runner deals units out to shards.
 - :class:`ClipStage` maps one clip to one output row. It may read several input shards
   (roles, each with a declared schema); rows are joined by ``clip_id`` within the shard index.
+  ``optional_inputs`` are roles a workflow may connect or leave out (e.g. cleaned poses that
+  replace the clip's own); ``process`` gets only the roles that are connected.
 
 A stage raises :class:`ClipRejected` (or any exception) for a clip it cannot process; the
 executor records it in the rejects table and goes on. Stages never import Dask: the executor
@@ -48,6 +50,7 @@ class Stage(ABC):
     description: ClassVar[str]  # one line for `egosim stages`
     config_class: ClassVar[type[StageConfig]] = StageConfig  # frozen parameters dataclass
     inputs: ClassVar[Mapping[str, ShardSchema]] = {}  # input role -> schema it must have
+    optional_inputs: ClassVar[Mapping[str, ShardSchema]] = {}  # roles a workflow may leave out
     output: ClassVar[ShardSchema]  # schema of the output shard
     backends: ClassVar[tuple[str, ...]] = ()  # backend names (first = default)
     version: ClassVar[int] = 1  # bump when outputs change for the same params (re-runs)
@@ -60,6 +63,11 @@ class Stage(ABC):
                 f"stage {self.name!r} needs a {self.config_class.__name__}, "
                 f"got {type(self.config).__name__}"
             )
+
+    @classmethod
+    def input_schemas(cls) -> dict[str, ShardSchema]:
+        """Every input role, required first, then optional, with its schema."""
+        return {**cls.inputs, **cls.optional_inputs}
 
     @classmethod
     def from_params(cls, params: Mapping[str, Any]) -> Stage:

@@ -157,7 +157,7 @@ def _check_edges(steps: dict[str, Step], problems: list[str]) -> None:
             stage_cls = get_stage(step.stage)
         except StageError:
             continue
-        expected = dict(stage_cls.inputs)
+        expected = stage_cls.input_schemas()
         for role, upstream in step.inputs.items():
             if role not in expected:
                 problems.append(
@@ -182,7 +182,7 @@ def _check_edges(steps: dict[str, Step], problems: list[str]) -> None:
                         f"{expected[role].name!r} v{expected[role].version} but step "
                         f"{upstream!r} writes {produced.name!r} v{produced.version}"
                     )
-        missing = [r for r in expected if r not in step.inputs]
+        missing = [r for r in stage_cls.inputs if r not in step.inputs]
         if missing and not issubclass(stage_cls, SourceStage):
             problems.append(f"step {step.name!r}: missing inputs for roles {missing}")
 

@@ -1,0 +1,1 @@
+"""Helpers that several stages share (not a stage; stages may import it)."""

@@ -1,0 +1,77 @@
+"""Which camera a stage uses: cleaned poses beat estimated cameras beat the clip's own.
+
+Stages that need intrinsics, poses or the first frame's depth declare the optional input roles
+below and call :func:`resolve_cameras` / :func:`first_frame_depth` with the rows they were given:
+
+- ``poses`` (schema ``poses``, from ``pose_clean``): cleaned ``world_from_cam``;
+- ``cameras`` (schema ``depth_camera``): estimated intrinsics, poses and frame-0 depth;
+- ``clips``: the source's own intrinsics, poses and depth (synthetic world, EgoDex, MCAP).
+
+One rule for every stage, so the scene condition and the hand condition always use the same
+intrinsics and poses.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from egosim.pipeline import media
+from egosim.pipeline.stage import ClipRejected
+from egosim.schemas import ShardSchema
+from egosim.schemas.depth_camera import DEPTH_CAMERA
+from egosim.schemas.poses import POSES
+
+CAMERA_ROLES: dict[str, ShardSchema] = {"poses": POSES, "cameras": DEPTH_CAMERA}
+
+
+@dataclass(frozen=True)
+class Cameras:
+    """The intrinsics and trajectory a stage should use for one clip."""
+
+    intrinsics: np.ndarray  # (4,) fx, fy, cx, cy in pixels of the stored frames
+    world_from_cam: np.ndarray | None  # (T, 4, 4) camera-to-world, None when nobody has poses
+    source: str  # role the poses came from: "poses", "cameras" or "clips"
+
+
+def _poses(row: Mapping[str, Any], t: int, clip_id: str, role: str) -> np.ndarray:
+    poses = np.asarray(row["world_from_cam"], dtype=np.float64)
+    if poses.shape != (t, 16):
+        raise ClipRejected(
+            f"clip {clip_id!r}: {role} has poses of shape {poses.shape}, expected ({t}, 16)"
+        )
+    return poses.reshape(t, 4, 4)
+
+
+def resolve_cameras(rows: Mapping[str, Mapping[str, Any]]) -> Cameras:
+    """Intrinsics from ``cameras`` else ``clips``; poses from ``poses``, ``cameras``, ``clips``."""
+    clip = rows["clips"]
+    cid, t = clip["clip_id"], int(clip["num_frames"])
+    cams = rows.get("cameras")
+    intrinsics = np.asarray((cams or clip)["intrinsics"], dtype=np.float64)
+    for role in ("poses", "cameras", "clips"):
+        row = rows.get(role)
+        if row is not None and row.get("world_from_cam") is not None:
+            return Cameras(intrinsics, _poses(row, t, cid, role), role)
+    return Cameras(intrinsics, None, "none")
+
+
+def first_frame_depth(rows: Mapping[str, Mapping[str, Any]]) -> np.ndarray | None:
+    """Frame-0 z-depth ``(H, W)`` float32 (0 = unknown): ``cameras`` depth0, else the clip's.
+
+    The clip's static depth (ground truth without hands) is preferred over its plain depth.
+    Returns None when no role has depth.
+    """
+    clip = rows["clips"]
+    cams = rows.get("cameras")
+    if cams is not None and cams.get("depth0") is not None:
+        what = f"clip {clip['clip_id']} depth0"
+        return media.decode_depth_video(cams["depth0"], cams["depth_unit_m"], what)[0]
+    for key in ("static_depth", "depth"):
+        if clip.get(key) is not None:
+            what = f"clip {clip['clip_id']} {key}"
+            return media.decode_depth_video(clip[key], clip["depth_unit_m"], what)[0]
+    return None
