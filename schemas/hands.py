@@ -49,7 +49,11 @@ HANDS = ShardSchema(
     columns=(
         Column("clip_id", pa.string(), "Clip id, joins with the clips shard."),
         Column("num_frames", pa.int32(), "Number of frames T (same as the clip)."),
-        Column("backend", pa.string(), "Where the joints came from: 'given' (clip labels)."),
+        Column(
+            "backend",
+            pa.string(),
+            "Where the joints came from: given (clip labels), mediapipe, hamer.",
+        ),
         Column(
             "hand_joints",
             pa.list_(HAND_JOINTS_PER_FRAME),

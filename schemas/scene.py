@@ -67,8 +67,9 @@ SCENE_CLOUD = ShardSchema(
         Column(
             "image_source",
             pa.string(),
-            "Where colour and depth came from: 'first_frame_clean+static_depth' or "
-            "'frames+depth-hand_mask'.",
+            "Where colour and depth came from, as '<image>+<depth>[-hand_mask]': image one of "
+            "inpaint, first_frame_clean, frames; depth one of depth0 (depth_camera), "
+            "static_depth, depth; '-hand_mask' when hand pixels were left out.",
         ),
         Column(
             "kept_fraction",

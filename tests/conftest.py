@@ -7,9 +7,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from egosim.pipeline import media
 from egosim.pipeline.geometry import intrinsics_from_fov, look_at
 from egosim.pipeline.media import write_video_file
 from egosim.pipeline.records import Clip
+from egosim.pipeline.shards import ShardWriter
+from egosim.schemas.depth_camera import DEPTH_CAMERA
+from egosim.schemas.poses import POSES
 
 SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 
@@ -55,6 +59,63 @@ def make_clip(
         object_poses=np.tile(np.eye(4), (t, 3, 1, 1)),
         text="a hand picks up a box",
     )
+
+
+def translated(world_from_cam: np.ndarray, offset: np.ndarray) -> np.ndarray:
+    """``world_from_cam (T, 4, 4)`` with every camera centre moved by ``offset (3,)`` metres."""
+    out = np.array(world_from_cam, dtype=np.float64)  # (T, 4, 4)
+    out[:, :3, 3] += offset
+    return out
+
+
+def write_poses(path: Path, clip: Clip, world_from_cam: np.ndarray) -> Path:
+    """A one-row ``poses`` shard (as ``pose_clean`` writes) giving ``clip`` these poses."""
+    t = clip.num_frames
+    row = {
+        "clip_id": clip.clip_id,
+        "num_frames": t,
+        "world_from_cam": np.asarray(world_from_cam).reshape(t, 16).tolist(),
+        "outlier_frames": [],
+        "method": "kalman_rts",
+        **dict.fromkeys(("jitter_before_mm", "jitter_after_mm"), 0.0),
+        **dict.fromkeys(("jitter_before_deg", "jitter_after_deg"), 0.0),
+    }
+    with ShardWriter(path, POSES, stage="test") as writer:
+        writer.write_row(row)
+    return path
+
+
+def write_cameras(
+    path: Path,
+    clip: Clip,
+    world_from_cam: np.ndarray,
+    intrinsics: np.ndarray | None = None,
+    depth0: np.ndarray | None = None,
+) -> Path:
+    """A one-row ``depth_camera`` shard for ``clip``; no ``depth0`` means a static camera."""
+    t, h, w = clip.num_frames, clip.height, clip.width
+    k = clip.intrinsics if intrinsics is None else intrinsics
+    static = depth0 is None
+    unit = None if static else media.depth_unit_for(depth0[None])
+    row = {
+        "clip_id": clip.clip_id,
+        "num_frames": t,
+        "width": w,
+        "height": h,
+        "intrinsics": np.asarray(k, dtype=np.float64).tolist(),
+        "world_from_cam": np.asarray(world_from_cam).reshape(t, 16).tolist(),
+        "registered": [True] * t,
+        "static_camera": static,
+        "depth0": None if static else media.encode_depth_video(depth0[None], unit),
+        "depth_unit_m": unit,
+        "confidence0": None if static else media.encode_mask_video(np.full((1, h, w), 255)),
+        "backend": "given",
+        **dict.fromkeys(("reprojection_error_px", "num_points3d", "confident_fraction")),
+        **dict.fromkeys(("depth_source_frames", "seconds")),
+    }
+    with ShardWriter(path, DEPTH_CAMERA, stage="test") as writer:
+        writer.write_row(row)
+    return path
 
 
 @pytest.fixture

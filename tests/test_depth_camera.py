@@ -135,9 +135,18 @@ def test_given_backend_passes_poses_and_depth_through() -> None:
         np.asarray(out["world_from_cam"]).reshape(-1, 4, 4), clip.world_from_cam, atol=1e-12
     )
     depth = media.decode_depth_video(out["depth0"], out["depth_unit_m"])[0]
-    np.testing.assert_allclose(depth, clip.depth[0], atol=2 * row["depth_unit_m"])
+    # The static (hand-free) depth wins over the depth with hands.
+    np.testing.assert_allclose(depth, clip.static_depth[0], atol=2 * row["depth_unit_m"])
     assert out["backend"] == "given" and not out["static_camera"]
     assert out["confident_fraction"] == 1.0
+
+
+def test_auto_backend_uses_given_poses_when_the_clip_has_them() -> None:
+    clip = make_clip(num_frames=5, height=24, width=32)
+    out = DepthCameraStage(DepthCameraConfig(backend="auto")).process(
+        {"clips": row_from_clip(clip)}
+    )
+    assert out["backend"] == "given"
 
 
 def test_given_backend_static_and_missing_poses() -> None:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from functools import cache
 from pathlib import Path
@@ -14,14 +15,15 @@ from egosim.pipeline import media
 from egosim.pipeline.clip_io import row_from_clip, write_clips
 from egosim.pipeline.execute import ShardTask, run_shard_task
 from egosim.pipeline.records import Clip
-from egosim.pipeline.shards import ShardReader
+from egosim.pipeline.shards import ShardReader, ShardWriter
 from egosim.pipeline.stage import ClipRejected, ConfigError
 from egosim.schemas.hand_mask import HAND_MASK
+from egosim.schemas.hands import HANDS
 from egosim.stages.hand_mask.capsules import CapsuleParams, draw_hand, hand_scale_px
 from egosim.stages.hand_mask.sam import build_prompts, mask_box
 from egosim.stages.hand_mask.stage import HandMaskConfig, HandMaskStage
 from egosim.stages.world import WorldConfig, render_clip
-from tests.conftest import shared_data
+from tests.conftest import shared_data, translated, write_poses
 
 SEEDS = (0, 1, 2, 3)
 
@@ -160,3 +162,50 @@ def test_capsules_cover_real_hands() -> None:
             coverages.append(float(mask[sample].mean()))
     assert coverages, "no skin pixels found near any keypoint"
     assert np.mean(coverages) >= 0.8, f"skin-near-keypoint coverage {np.round(coverages, 2)}"
+
+
+def test_stage_uses_connected_hands_and_poses(tmp_path: Path) -> None:
+    clip = render_clip(WorldConfig(seed=0, height=64, width=112, num_frames=6))
+    t = clip.num_frames
+    clips = tmp_path / "clips.parquet"
+    write_clips(clips, [clip])
+    # A hands row that kept only the left hand, and cleaned poses moved by 3 cm.
+    joints = clip.hand_joints.copy()
+    joints[:, 1] = np.nan
+    valid = np.zeros((t, 2), bool)
+    valid[:, 0] = True
+    hands_row = {
+        "clip_id": clip.clip_id,
+        "num_frames": t,
+        "backend": "given",
+        "hand_joints": joints.reshape(t, -1).tolist(),
+        "hand_valid": valid.tolist(),
+        "hand_confidence": valid.repeat(21, axis=1).astype(np.float32).tolist(),  # (T, 42)
+        "num_duplicates_removed": 0,
+        "num_outliers_removed": 0,
+    }
+    hands = tmp_path / "hands.parquet"
+    with ShardWriter(hands, HANDS, stage="test") as writer:
+        writer.write_row(hands_row)
+    moved = translated(clip.world_from_cam, np.array([0.03, 0.0, 0.0]))
+    poses = write_poses(tmp_path / "poses.parquet", clip, moved)
+    params = {"colour_refine": False}
+    task = ShardTask(
+        step="hand_mask",
+        stage="hand_mask",
+        params=params,
+        shard_index=0,
+        shard_count=1,
+        output=tmp_path / "hand_mask.parquet",
+        rejects=tmp_path / "rejects.parquet",
+        inputs={"clips": clips, "hands": hands, "poses": poses},
+    )
+    assert run_shard_task(task).rows == 1
+    with ShardReader(task.output, HAND_MASK) as reader:
+        masks = media.decode_lossless_video(next(reader.iter_rows())["hand_mask"])
+    stage = HandMaskStage(HandMaskConfig(colour_refine=False))
+    left_only = dataclasses.replace(clip, hand_joints=joints, hand_valid=valid)
+    expected = stage.masks_for_clip(dataclasses.replace(left_only, world_from_cam=moved))
+    np.testing.assert_array_equal(masks, expected)
+    assert 0 < masks.sum() < stage.masks_for_clip(clip).sum()  # one hand fewer
+    assert not np.array_equal(masks, stage.masks_for_clip(left_only))  # the camera moved

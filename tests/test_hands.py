@@ -25,6 +25,7 @@ from egosim.stages.world.clip import hand_joints, render_clip
 from egosim.stages.world.config import WorldConfig
 from egosim.stages.world.interaction import script_interaction
 from egosim.stages.world.scene import build_scene
+from tests.conftest import write_poses
 
 FPS = 16.0
 K = np.array([300.0, 300.0, 208.0, 120.0])  # 416x240 pinhole
@@ -155,3 +156,56 @@ def test_stage_end_to_end(tmp_path: Path) -> None:
         bad["world_from_cam"] = poses.tolist()
         with pytest.raises(ClipRejected, match=clip.clip_id):
             HandsStage().process({"clips": bad})
+
+
+def test_stage_projects_with_connected_poses(tmp_path: Path) -> None:
+    clip = render_clip(WorldConfig(seed=2, mode="tabletop", height=48, width=80, num_frames=6))
+    clips = tmp_path / "clips.parquet"
+    write_clips(clips, [clip])
+    # Cleaned poses whose camera leaps 0.8 m at frame 3 and back: in camera space both hands
+    # leap too (12.8 m/s both ways), so the speed test must drop them; the clip's poses do not.
+    leap = clip.world_from_cam.copy()
+    leap[3, :3, 3] += [0.8, 0.0, 0.0]
+    poses = write_poses(tmp_path / "poses.parquet", clip, leap)
+
+    def run(inputs: dict[str, Path], name: str) -> dict:
+        out = tmp_path / f"{name}.parquet"
+        result = run_shard_task(
+            ShardTask(
+                step="hands",
+                stage="hands",
+                params={"backend": "given", "max_speed": 6.0},
+                shard_index=0,
+                shard_count=1,
+                output=out,
+                rejects=tmp_path / f"{name}.rejects.parquet",
+                inputs=inputs,
+            )
+        )
+        assert result.rows == 1
+        with open_shard(out, HANDS) as reader:
+            return next(reader.iter_rows())
+
+    own = run({"clips": clips}, "own")
+    cleaned = run({"clips": clips, "poses": poses}, "cleaned")
+    assert own["num_outliers_removed"] == 0
+    assert cleaned["num_outliers_removed"] == 2
+    assert not np.asarray(cleaned["hand_valid"])[3].any()
+    # The given backend's world joints themselves do not depend on the camera.
+    keep = np.asarray(cleaned["hand_valid"])  # (T, 2)
+    joints = {
+        k: np.asarray(r["hand_joints"]).reshape(6, 2, 21, 3)
+        for k, r in [("c", cleaned), ("o", own)]
+    }
+    np.testing.assert_array_equal(joints["c"][keep], joints["o"][keep])
+
+
+def test_auto_backend_uses_labels_when_the_clip_has_them() -> None:
+    from egosim.pipeline.clip_io import row_from_clip
+    from egosim.stages.hands.stage import HandsConfig, resolved_backend
+    from tests.conftest import make_clip
+
+    row = row_from_clip(make_clip())
+    assert resolved_backend(row, HandsConfig(backend="auto")) == "given"
+    row["hand_joints"] = None
+    assert resolved_backend(row, HandsConfig(backend="auto")) == "mediapipe"

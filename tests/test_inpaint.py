@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from functools import cache
 from pathlib import Path
 from types import SimpleNamespace
@@ -11,11 +12,12 @@ import pytest
 from PIL import Image
 
 from egosim.pipeline import media
-from egosim.pipeline.clip_io import row_from_clip, write_clips
+from egosim.pipeline.clip_io import read_clips, row_from_clip, write_clips
 from egosim.pipeline.execute import ShardTask, run_shard_task
 from egosim.pipeline.records import Clip
-from egosim.pipeline.shards import ShardReader
+from egosim.pipeline.shards import ShardReader, ShardWriter
 from egosim.pipeline.stage import ClipRejected
+from egosim.schemas.hand_mask import HAND_MASK
 from egosim.schemas.inpaint import INPAINT
 from egosim.stages.inpaint.diffusers_backend import (
     DiffusersInpainter,
@@ -25,6 +27,7 @@ from egosim.stages.inpaint.diffusers_backend import (
 from egosim.stages.inpaint.reproject_fill import dilate, opencv_fill, reproject_fill
 from egosim.stages.inpaint.stage import InpaintConfig, InpaintStage
 from egosim.stages.world import WorldConfig, render_clip
+from tests.conftest import translated, write_cameras
 
 SEEDS = (0, 1, 3)
 
@@ -149,3 +152,51 @@ def test_diffusers_backend_loads_from_local_path(tmp_path: Path) -> None:
 
     with pytest.raises(DiffusersBackendError):
         DiffusersInpainter(str(tmp_path / "missing"))
+
+
+def test_stage_takes_depth_and_cameras_from_connected_roles(tmp_path: Path) -> None:
+    gt = render_clip(WorldConfig(seed=0, height=64, width=112, num_frames=8))
+    clip = dataclasses.replace(gt, depth=None, static_depth=None)  # a real video's clip row
+    clips = tmp_path / "clips.parquet"
+    write_clips(clips, [clip])
+    hand_mask = tmp_path / "hand_mask.parquet"
+    with ShardWriter(hand_mask, HAND_MASK, stage="test") as writer:
+        writer.write_row(
+            {
+                "clip_id": clip.clip_id,
+                "num_frames": clip.num_frames,
+                "width": clip.width,
+                "height": clip.height,
+                "hand_mask": media.encode_mask_video(gt.hand_mask),
+                "coverage": gt.hand_mask.reshape(clip.num_frames, -1).mean(1).tolist(),
+                "backend": "keypoints",
+            }
+        )
+    moved = translated(gt.world_from_cam, np.array([0.2, -0.1, 0.05]))  # same relative motion
+    cameras = write_cameras(tmp_path / "cameras.parquet", clip, moved, depth0=gt.depth[0])
+
+    def run(inputs: dict[str, Path], name: str) -> tuple[int, int]:
+        task = ShardTask(
+            step="inpaint",
+            stage="inpaint",
+            params={},
+            shard_index=0,
+            shard_count=1,
+            output=tmp_path / f"{name}.parquet",
+            rejects=tmp_path / f"{name}-rejects.parquet",
+            inputs=inputs,
+        )
+        result = run_shard_task(task)
+        return result.rows, result.rejected
+
+    assert run({"clips": clips, "hand_mask": hand_mask}, "own") == (0, 1)  # no depth
+    assert run({"clips": clips, "hand_mask": hand_mask, "cameras": cameras}, "cams") == (1, 0)
+    with ShardReader(tmp_path / "cams.parquet", INPAINT) as reader:
+        row = next(reader.iter_rows())
+    with ShardReader(cameras) as reader:
+        cam_row = next(reader.iter_rows())
+    depth0 = media.decode_depth_video(cam_row["depth0"], cam_row["depth_unit_m"])[0]
+    decoded = next(read_clips(clips))
+    expected = reproject_fill(decoded.frames, gt.hand_mask, depth0, moved, gt.intrinsics)
+    np.testing.assert_array_equal(media.decode_png(row["first_frame"]), expected.image)
+    assert row["reprojected_fraction"] > 0.3

@@ -19,6 +19,7 @@ from egosim.stages.keypoint_render.draw import (
 )
 from egosim.stages.world.clip import render_clip
 from egosim.stages.world.config import WorldConfig
+from tests.conftest import translated, write_cameras, write_poses
 
 H, W, T = 64, 112, 6
 
@@ -100,23 +101,24 @@ def test_finger_colours_and_depth_scaled_width() -> None:
     assert gripper.any()
 
 
+def task(stage: str, out: Path, inputs: dict, params: dict) -> ShardTask:
+    """A one-shard task of ``stage`` writing ``out``."""
+    return ShardTask(
+        step=stage,
+        stage=stage,
+        params=params,
+        shard_index=0,
+        shard_count=1,
+        output=out,
+        rejects=out.with_suffix(".rejects.parquet"),
+        inputs=inputs,
+    )
+
+
 def test_stage_end_to_end(world_clip, tmp_path: Path) -> None:
     clips = tmp_path / "clips.parquet"
     write_clips(clips, [world_clip])
     hands = tmp_path / "hands.parquet"
-
-    def task(stage: str, out: Path, inputs: dict, params: dict) -> ShardTask:
-        return ShardTask(
-            step=stage,
-            stage=stage,
-            params=params,
-            shard_index=0,
-            shard_count=1,
-            output=out,
-            rejects=out.with_suffix(".rejects.parquet"),
-            inputs=inputs,
-        )
-
     run_shard_task(task("hands", hands, {"clips": clips}, {"despike": False}))
     out = tmp_path / "keypoints.parquet"
     result = run_shard_task(
@@ -134,3 +136,32 @@ def test_stage_end_to_end(world_clip, tmp_path: Path) -> None:
     assert np.abs(uv - expected)[vis].max() < 1e-3
     video = media.decode_rgb_video(row["skeleton_video"], H, W)
     assert video.shape == (T, H, W, 3) and video.any()
+
+
+def test_stage_uses_connected_poses_and_camera_intrinsics(world_clip, tmp_path: Path) -> None:
+    clips = tmp_path / "clips.parquet"
+    write_clips(clips, [world_clip])
+    offset = np.array([0.03, -0.02, 0.01])
+    moved = translated(world_clip.world_from_cam, offset)
+    k = world_clip.intrinsics * np.array([1.1, 1.1, 1.0, 1.0])  # estimated focal length
+    # poses beat cameras for the trajectory; cameras beat the clip for the intrinsics.
+    cameras = write_cameras(
+        tmp_path / "cameras.parquet", world_clip, world_clip.world_from_cam, k, world_clip.depth[0]
+    )
+    poses = write_poses(tmp_path / "poses.parquet", world_clip, moved)
+    hands = tmp_path / "hands.parquet"
+    run_shard_task(task("hands", hands, {"clips": clips}, {"despike": False}))
+    out = tmp_path / "keypoints.parquet"
+    inputs = {"clips": clips, "hands": hands, "poses": poses, "cameras": cameras}
+    result = run_shard_task(task("keypoint_render", out, inputs, {}))
+    assert result.rows == 1 and result.rejected == 0
+    with open_shard(out, KEYPOINTS) as reader:
+        row = next(reader.iter_rows())
+    uv = np.asarray(row["keypoints_2d"], dtype=np.float64).reshape(T, 2, 21, 2)
+    vis = np.asarray(row["keypoint_visible"], dtype=bool).reshape(T, 2, 21)
+    joints = world_clip.hand_joints.astype(np.float64)
+    expected = reference_projection(joints, moved, k)
+    assert vis.mean() > 0.3
+    assert np.abs(uv - expected)[vis].max() < 1e-3
+    own = reference_projection(joints, world_clip.world_from_cam, world_clip.intrinsics)
+    assert np.abs(uv - own)[vis].mean() > 1.0  # the keypoints did move

@@ -35,7 +35,7 @@ from egosim.stages.pose_clean.stage import (
     clean_trajectory,
 )
 from egosim.stages.world.camera_path import camera_path
-from tests.conftest import make_clip
+from tests.conftest import make_clip, translated, write_cameras
 
 T, FPS = 61, 16.0
 SEEDS = range(12)
@@ -339,3 +339,30 @@ def test_stage_on_a_shard(tmp_path: Path) -> None:
     with ShardReader(task.rejects, REJECTS) as reader:
         rejects = list(reader.iter_rows())
     assert rejects[0]["clip_id"] == "b" and "run depth_camera first" in rejects[0]["reason"]
+
+
+def test_stage_cleans_the_cameras_trajectory_when_connected(tmp_path: Path) -> None:
+    gt = camera_path(4, "wild", 20, FPS)
+    offset = np.array([0.5, -0.2, 0.1])
+    clip = dataclasses.replace(make_clip("a", num_frames=20), world_from_cam=None)
+    clips_path = tmp_path / "clips.parquet"
+    write_clips(clips_path, [clip])
+    cameras = write_cameras(
+        tmp_path / "cameras.parquet", clip, translated(gt, offset), depth0=clip.depth[0]
+    )
+    task = ShardTask(
+        step="pose_clean",
+        stage="pose_clean",
+        params={},
+        shard_index=0,
+        shard_count=1,
+        output=tmp_path / "poses.parquet",
+        rejects=tmp_path / "rejects.parquet",
+        inputs={"clips": clips_path, "cameras": cameras},
+    )
+    assert run_shard_task(task).rows == 1  # the clip has no poses of its own
+    with ShardReader(task.output, POSES) as reader:
+        out = np.asarray(next(reader.iter_rows())["world_from_cam"]).reshape(20, 4, 4)
+    expected = clean_trajectory(translated(gt, offset), fps=FPS).world_from_cam
+    np.testing.assert_allclose(out, expected, atol=1e-9)
+    assert np.abs(out[:, :3, 3] - gt[:, :3, 3] - offset).max() < 0.01

@@ -22,9 +22,15 @@ from egosim.pipeline.geometry import (
     transform_points,
     unproject_depth,
 )
-from egosim.pipeline.shards import open_shard
+from egosim.pipeline.shards import ShardWriter, open_shard
+from egosim.schemas.inpaint import INPAINT
 from egosim.schemas.scene import SCENE_CLOUD, SCENE_RENDER
-from egosim.stages.scene_cloud.stage import SceneCloudError, build_scene_cloud, cloud_from_row
+from egosim.stages.scene_cloud.stage import (
+    SceneCloudError,
+    build_scene_cloud,
+    cloud_from_row,
+    fill_depth_under,
+)
 from egosim.stages.scene_render.splat import (
     SplatError,
     inpaint_mask_from_visible,
@@ -32,6 +38,7 @@ from egosim.stages.scene_render.splat import (
 )
 from egosim.stages.world.clip import render_clip
 from egosim.stages.world.config import WorldConfig
+from tests.conftest import translated, write_cameras, write_poses
 
 H, W, T = 64, 112, 8
 
@@ -365,3 +372,94 @@ def test_cpu_and_gpu_agree(world_clip) -> None:
     assert agree > 0.999
     same = np.all(gpu.rgb == cpu.rgb, axis=-1).mean()
     assert same > 0.995
+
+
+def _task(stage: str, tmp_path: Path, inputs: dict[str, Path], name: str) -> ShardTask:
+    return ShardTask(
+        step=stage,
+        stage=stage,
+        params={},
+        shard_index=0,
+        shard_count=1,
+        output=tmp_path / f"{name}.parquet",
+        rejects=tmp_path / f"{name}-rejects.parquet",
+        inputs=inputs,
+    )
+
+
+def test_stages_use_connected_poses_and_inpaint(world_clip, tmp_path: Path) -> None:
+    clips = tmp_path / "clips.parquet"
+    write_clips(clips, [world_clip])
+    offset = np.array([0.3, -0.2, 0.1])
+    poses = write_poses(
+        tmp_path / "poses.parquet", world_clip, translated(world_clip.world_from_cam, offset)
+    )
+    grey = np.full((H, W, 3), 77, np.uint8)
+    inpaint = tmp_path / "inpaint.parquet"
+    with ShardWriter(inpaint, INPAINT, stage="test") as writer:
+        writer.write_row(
+            {
+                "clip_id": world_clip.clip_id,
+                "width": W,
+                "height": H,
+                "first_frame": media.encode_png(grey),
+                "fill_source": media.encode_png(np.zeros((H, W), np.uint8)),
+                "source_frame": media.encode_png(np.zeros((H, W), np.uint16)),
+                **dict.fromkeys(("masked_fraction", "reprojected_fraction"), 0.0),
+                **dict.fromkeys(("opencv_fraction", "generated_fraction"), 0.0),
+                "backend": "opencv",
+            }
+        )
+    for name, inputs in [
+        ("own", {"clips": clips}),
+        ("moved", {"clips": clips, "poses": poses, "inpaint": inpaint}),
+    ]:
+        assert run_shard_task(_task("scene_cloud", tmp_path, inputs, name)).rows == 1
+    with open_shard(tmp_path / "own.parquet", SCENE_CLOUD) as reader:
+        own = cloud_from_row(next(reader.iter_rows()))
+    with open_shard(tmp_path / "moved.parquet", SCENE_CLOUD) as reader:
+        row = next(reader.iter_rows())
+        moved = cloud_from_row(row)
+    assert row["image_source"] == "inpaint+static_depth"
+    assert np.all(moved.colours == 77)
+    np.testing.assert_allclose(moved.points, own.points + offset, atol=1e-5)
+    # Rendering the moved cloud along the moved poses sees what the clip's own camera saw.
+    renders = {}
+    for name, inputs in [
+        ("render_own", {"clips": clips, "scene_cloud": tmp_path / "own.parquet"}),
+        ("render_moved", {"clips": clips, "scene_cloud": tmp_path / "moved.parquet"}),
+        (
+            "render_posed",
+            {"clips": clips, "scene_cloud": tmp_path / "moved.parquet", "poses": poses},
+        ),
+    ]:
+        assert run_shard_task(_task("scene_render", tmp_path, inputs, name)).rows == 1
+        with open_shard(tmp_path / f"{name}.parquet", SCENE_RENDER) as reader:
+            renders[name] = media.decode_lossless_video(next(reader.iter_rows())["visible"]) > 0
+    same = (renders["render_posed"] == renders["render_own"]).mean()
+    assert same > 0.999, same
+    assert (renders["render_moved"] == renders["render_own"]).mean() < 0.9
+
+
+def test_cloud_rejects_static_camera_without_depth(world_clip, tmp_path: Path) -> None:
+    clip = dataclasses.replace(world_clip, depth=None, static_depth=None)
+    clips = tmp_path / "clips.parquet"
+    write_clips(clips, [clip])
+    still = np.repeat(clip.world_from_cam[:1], T, axis=0)  # (T, 4, 4)
+    cameras = write_cameras(tmp_path / "cameras.parquet", clip, still)  # static: no depth0
+    task = _task("scene_cloud", tmp_path, {"clips": clips, "cameras": cameras}, "cloud")
+    assert run_shard_task(task).rejected == 1
+    with open_shard(task.rejects) as reader:
+        reason = next(reader.iter_rows())["reason"]
+    assert clip.clip_id in reason and "static camera" in reason
+
+
+def test_depth_under_inpainted_pixels_continues_the_surface() -> None:
+    depth = np.tile(np.linspace(1.0, 2.0, 40, dtype=np.float32), (30, 1))  # (30, 40) a slope
+    filled = np.zeros((30, 40), bool)
+    filled[10:20, 15:25] = True
+    hand = np.where(filled, 0.4, depth)  # a hand in front of the slope
+    hand[0, 0] = 0.0  # unknown stays unknown
+    out = fill_depth_under(hand, filled)
+    assert np.abs(out[filled] - depth[filled]).max() < 0.1
+    assert np.array_equal(out[~filled], hand[~filled])

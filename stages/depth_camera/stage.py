@@ -39,14 +39,16 @@ from egosim.stages.depth_camera.plane_sweep import (
 from egosim.stages.depth_camera.sfm import SfmError, SfmOptions, run_sfm
 from egosim.stages.depth_camera.static_camera import check_motion
 
-Backend = Literal["sfm", "given", "da3"]
+Backend = Literal["sfm", "given", "da3", "auto"]
 
 
 @dataclasses.dataclass(frozen=True)
 class DepthCameraConfig(StageConfig):
     """Parameters of ``depth_camera``."""
 
-    backend: Backend = "sfm"  # sfm (default), given (source poses) or da3 (Depth Anything 3)
+    backend: Backend = (
+        "sfm"  # sfm, given (source poses), da3, or auto (given if the clip has poses)
+    )
     hand_dilate_px: int = 8  # hand mask grows by this many pixels before excluding features
     min_corners: int = 50  # fewer Shi-Tomasi corners in frame 0 than this = textureless reject
     static_motion_px: float = 1.0  # median corner motion never above this = static camera
@@ -75,8 +77,8 @@ class DepthCameraConfig(StageConfig):
 
     def __post_init__(self) -> None:
         problems: list[str] = []
-        if self.backend not in BACKENDS:
-            problems.append(f"backend must be one of {list(BACKENDS)}, got {self.backend!r}")
+        if self.backend not in (*BACKENDS, "auto"):
+            problems.append(f"backend must be one of {[*BACKENDS, 'auto']}, got {self.backend!r}")
         for name in (
             "min_corners",
             "sfm_max_image_size",
@@ -289,8 +291,10 @@ def estimate_given(
         raise ClipRejected(f"clip {clip_id}: backend 'given' needs the source's world_from_cam")
     poses = np.asarray(row["world_from_cam"], dtype=np.float64).reshape(t, 4, 4)
     depth0 = None
-    if row.get("depth") is not None and row.get("depth_unit_m"):
-        depth0 = media.decode_lossless_video(row["depth"], f"clip {clip_id} depth")[0]
+    # The static (hand-free) depth when the source has it: the scene behind the hands.
+    key = "static_depth" if row.get("static_depth") is not None else "depth"
+    if row.get(key) is not None and row.get("depth_unit_m"):
+        depth0 = media.decode_lossless_video(row[key], f"clip {clip_id} {key}")[0]
         depth0 = depth0.astype(np.float32) * float(row["depth_unit_m"])
     try:
         res = given.given_camera(
@@ -393,9 +397,12 @@ class DepthCameraStage(ClipStage):
                 hand_mask = media.decode_lossless_video(row["hand_mask"], f"clip {clip_id} hands")
         except media.MediaError as exc:
             raise ClipRejected(f"clip {clip_id}: {exc}") from exc
-        if self.config.backend == "given":
+        backend = self.config.backend
+        if backend == "auto":
+            backend = "given" if row.get("world_from_cam") is not None else "sfm"
+        if backend == "given":
             return estimate_given(clip_id, frames, hand_mask, row, self.config)
-        if self.config.backend == "da3":
+        if backend == "da3":
             return estimate_da3(clip_id, frames, self.config)
         intrinsics = np.asarray(row["intrinsics"], dtype=np.float64)
         return estimate_sfm(clip_id, frames, hand_mask, intrinsics, self.config)

@@ -1,7 +1,11 @@
 """The ``hand_mask`` stage: hand-and-arm masks for every frame of a clip.
 
-Keypoints: the clip's 3D hand joints (``hand_joints``, world metres) projected through its poses
-and intrinsics with the shared geometry; joints below ``min_joint_confidence`` are dropped.
+Keypoints: 3D hand joints (world metres) projected with the shared geometry; joints below
+``min_joint_confidence`` are dropped. The joints are the optional ``hands`` input's
+(de-duplicated and de-spiked by the ``hands`` stage) when a workflow connects it, else the clip's
+own ``hand_joints``. Intrinsics and poses come from
+:func:`egosim.stages.common.cameras.resolve_cameras`: the optional ``poses`` or ``cameras``
+inputs when connected, else the clip's own.
 
 Backends:
 
@@ -33,6 +37,8 @@ from egosim.pipeline.records import Clip
 from egosim.pipeline.stage import ClipRejected, ClipStage, ConfigError, StageConfig
 from egosim.schemas import CLIPS, ShardSchema
 from egosim.schemas.hand_mask import HAND_MASK
+from egosim.schemas.hands import HANDS
+from egosim.stages.common.cameras import CAMERA_ROLES, resolve_cameras
 from egosim.stages.hand_mask.capsules import (
     FOREARM_LENGTH_M,
     CapsuleParams,
@@ -140,6 +146,21 @@ def elbow_guess(clip: Clip, shoulder_offset_m: float, forearm_rise: float) -> np
     return out
 
 
+def _with_hands(clip: Clip, hands: Mapping[str, Any]) -> Clip:
+    """``clip`` with its joints, validity and confidence replaced by a ``hands`` row's."""
+    t = clip.num_frames
+    if int(hands["num_frames"]) != t:
+        raise ClipRejected(
+            f"clip {clip.clip_id!r}: hands cover {hands['num_frames']} frames, not {t}"
+        )
+    return dataclasses.replace(
+        clip,
+        hand_joints=np.asarray(hands["hand_joints"], dtype=np.float32).reshape(t, 2, 21, 3),
+        hand_valid=np.asarray(hands["hand_valid"], dtype=bool).reshape(t, 2),
+        hand_confidence=np.asarray(hands["hand_confidence"], dtype=np.float32).reshape(t, 2, 21),
+    )
+
+
 class HandMaskStage(ClipStage):
     """Hand-and-arm masks per frame from projected keypoints (capsules + colour) or SAM."""
 
@@ -147,6 +168,8 @@ class HandMaskStage(ClipStage):
     description = "hand and arm masks per frame from keypoints (capsules + colour) or SAM"
     config_class = HandMaskConfig
     inputs: ClassVar[Mapping[str, ShardSchema]] = {"clips": CLIPS}
+    # cleaned joints and a replacement camera (see the module docstring)
+    optional_inputs: ClassVar[Mapping[str, ShardSchema]] = {**CAMERA_ROLES, "hands": HANDS}
     output = HAND_MASK
     backends = ("keypoints", "sam")
 
@@ -199,6 +222,12 @@ class HandMaskStage(ClipStage):
         """Masks for one clips row; see the module docstring."""
         row = rows["clips"]
         clip = clip_from_row({**row, **dict.fromkeys(_UNUSED_COLUMNS)})
+        cams = resolve_cameras(rows)
+        clip = dataclasses.replace(
+            clip, intrinsics=cams.intrinsics, world_from_cam=cams.world_from_cam
+        )
+        if rows.get("hands") is not None:
+            clip = _with_hands(clip, rows["hands"])
         if clip.hand_joints is None:
             raise ClipRejected(f"clip {clip.clip_id!r}: no hand joints (run the hands stage)")
         if clip.world_from_cam is None:

@@ -5,8 +5,11 @@ detects hands in the frames and lifts them to 3D (:mod:`egosim.stages.hands.medi
 ``hamer`` imports HaMeR outputs (:mod:`egosim.stages.hands.hamer_backend`). The filters of
 :mod:`egosim.stages.hands.filters` run on every backend's detections: frame-wise
 de-duplication (projected joint boxes, IoU, breadth-first grouping, most confident per side) and
-temporal outlier removal (bidirectional speed test in camera space). Camera poses come from the
-clips row (``world_from_cam``).
+temporal outlier removal (bidirectional speed test in camera space). Intrinsics and poses come
+from :func:`egosim.stages.common.cameras.resolve_cameras`: the optional ``poses`` (cleaned) or
+``cameras`` (estimated) inputs when a workflow connects them, else the clips row. The ``given``
+backend's world joints do not depend on them; the de-duplication (projected boxes) and the
+speed test (camera space) do, and the detecting backends lift their joints with them.
 """
 
 from __future__ import annotations
@@ -23,6 +26,7 @@ from egosim.pipeline.geometry import se3_problems
 from egosim.pipeline.stage import ClipRejected, ClipStage, ConfigError, StageConfig
 from egosim.schemas import CLIPS, ShardSchema
 from egosim.schemas.hands import HANDS
+from egosim.stages.common.cameras import CAMERA_ROLES, Cameras, resolve_cameras
 from egosim.stages.hands.filters import (
     Detections,
     HandFilterError,
@@ -39,7 +43,8 @@ from egosim.stages.hands.mediapipe_backend import MediaPipeParams, mediapipe_det
 class HandsConfig(StageConfig):
     """Parameters of ``hands``."""
 
-    backend: Literal["given", "mediapipe", "hamer"] = "given"  # labels, MediaPipe or HaMeR files
+    # labels, MediaPipe, HaMeR files, or auto (labels when the clip has them, else MediaPipe)
+    backend: Literal["given", "mediapipe", "hamer", "auto"] = "given"
     hamer_dir: str = ""  # backend hamer: folder of <clip_id>.npz HaMeR outputs
     mediapipe_video_mode: bool = True  # backend mediapipe: tracking mode (False: per image)
     iou_threshold: float = 0.5  # boxes overlapping more than this are the same hand
@@ -58,37 +63,50 @@ class HandsConfig(StageConfig):
             raise ConfigError("; ".join(problems))
 
 
-def _detections(row: Mapping[str, Any], config: HandsConfig) -> Detections:
-    """Dispatch to the configured backend (mediapipe/hamer decode the row into a clip)."""
-    if config.backend == "given":
+def resolved_backend(row: Mapping[str, Any], config: HandsConfig) -> str:
+    """The backend used for one clip (``auto``: labels when the clip has them, else MediaPipe)."""
+    if config.backend != "auto":
+        return config.backend
+    return "given" if row.get("hand_joints") is not None else "mediapipe"
+
+
+def _detections(
+    row: Mapping[str, Any], config: HandsConfig, poses: np.ndarray, intrinsics: np.ndarray
+) -> Detections:
+    """Dispatch to the configured backend (mediapipe/hamer decode the row into a clip).
+
+    ``poses (T, 4, 4)`` and ``intrinsics (4,)`` replace the clip's own camera.
+    """
+    backend = resolved_backend(row, config)
+    if backend == "given":
         return given_detections(row)
-    clip = clip_from_row(row)
-    if config.backend == "mediapipe":
+    clip = dataclasses.replace(clip_from_row(row), world_from_cam=poses, intrinsics=intrinsics)
+    if backend == "mediapipe":
         return mediapipe_detections(clip, MediaPipeParams(video_mode=config.mediapipe_video_mode))
     return hamer_detections(clip, Path(config.hamer_dir) / f"{clip.clip_id}.npz")
 
 
 def clean_hands(
-    row: Mapping[str, Any], config: HandsConfig
+    row: Mapping[str, Any], config: HandsConfig, cameras: Cameras | None = None
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, int, int]:
     """Run the backend and both filters on one clips row.
 
+    ``cameras`` (from :func:`resolve_cameras`) defaults to the clips row's own camera.
     Returns ``(joints (T, 2, 21, 3), valid (T, 2), confidence (T, 2, 21), duplicates removed,
     outliers removed)``; raises :class:`ClipRejected` naming the clip when it cannot.
     """
     cid = row["clip_id"]
     t = int(row["num_frames"])
-    if row.get("world_from_cam") is None:
+    cams = cameras if cameras is not None else resolve_cameras({"clips": row})
+    if cams.world_from_cam is None:
         raise ClipRejected(f"clip {cid!r}: no camera poses (world_from_cam is null)")
-    poses = np.asarray(row["world_from_cam"], dtype=np.float64).reshape(-1, 4, 4)  # (T, 4, 4)
+    poses = cams.world_from_cam  # (T, 4, 4)
     problems = se3_problems(poses)
-    if len(poses) != t:
-        problems.append(f"{len(poses)} poses for {t} frames")
     if problems:
-        raise ClipRejected(f"clip {cid!r}: world_from_cam: " + "; ".join(problems))
-    intrinsics = np.asarray(row["intrinsics"], dtype=np.float64)
+        raise ClipRejected(f"clip {cid!r}: {cams.source} world_from_cam: " + "; ".join(problems))
+    intrinsics = cams.intrinsics  # (4,)
     try:
-        det = _detections(row, config)
+        det = _detections(row, config, poses, intrinsics)
         det.check(t)
         det, dups = deduplicate(det, poses, intrinsics, config.iou_threshold)
         joints, valid, conf = to_hands(det)
@@ -111,6 +129,7 @@ class HandsStage(ClipStage):
     description = "3D hand joints per frame from the clip's labels, de-duplicated and de-spiked"
     config_class = HandsConfig
     inputs: ClassVar[Mapping[str, ShardSchema]] = {"clips": CLIPS}
+    optional_inputs: ClassVar[Mapping[str, ShardSchema]] = CAMERA_ROLES  # replace the clip's camera
     output = HANDS
     backends = ("given", "mediapipe", "hamer")
     config: HandsConfig
@@ -119,11 +138,11 @@ class HandsStage(ClipStage):
         """Clean the joints of one clip."""
         row = rows["clips"]
         t = int(row["num_frames"])
-        joints, valid, conf, dups, outliers = clean_hands(row, self.config)
+        joints, valid, conf, dups, outliers = clean_hands(row, self.config, resolve_cameras(rows))
         return {
             "clip_id": row["clip_id"],
             "num_frames": t,
-            "backend": self.config.backend,
+            "backend": resolved_backend(row, self.config),
             "hand_joints": joints.astype(np.float32).reshape(t, -1).tolist(),
             "hand_valid": valid.tolist(),
             "hand_confidence": conf.astype(np.float32).reshape(t, -1).tolist(),

@@ -1,7 +1,9 @@
 """The ``inpaint`` stage: remove the hands from each clip's first frame.
 
-Inputs: the ``clips`` row (frames, depth, ``world_from_cam``, intrinsics) and the ``hand_mask``
-row of the same clip. Backends:
+Inputs: the ``clips`` row (frames) and the ``hand_mask`` row of the same clip. Intrinsics and
+poses come from :func:`egosim.stages.common.cameras.resolve_cameras` and frame 0's depth from
+:func:`egosim.stages.common.cameras.first_frame_depth`: the optional ``poses`` / ``cameras``
+inputs when a workflow connects them, else the clip's own. Backends:
 
 - ``reproject`` (default): fill from later frames reprojected through depth and pose, then
   OpenCV inpainting for what no frame saw (see ``reproject_fill``);
@@ -10,8 +12,11 @@ row of the same clip. Backends:
   ``diffusers_backend``).
 
 A clip without depth or poses is rejected by the ``reproject`` backend ("run depth_camera
-first"). Only the first frame's depth is required; with ``depth_tolerance > 0`` the other
-frames' depth rejects fills that disagree with it.
+first"). Only the first frame's depth is required (frame-0 pixels are lifted with it and projected
+into the later frames), so a clip without a depth column works when ``cameras`` is connected.
+With ``depth_tolerance > 0`` the other frames' depth rejects fills that disagree with it; only
+the clip has per-frame depth, so that test runs only when ``cameras`` is not connected (its
+depth0 may have another scale than the clip's depth) and the clip has depth.
 """
 
 from __future__ import annotations
@@ -33,6 +38,7 @@ from egosim.schemas.inpaint import (
     FILL_REPROJECTED,
     INPAINT,
 )
+from egosim.stages.common.cameras import CAMERA_ROLES, first_frame_depth, resolve_cameras
 from egosim.stages.inpaint.diffusers_backend import DiffusersInpainter
 from egosim.stages.inpaint.reproject_fill import (
     FillResult,
@@ -90,9 +96,11 @@ class InpaintStage(ClipStage):
     """Remove hands from the first frame: reprojected later frames, then OpenCV inpainting."""
 
     name = "inpaint"
+    version = 2  # 2: depth behind the hand by Navier-Stokes (Telea gave noise on float32)
     description = "remove hands from the first frame (reprojected frames + OpenCV inpainting)"
     config_class = InpaintConfig
     inputs: ClassVar[Mapping[str, ShardSchema]] = {"clips": CLIPS, "hand_mask": HAND_MASK}
+    optional_inputs: ClassVar[Mapping[str, ShardSchema]] = CAMERA_ROLES  # replace the clip's camera
     output = INPAINT
     backends = ("reproject", "opencv", "diffusers")
 
@@ -106,10 +114,15 @@ class InpaintStage(ClipStage):
         hand_mask: np.ndarray,
         world_from_cam: np.ndarray | None,
         intrinsics: np.ndarray,
-        depth: np.ndarray | None,
+        depth0: np.ndarray | None,
         clip_id: str = "",
+        depth: np.ndarray | None = None,
     ) -> FillResult:
-        """Hand-free first frame of ``frames (T, H, W, 3)`` given ``hand_mask (T, H, W)``."""
+        """Hand-free first frame of ``frames (T, H, W, 3)`` given ``hand_mask (T, H, W)``.
+
+        ``world_from_cam (T, 4, 4)``, ``intrinsics (4,)``, ``depth0 (H, W)`` metres (frame 0);
+        ``depth (T, H, W)`` feeds the agreement test when ``depth_tolerance > 0``.
+        """
         cfg: InpaintConfig = self.config  # type: ignore[assignment]
         h, w = frames.shape[1:3]
         target = dilate(hand_mask[0] > 0, cfg.dilate_px)  # (H, W)
@@ -125,7 +138,7 @@ class InpaintStage(ClipStage):
             image = self._diffusers.inpaint(frames[0], target)
             source = (target * FILL_GENERATED).astype(np.uint8)
             return FillResult(image, source, zeros16, target > 0)
-        if depth is None:
+        if depth0 is None:
             raise ClipRejected(f"clip {clip_id!r}: no depth: run depth_camera first")
         if world_from_cam is None:
             raise ClipRejected(f"clip {clip_id!r}: no camera poses: run depth_camera first")
@@ -133,7 +146,7 @@ class InpaintStage(ClipStage):
             return reproject_fill(
                 frames,
                 hand_mask,
-                depth[0],
+                depth0,
                 world_from_cam,
                 intrinsics,
                 depth=depth if cfg.depth_tolerance > 0 else None,
@@ -149,9 +162,15 @@ class InpaintStage(ClipStage):
         cfg: InpaintConfig = self.config  # type: ignore[assignment]
         row = rows["clips"]
         clip_id = row["clip_id"]
-        if cfg.backend == "reproject" and row.get("depth") is None:
+        depth0 = first_frame_depth(rows) if cfg.backend == "reproject" else None  # (H, W)
+        if cfg.backend == "reproject" and depth0 is None:
             raise ClipRejected(f"clip {clip_id!r}: no depth: run depth_camera first")
-        clip = clip_from_row({**row, **dict.fromkeys(_UNUSED_COLUMNS)})
+        cams = resolve_cameras(rows)
+        # Per-frame depth (agreement test) only from the clip, and only when no other role
+        # supplies the cameras' depth (see the module docstring).
+        per_frame = cfg.depth_tolerance > 0 and rows.get("cameras") is None
+        unused = _UNUSED_COLUMNS if per_frame else (*_UNUSED_COLUMNS, "depth")
+        clip = clip_from_row({**row, **dict.fromkeys(unused)})
         masks = media.decode_lossless_video(rows["hand_mask"]["hand_mask"], f"clip {clip_id} mask")
         if masks.shape != (clip.num_frames, clip.height, clip.width):
             raise ClipRejected(
@@ -159,7 +178,7 @@ class InpaintStage(ClipStage):
                 f"{(clip.num_frames, clip.height, clip.width)}"
             )
         result = self.fill(
-            clip.frames, masks, clip.world_from_cam, clip.intrinsics, clip.depth, clip_id
+            clip.frames, masks, cams.world_from_cam, cams.intrinsics, depth0, clip_id, clip.depth
         )
         n = int(result.filled.sum())
         counts = np.bincount(result.fill_source[result.filled], minlength=4)  # (4,)

@@ -1,8 +1,9 @@
 """The ``keypoint_render`` stage: 2D keypoints, visibility and the skeleton video of each clip.
 
-Reads the ``clips`` row (intrinsics, ``world_from_cam``, size, fps) and the clip's ``hands``
-row; projects with :func:`egosim.stages.keypoint_render.draw.project_hands` (the clip's own
-camera: the same model as ``scene_render``) and draws the skeleton on black.
+Reads the ``clips`` row (size, fps) and the clip's ``hands`` row; projects with
+:func:`egosim.stages.keypoint_render.draw.project_hands` and draws the skeleton on black. The
+camera is :func:`egosim.stages.common.cameras.resolve_cameras`'s: the optional ``poses`` or
+``cameras`` inputs when connected, else the clip's own (the same rule as ``scene_render``).
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ from egosim.pipeline.stage import ClipRejected, ClipStage, ConfigError, StageCon
 from egosim.schemas import CLIPS, ShardSchema
 from egosim.schemas.hands import HANDS
 from egosim.schemas.keypoints import KEYPOINTS
+from egosim.stages.common.cameras import CAMERA_ROLES, resolve_cameras
 from egosim.stages.keypoint_render.draw import draw_skeleton_video, project_hands
 
 
@@ -44,12 +46,13 @@ class KeypointRenderConfig(StageConfig):
 
 
 class KeypointRenderStage(ClipStage):
-    """Project the cleaned joints with the clip's camera and draw the skeleton video."""
+    """Project the cleaned joints with the resolved camera and draw the skeleton video."""
 
     name = "keypoint_render"
     description = "project hand joints with the clip's K and poses; draw the skeleton video"
     config_class = KeypointRenderConfig
     inputs: ClassVar[Mapping[str, ShardSchema]] = {"clips": CLIPS, "hands": HANDS}
+    optional_inputs: ClassVar[Mapping[str, ShardSchema]] = CAMERA_ROLES  # replace the clip's camera
     output = KEYPOINTS
     backends = ("opencv",)
     config: KeypointRenderConfig
@@ -61,18 +64,19 @@ class KeypointRenderStage(ClipStage):
         t, h, w = int(clip["num_frames"]), int(clip["height"]), int(clip["width"])
         if int(hands["num_frames"]) != t:
             raise ClipRejected(f"clip {cid!r}: hands cover {hands['num_frames']} frames, not {t}")
-        if clip.get("world_from_cam") is None:
+        cams = resolve_cameras(rows)
+        if cams.world_from_cam is None:
             raise ClipRejected(f"clip {cid!r}: no camera poses (world_from_cam is null)")
-        poses = np.asarray(clip["world_from_cam"], dtype=np.float64).reshape(-1, 4, 4)
+        poses = cams.world_from_cam  # (T, 4, 4)
         problems = se3_problems(poses)
-        if len(poses) != t:
-            problems.append(f"{len(poses)} poses for {t} frames")
         if problems:
-            raise ClipRejected(f"clip {cid!r}: world_from_cam: " + "; ".join(problems))
+            raise ClipRejected(
+                f"clip {cid!r}: {cams.source} world_from_cam: " + "; ".join(problems)
+            )
         joints = np.asarray(hands["hand_joints"], dtype=np.float64).reshape(t, 2, 21, 3)
         valid = np.asarray(hands["hand_valid"], dtype=bool).reshape(t, 2)
         cfg = self.config
-        proj = project_hands(joints, valid, poses, np.asarray(clip["intrinsics"]), h, w, cfg.near)
+        proj = project_hands(joints, valid, poses, cams.intrinsics, h, w, cfg.near)
         video = draw_skeleton_video(proj, h, w, cfg.variant, cfg.line_width_px)
         return {
             "clip_id": cid,

@@ -13,6 +13,9 @@ Methods (``method`` parameter):
 Noise levels are estimated per clip from the data (see :func:`kalman.estimate_noise`); the two
 ``*_noise_scale`` fields only scale them. The pure function :func:`clean_trajectory` does the work
 on numpy arrays; :func:`clean_batch` runs many clips at once (batched Kalman equations).
+
+The trajectory cleaned is the optional ``cameras`` input's (``depth_camera``) when a workflow
+connects it, else the clip's own ``world_from_cam``.
 """
 
 from __future__ import annotations
@@ -33,6 +36,7 @@ from egosim.pipeline.geometry import (
 from egosim.pipeline.stage import ClipRejected, ClipStage, ConfigError, StageConfig
 from egosim.schemas.base import ShardSchema
 from egosim.schemas.clips import CLIPS
+from egosim.schemas.depth_camera import DEPTH_CAMERA
 from egosim.schemas.poses import POSES
 from egosim.stages.pose_clean import egocap, kalman
 from egosim.stages.pose_clean.outliers import detect_outliers, jitter, repair_outliers
@@ -230,29 +234,35 @@ class PoseCleanStage(ClipStage):
     description = "repair pose jump outliers (Eq. 4) and smooth trajectories (Kalman RTS/egocap)"
     config_class = PoseCleanConfig
     inputs: ClassVar[Mapping[str, ShardSchema]] = {"clips": CLIPS}
+    # estimated cameras: their trajectory is cleaned instead of the clip's own
+    optional_inputs: ClassVar[Mapping[str, ShardSchema]] = {"cameras": DEPTH_CAMERA}
     output = POSES
     backends = METHODS
     config: PoseCleanConfig
 
     def process(self, rows: Mapping[str, Mapping[str, Any]]) -> dict[str, Any]:
-        """Clean the ``world_from_cam`` of one clips row; returns a ``poses`` row."""
+        """Clean one clip's trajectory; returns a ``poses`` row.
+
+        The trajectory is the ``cameras`` row's ``world_from_cam`` when that role is connected,
+        else the clips row's.
+        """
         row = rows["clips"]
         clip_id = row["clip_id"]
-        raw = row.get("world_from_cam")
+        role = "cameras" if rows.get("cameras") is not None else "clips"
+        raw = rows[role].get("world_from_cam")
         if raw is None:
             raise ClipRejected(f"clip {clip_id} has no world_from_cam: run depth_camera first")
+        where = "world_from_cam" if role == "clips" else "cameras world_from_cam"
         t = int(row["num_frames"])
         try:
             flat = np.asarray(raw, dtype=np.float64)
         except (TypeError, ValueError) as exc:
-            raise ClipRejected(f"clip {clip_id}: world_from_cam is not numeric ({exc})") from exc
+            raise ClipRejected(f"clip {clip_id}: {where} is not numeric ({exc})") from exc
         if flat.ndim != 2 or flat.shape[1] != 16:
-            raise ClipRejected(
-                f"clip {clip_id}: world_from_cam must be (T, 16), got shape {flat.shape}"
-            )
+            raise ClipRejected(f"clip {clip_id}: {where} must be (T, 16), got shape {flat.shape}")
         if len(flat) != t:
             raise ClipRejected(
-                f"clip {clip_id}: world_from_cam has {len(flat)} poses but num_frames is {t}"
+                f"clip {clip_id}: {where} has {len(flat)} poses but num_frames is {t}"
             )
         try:
             result = clean_trajectory(flat.reshape(t, 4, 4), self.config, float(row["fps"]))

@@ -1,8 +1,19 @@
 """The ``scene_cloud`` stage: unproject the hand-free first frame into a coloured world cloud.
 
-Colour and depth come from the clips row until an ``inpaint`` stage exists: the clip's
-``first_frame_clean`` with ``static_depth[0]`` when both are present, otherwise ``video[0]`` with
-``depth[0]`` and the ``hand_mask[0]`` pixels removed. Pixels with unknown depth (0) are skipped;
+Depth is :func:`egosim.stages.common.cameras.first_frame_depth` (the optional ``cameras``
+input's depth0, else the clip's ``static_depth[0]``, else its ``depth[0]``); the pose of frame 0
+and the intrinsics come from :func:`egosim.stages.common.cameras.resolve_cameras`. Colour:
+
+- the optional ``inpaint`` input's ``first_frame`` when connected; where the depth may show the
+  hands (it is not the clip's hand-free ``static_depth``), the depth under the inpainted pixels
+  is filled by OpenCV inpainting of the depth around them (a smooth continuation of the
+  surfaces the hand covered, as ``inpaint`` assumes);
+- else the clip's ``first_frame_clean`` when the depth is its ``static_depth``;
+- else ``video[0]`` with the ``hand_mask[0]`` pixels removed.
+
+A static camera (a ``cameras`` row with ``static_camera`` and no depth0) is rejected unless the
+clip has depth: without parallax there is no depth, and the fixed-camera recipe repeats the
+(inpainted) first frame instead of rendering a cloud. Pixels with unknown depth (0) are skipped;
 negative or non-finite depth rejects the clip. Flying pixels (depth interpolated across an
 occlusion edge by estimators and codecs) are removed where inverse depth breaks planarity: the
 second difference of ``1/z`` along a row, a column or a diagonal, relative to ``1/z``, exceeds
@@ -16,13 +27,16 @@ import dataclasses
 from collections.abc import Mapping
 from typing import Any, ClassVar
 
+import cv2
 import numpy as np
 
 from egosim.pipeline import media
 from egosim.pipeline.geometry import se3_problems, transform_points, unproject_depth
 from egosim.pipeline.stage import ClipRejected, ClipStage, ConfigError, StageConfig
 from egosim.schemas import CLIPS, ShardSchema
+from egosim.schemas.inpaint import INPAINT
 from egosim.schemas.scene import SCENE_CLOUD
+from egosim.stages.common.cameras import CAMERA_ROLES, first_frame_depth, resolve_cameras
 
 
 class SceneCloudError(ValueError):
@@ -163,24 +177,26 @@ class SceneCloudStage(ClipStage):
     description = "unproject the hand-free first frame with its depth and pose into a world cloud"
     config_class = SceneCloudConfig
     inputs: ClassVar[Mapping[str, ShardSchema]] = {"clips": CLIPS}
+    # replacement camera and depth, and the inpainted first frame (see the module docstring)
+    optional_inputs: ClassVar[Mapping[str, ShardSchema]] = {**CAMERA_ROLES, "inpaint": INPAINT}
     output = SCENE_CLOUD
     backends = ("first_frame",)
+    version = 2  # 2: static_depth beats depth for frames+hand_mask; image_source names the depth
     config: SceneCloudConfig
 
     def process(self, rows: Mapping[str, Mapping[str, Any]]) -> dict[str, Any]:
-        """Build the cloud of one clip from its clips row."""
-        row = rows["clips"]
-        cid = row["clip_id"]
-        if row.get("world_from_cam") is None:
+        """Build the cloud of one clip from its rows (see the module docstring)."""
+        cid = rows["clips"]["clip_id"]
+        cams = resolve_cameras(rows)
+        if cams.world_from_cam is None:
             raise ClipRejected(f"clip {cid!r}: no camera poses (world_from_cam is null)")
-        pose = np.asarray(row["world_from_cam"][0], dtype=np.float64).reshape(4, 4)
-        image, depth, exclude, source = _first_frame(row)
+        image, depth, exclude, source = _first_frame(rows)
         try:
             cloud = build_scene_cloud(
                 image,
                 depth,
-                pose,
-                np.asarray(row["intrinsics"]),
+                cams.world_from_cam[0],
+                cams.intrinsics,
                 exclude,
                 self.config.edge_threshold,
             )
@@ -189,23 +205,63 @@ class SceneCloudStage(ClipStage):
         return cloud_row(cid, cloud, source)
 
 
+def _depth_name(rows: Mapping[str, Mapping[str, Any]]) -> str:
+    """Which column :func:`first_frame_depth` reads: ``depth0``, ``static_depth`` or ``depth``."""
+    cams, clip = rows.get("cameras"), rows["clips"]
+    if cams is not None and cams.get("depth0") is not None:
+        return "depth0"
+    return "static_depth" if clip.get("static_depth") is not None else "depth"
+
+
+def fill_depth_under(depth: np.ndarray, filled: np.ndarray, radius: float = 5.0) -> np.ndarray:
+    """``depth (H, W)`` with the ``filled (H, W)`` pixels replaced by inpainted depth.
+
+    Unknown depth (0) outside ``filled`` stays unknown; it is not used as a source. Navier-Stokes
+    inpainting: OpenCV's Telea returns noise on float32 images (seen with OpenCV 5.0).
+    """
+    unknown = (filled | ~(depth > 0)).astype(np.uint8)  # (H, W)
+    if not filled.any() or unknown.all():
+        return depth
+    guess = cv2.inpaint(
+        np.where(unknown > 0, 0.0, depth).astype(np.float32), unknown, radius, cv2.INPAINT_NS
+    )  # (H, W)
+    return np.where(filled, guess, depth).astype(np.float32)
+
+
 def _first_frame(
-    row: Mapping[str, Any],
+    rows: Mapping[str, Mapping[str, Any]],
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, str]:
     """``(image (H, W, 3), depth (H, W), exclude (H, W) or None, source name)`` of frame 0."""
+    row, cams, inpaint = rows["clips"], rows.get("cameras"), rows.get("inpaint")
     cid, h, w = row["clip_id"], row["height"], row["width"]
-    unit = row.get("depth_unit_m")
-    if row.get("first_frame_clean") is not None and row.get("static_depth") is not None:
+    depth = first_frame_depth(rows)  # (H, W)
+    if depth is None:
+        if cams is not None and cams["static_camera"]:
+            raise ClipRejected(
+                f"clip {cid!r}: static camera: depth_camera has no depth0 (no parallax) and the "
+                "clip has no depth; scene_render repeats the first frame for static cameras"
+            )
+        raise ClipRejected(f"clip {cid!r}: no depth (needs depth0, static_depth or depth)")
+    depth_name = _depth_name(rows)
+    hand_free = depth_name == "static_depth"
+    if inpaint is not None:
+        image = media.decode_png(inpaint["first_frame"], f"clip {cid} inpaint first_frame")
+        if not hand_free:
+            filled = media.decode_png(inpaint["fill_source"], f"clip {cid} fill_source") > 0
+            if filled.shape != depth.shape:
+                raise ClipRejected(
+                    f"clip {cid!r}: inpaint fill_source {filled.shape} != depth {depth.shape}"
+                )
+            depth = fill_depth_under(depth, filled)
+        return image, depth, None, f"inpaint+{depth_name}"
+    if row.get("first_frame_clean") is not None and hand_free:
         image = media.decode_png(row["first_frame_clean"], f"clip {cid} first_frame_clean")
-        depth = media.decode_depth_video(row["static_depth"], unit, f"clip {cid} static_depth")[0]
-        return image, depth, None, "first_frame_clean+static_depth"
-    if row.get("depth") is None or not unit:
-        raise ClipRejected(f"clip {cid!r}: no depth (needs static_depth or depth with a unit)")
+        return image, depth, None, f"first_frame_clean+{depth_name}"
     if row.get("hand_mask") is None:
         raise ClipRejected(
-            f"clip {cid!r}: no first_frame_clean and no hand_mask: the cloud would contain hands"
+            f"clip {cid!r}: no inpaint, first_frame_clean or hand_mask: the cloud would "
+            "contain hands"
         )
     image = media.decode_rgb_video(row["video"], h, w, f"clip {cid} video")[0]
-    depth = media.decode_depth_video(row["depth"], unit, f"clip {cid} depth")[0]
     hands = media.decode_lossless_video(row["hand_mask"], f"clip {cid} hand_mask")[0]
-    return image, depth, hands, "frames+depth-hand_mask"
+    return image, depth, hands, f"frames+{depth_name}-hand_mask"

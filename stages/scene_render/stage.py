@@ -1,9 +1,11 @@
 """The ``scene_render`` stage: render each clip's scene cloud along its trajectory.
 
-Reads the ``clips`` row (poses ``world_from_cam``, intrinsics, size, fps) and the clip's
-``scene_cloud`` row; writes a scene video and a visibility mask video (1 = a scene point landed)
-made by :func:`egosim.stages.scene_render.splat.render_point_cloud`, the same torch code on CPU
-and GPU. Scene and hand conditions share the clips' intrinsics and poses.
+Reads the ``clips`` row (size, fps) and the clip's ``scene_cloud`` row; writes a scene video and
+a visibility mask video (1 = a scene point landed) made by
+:func:`egosim.stages.scene_render.splat.render_point_cloud`, the same torch code on CPU and GPU.
+Intrinsics and poses come from :func:`egosim.stages.common.cameras.resolve_cameras` (the optional
+``poses`` or ``cameras`` inputs when connected, else the clip's own), the same rule as
+``keypoint_render``, so scene and hand conditions share one camera.
 """
 
 from __future__ import annotations
@@ -18,6 +20,7 @@ from egosim.pipeline import media
 from egosim.pipeline.stage import ClipRejected, ClipStage, ConfigError, StageConfig
 from egosim.schemas import CLIPS, ShardSchema
 from egosim.schemas.scene import SCENE_CLOUD, SCENE_RENDER
+from egosim.stages.common.cameras import CAMERA_ROLES, resolve_cameras
 from egosim.stages.scene_cloud.stage import cloud_from_row
 from egosim.stages.scene_render.splat import SplatError, render_point_cloud
 
@@ -52,6 +55,7 @@ class SceneRenderStage(ClipStage):
     description = "render the scene cloud along the trajectory: scene video + visibility mask"
     config_class = SceneRenderConfig
     inputs: ClassVar[Mapping[str, ShardSchema]] = {"clips": CLIPS, "scene_cloud": SCENE_CLOUD}
+    optional_inputs: ClassVar[Mapping[str, ShardSchema]] = CAMERA_ROLES  # replace the clip's camera
     output = SCENE_RENDER
     backends = ("torch_splat",)
     config: SceneRenderConfig
@@ -61,19 +65,17 @@ class SceneRenderStage(ClipStage):
         clip, cloud_row = rows["clips"], rows["scene_cloud"]
         cid = clip["clip_id"]
         t, h, w = int(clip["num_frames"]), int(clip["height"]), int(clip["width"])
-        if clip.get("world_from_cam") is None:
+        cams = resolve_cameras(rows)
+        if cams.world_from_cam is None:
             raise ClipRejected(f"clip {cid!r}: no camera poses (world_from_cam is null)")
-        poses = np.asarray(clip["world_from_cam"], dtype=np.float64)  # (T, 16)
-        if poses.shape != (t, 16):
-            raise ClipRejected(f"clip {cid!r}: {poses.shape[0]} poses for {t} frames")
         cloud = cloud_from_row(cloud_row)
         cfg = self.config
         try:
             result = render_point_cloud(
                 cloud.points,
                 cloud.colours,
-                poses.reshape(t, 4, 4),
-                np.asarray(clip["intrinsics"], dtype=np.float64),
+                cams.world_from_cam,
+                cams.intrinsics,
                 h,
                 w,
                 point_size=cloud.point_size,
