@@ -11,6 +11,7 @@ from egosim.pipeline.check import check_shard
 from egosim.pipeline.cli import app
 from egosim.pipeline.clip_io import read_clips
 from egosim.pipeline.runner import run_workflow
+from egosim.pipeline.shards import ShardReader
 from egosim.pipeline.workflow import load_workflow
 from egosim.stages.ingest.stage import IngestConfig, IngestStage
 from egosim.stages.world import WorldConfig, render_clip
@@ -27,7 +28,13 @@ def test_dataset_workflow_builds_checked_shards_from_the_synthetic_world(tmp_pat
     summary = run_workflow(wf, out, n_workers=2, gpu_workers=0)
     shards = sorted((out / "ingest").glob("shard-*.parquet"))
     assert len(shards) == 2 and summary.rejected == 0
-    assert all(check_shard(s) == [] for s in shards)
+    every = sorted(out.glob("*/shard-*.parquet"))
+    assert len(every) == 2 * len(wf.steps)  # every step wrote both shards
+    assert {p.parent.name for p in every} == {s.name for s in wf.steps}
+    assert all(check_shard(s) == [] for s in every)
+    for step in wf.steps:  # every clip made it through every step
+        with ShardReader(out / step.name / "shard-00001.parquet") as reader:
+            assert reader.read_column("clip_id") == ["synth-art-00002"], step.name
     clips = [c for s in shards for c in read_clips(s)]
     assert [c.clip_id for c in clips] == [
         "synth-tabletop-00000",
@@ -75,8 +82,6 @@ def test_egodex_file_with_a_missing_key_is_rejected_by_name(tmp_path: Path) -> N
     )
     assert result.exit_code == 0, result.output
     assert "0 rows, 1 rejected" in result.output
-    from egosim.pipeline.shards import ShardReader
-
     with ShardReader(tmp_path / "o.rejects.parquet") as reader:
         (row,) = list(reader.iter_rows())
     assert "transforms/camera" in row["reason"] and "0.hdf5" in row["reason"]
