@@ -70,54 +70,42 @@ def plan_tasks(workflow: Workflow, source: str | None, out: Path) -> list[ShardT
     for step in workflow.steps:
         stage_cls = get_stage(step.stage)
         stage = stage_cls.from_params(step.params)
-        step_tasks: list[ShardTask] = []
+        params = stage.params()
+        # Per shard: (units, input paths by role, input fingerprints by role or unit).
+        shards: list[tuple[tuple[str, ...], dict[str, Path], dict[str, str]]] = []
         if isinstance(stage, SourceStage):
             units = stage.list_units(source)
             if not units:
                 raise RunError(f"step {step.name!r}: no inputs found under {source!r}")
             per = max(1, stage.units_per_shard())
-            count = math.ceil(len(units) / per)
-            for i in range(count):
+            for i in range(math.ceil(len(units) / per)):
                 chunk = tuple(units[i * per : (i + 1) * per])
-                unit_fps = {u: stage.unit_fingerprint(u) for u in chunk}
-                fp = task_fingerprint(stage_cls, stage.params(), unit_fps, i, count)
-                step_tasks.append(
-                    ShardTask(
-                        step=step.name,
-                        stage=step.stage,
-                        params=stage.params(),
-                        shard_index=i,
-                        shard_count=count,
-                        output=shard_path(out, step.name, i),
-                        rejects=rejects_path(out, step.name, i),
-                        units=chunk,
-                        input_fingerprints=unit_fps,
-                        fingerprint=fp,
-                    )
-                )
+                shards.append((chunk, {}, {u: stage.unit_fingerprint(u) for u in chunk}))
         else:
             counts = {role: len(by_step[up]) for role, up in step.inputs.items()}
             if len(set(counts.values())) != 1:
                 raise RunError(f"step {step.name!r}: inputs have different shard counts {counts}")
-            count = next(iter(counts.values()))
-            for i in range(count):
+            for i in range(next(iter(counts.values()))):
                 ups = {role: by_step[up][i] for role, up in step.inputs.items()}
-                in_fps = {role: t.fingerprint for role, t in ups.items()}
-                fp = task_fingerprint(stage_cls, stage.params(), in_fps, i, count)
-                step_tasks.append(
-                    ShardTask(
-                        step=step.name,
-                        stage=step.stage,
-                        params=stage.params(),
-                        shard_index=i,
-                        shard_count=count,
-                        output=shard_path(out, step.name, i),
-                        rejects=rejects_path(out, step.name, i),
-                        inputs={role: t.output for role, t in ups.items()},
-                        input_fingerprints=in_fps,
-                        fingerprint=fp,
-                    )
-                )
+                paths = {role: t.output for role, t in ups.items()}
+                shards.append(((), paths, {role: t.fingerprint for role, t in ups.items()}))
+        count = len(shards)
+        step_tasks = [
+            ShardTask(
+                step=step.name,
+                stage=step.stage,
+                params=params,
+                shard_index=i,
+                shard_count=count,
+                output=shard_path(out, step.name, i),
+                rejects=rejects_path(out, step.name, i),
+                inputs=paths,
+                units=units,
+                input_fingerprints=in_fps,
+                fingerprint=task_fingerprint(stage_cls, params, in_fps, i, count),
+            )
+            for i, (units, paths, in_fps) in enumerate(shards)
+        ]
         by_step[step.name] = step_tasks
         tasks += step_tasks
     return tasks
