@@ -177,14 +177,20 @@ def _splat_wide(
     r_b, k_b = radius[big].to(torch.int64), keys[big]  # (M,) each
     dump = height * width
     wide = torch.full_like(buffer, EMPTY_KEY)  # (H*W+1,)
-    for dv in range(-max_radius, max_radius + 1):
-        for du in range(-max_radius, max_radius + 1):
-            if du == 0 and dv == 0:
-                continue
-            uu, vv = u_b + du, v_b + dv  # (M,)
-            ok = (r_b >= max(abs(du), abs(dv))) & (uu >= 0) & (uu < width)
-            ok &= (vv >= 0) & (vv < height)
-            wide.scatter_reduce_(0, torch.where(ok, vv * width + uu, dump), k_b, "amin")
+    for ring in range(1, max_radius + 1):
+        # Ring k (the offsets at Chebyshev distance k) only needs the points of radius >= k.
+        keep = r_b >= ring
+        if ring > 1:
+            u_b, v_b, r_b, k_b = u_b[keep], v_b[keep], r_b[keep], k_b[keep]  # (M_k,)
+        if u_b.numel() == 0:
+            break
+        for dv in range(-ring, ring + 1):
+            for du in range(-ring, ring + 1):
+                if max(abs(du), abs(dv)) != ring:
+                    continue
+                uu, vv = u_b + du, v_b + dv  # (M_k,)
+                ok = (uu >= 0) & (uu < width) & (vv >= 0) & (vv < height)
+                wide.scatter_reduce_(0, torch.where(ok, vv * width + uu, dump), k_b, "amin")
     empty = buffer == EMPTY_KEY  # (H*W+1,)
     # A direct hit well behind a wide splat is a farther surface seen through a crack of a
     # nearer one: the nearer surface covers the pixel (see-through removal).
