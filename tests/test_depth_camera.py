@@ -197,6 +197,35 @@ def test_plane_sweep_recovers_a_textured_plane() -> None:
     assert inner.mean() > 0.8
     rel = np.abs(result.depth[8:-8, 12:-12] - 2.0) / 2.0
     assert np.median(rel[inner]) < 0.01
+    # A "hand" over the left half of one source: it does not see those pixels, so it does not
+    # vote, and the other two sources still confirm the depth there.
+    src_valid = np.ones((3, h, w), np.float32)
+    src_valid[0, :, : w // 2] = 0.0
+    masked = plane_sweep(
+        images[0],
+        images[1:],
+        intrinsics,
+        cam_from_world[0],
+        cam_from_world[1:],
+        (1.0, 4.0),
+        src_valid=src_valid,
+        params=PlaneSweepParams(num_planes=48, window=5),
+    )
+    assert (masked.confidence[8:-8, 12:-12] > 0.5).mean() > 0.8
+    assert masked.visible[8:-8, 12 : w // 2 - 12].max() <= 2
+    assert (masked.support <= masked.visible).all()
+    # Needing all three sources leaves the half the masked source cannot see unconfident.
+    strict = plane_sweep(
+        images[0],
+        images[1:],
+        intrinsics,
+        cam_from_world[0],
+        cam_from_world[1:],
+        (1.0, 4.0),
+        src_valid=src_valid,
+        params=PlaneSweepParams(num_planes=48, window=5, min_support=3),
+    )
+    assert (strict.confidence[8:-8, 12 : w // 2 - 12] > 0.5).mean() < 0.05
 
 
 # --- SfM + plane sweep on the synthetic world -------------------------------------------------

@@ -6,11 +6,14 @@ is zero-mean normalised cross-correlation (ZNCC) over a square window. Per plane
 best ``top_k`` sources are averaged (robust to occlusion and to objects that moved), the winner
 takes all, and a parabola through the neighbouring planes refines the inverse depth.
 
-Confidence combines photometric consistency (the winning ZNCC) with the agreement of two
-independent estimates made from two disjoint halves of the source frames (a left-right style
-cross-check that needs no second depth map): a pixel whose two halves disagree by more than
-``agreement_planes`` plane steps gets low confidence. Pixels whose reference window has no texture,
-that lie under the hand mask, or that no source sees, get zero.
+Confidence combines photometric consistency (the winning ZNCC) with a visibility-aware
+cross-check: each source that sees the pixel at the chosen depth (its window inside the source
+image and off the source's hand mask) finds its own winner, and at least ``min_support`` of them
+must lie within ``agreement_planes`` plane steps of the chosen depth. Sources that cannot see the
+pixel do not vote, so hands that later cover the scene, or a camera that pans away, no longer
+veto pixels other sources agree on. Pixels whose reference window has no texture, that lie under
+the hand mask, that no source sees, or whose winner is the first or last plane (the surface may
+lie outside the depth range), get zero.
 """
 
 from __future__ import annotations
@@ -37,7 +40,8 @@ class PlaneSweepParams:
     top_k: int = 2  # sources averaged per plane (best scores); <= number of sources
     min_zncc: float = 0.5  # winning ZNCC mapped to confidence 0 ...
     max_zncc: float = 0.9  # ... and this one to 1
-    agreement_planes: float = 1.5  # allowed disagreement of the two source halves, plane steps
+    agreement_planes: float = 1.5  # a source agrees when its own winner is this close, plane steps
+    min_support: int = 2  # sources that see the pixel and agree needed for any confidence
     min_texture: float = 2.0  # reference window standard deviation (grey levels) below = no texture
     device: str = "cpu"  # torch device
 
@@ -49,7 +53,9 @@ class PlaneSweepResult:
     depth: np.ndarray  # (H, W) float32 z-depth in the poses' scale
     confidence: np.ndarray  # (H, W) float32 in [0, 1]
     zncc: np.ndarray  # (H, W) float32 winning aggregated ZNCC
-    agreement: np.ndarray  # (H, W) bool, the two source halves agree
+    agreement: np.ndarray  # (H, W) bool, at least ``min_support`` sources agree
+    support: np.ndarray  # (H, W) int, sources that see the pixel and agree with its depth
+    visible: np.ndarray  # (H, W) int, sources that see the pixel at its depth
 
 
 def _box(x: torch.Tensor, window: int) -> torch.Tensor:
@@ -121,10 +127,12 @@ def _grids(
     return torch.stack([gx, gy], dim=-1).reshape(-1, height, width, 2)  # (D, H, W, 2)
 
 
-def _winner(cost: torch.Tensor, inv_depths: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+def _winner(
+    cost: torch.Tensor, inv_depths: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Winner-take-all over ``cost (D, H, W)`` (higher is better) with parabolic refinement.
 
-    Returns ``(inverse depth (H, W), winning score (H, W))``.
+    Returns ``(inverse depth (H, W), winning score (H, W), winning plane index (H, W))``.
     """
     d = cost.shape[0]
     best, idx = cost.max(dim=0)  # (H, W)
@@ -136,7 +144,7 @@ def _winner(cost: torch.Tensor, inv_depths: torch.Tensor) -> tuple[torch.Tensor,
     ).clamp(-0.5, 0.5)
     step = inv_depths[1] - inv_depths[0]
     inv = inv_depths[idx] + offset * step
-    return inv, best
+    return inv, best, idx
 
 
 def plane_sweep(
@@ -191,24 +199,33 @@ def plane_sweep(
     del scores
     k = max(1, min(p.top_k, s))
     agg = vol.topk(k, dim=0).values.mean(0)  # (D, H, W)
-    inv, best = _winner(agg, inv_depths)
-    # two disjoint halves of the sources, each with its own winner (cross-check)
-    half_k = max(1, k // 2)
-    inv_a, _ = _winner(vol[0::2].topk(min(half_k, len(vol[0::2])), 0).values.mean(0), inv_depths)
-    inv_b, _ = _winner(vol[1::2].topk(min(half_k, len(vol[1::2])), 0).values.mean(0), inv_depths)
-    del vol, agg
+    inv, best, arg = _winner(agg, inv_depths)
+    # a winner on the first or last plane is no peak: the surface may lie outside the range
+    interior = (arg > 0) & (arg < p.num_planes - 1)
     step = float(inv_depths[1] - inv_depths[0])
-    agree = (inv_a - inv_b).abs() <= p.agreement_planes * step
+    # Visibility-aware cross-check: every source that sees the pixel at the chosen depth (window
+    # inside its image and off its hands) votes with its own winner; sources that do not see it
+    # (out of view, or a hand covers the scene later in the clip) neither support nor veto.
+    at_final = vol.gather(1, arg[None, None].expand(s, 1, -1, -1))[:, 0]  # (S, H, W)
+    seen = at_final > -1.0  # (S, H, W)
+    per_src = torch.stack([_winner(vol[j], inv_depths)[0] for j in range(s)])  # (S, H, W)
+    agrees = seen & ((per_src - inv[None]).abs() <= p.agreement_planes * step)
+    support = agrees.sum(0)
+    visible = seen.sum(0)
+    agree = support >= p.min_support
+    del vol, agg, per_src, at_final
     photometric = ((best - p.min_zncc) / (p.max_zncc - p.min_zncc)).clamp(0.0, 1.0)
     textured = ref_std[0, 0] >= p.min_texture
     ref_ok = torch.as_tensor(np.asarray(ref_valid, np.float32), device=dev) > 0.5
-    conf = photometric * agree * textured * ref_ok * (best > -1.0)
+    conf = photometric * agree * interior * textured * ref_ok * (best > -1.0)
     depth = 1.0 / inv.clamp_min(1.0 / (far * 4.0))
     return PlaneSweepResult(
         depth=depth.cpu().numpy().astype(np.float32),
         confidence=conf.cpu().numpy().astype(np.float32),
         zncc=best.cpu().numpy().astype(np.float32),
         agreement=agree.cpu().numpy(),
+        support=support.cpu().numpy(),
+        visible=visible.cpu().numpy(),
     )
 
 

@@ -63,9 +63,10 @@ class DepthCameraConfig(StageConfig):
     min_registered_fraction: float = 0.8  # fewer registered frames than this = reject
     depth_scale: float = 0.5  # plane sweep resolution as a fraction of the frame size
     depth_planes: int = 64  # inverse-depth planes of the sweep
-    depth_sources: int = 6  # source frames matched against frame 0
+    depth_sources: int = 8  # source frames matched against frame 0
     depth_window: int = 7  # ZNCC window side, pixels at the sweep resolution (odd)
     depth_top_k: int = 2  # best sources averaged per plane
+    depth_min_support: int = 2  # sources that see a pixel and agree on its depth, for confidence
     depth_target_angle_deg: float = 8.0  # preferred triangulation angle of a source frame
     depth_edge_rel: float = 0.1  # no confidence where depth jumps by more within 3x3 pixels
     depth_margin: float = 0.3  # depth range = SfM points' 1-99 percentiles widened by this
@@ -88,6 +89,7 @@ class DepthCameraConfig(StageConfig):
             "sfm_threads",
             "depth_sources",
             "depth_top_k",
+            "depth_min_support",
             "da3_process_res",
         ):
             if getattr(self, name) < 1:
@@ -138,6 +140,7 @@ class DepthCameraConfig(StageConfig):
             num_planes=self.depth_planes,
             window=self.depth_window,
             top_k=self.depth_top_k,
+            min_support=self.depth_min_support,
             device=self.device,
         )
 
@@ -380,6 +383,7 @@ class DepthCameraStage(ClipStage):
 
     name = "depth_camera"
     description = "intrinsics, poses and first-frame depth: pycolmap SfM + plane sweep, or given"
+    version = 2  # 2: visibility-aware source agreement, 8 sources, no confidence at range ends
     config_class = DepthCameraConfig
     inputs: ClassVar[Mapping[str, ShardSchema]] = {"clips": CLIPS}
     output = DEPTH_CAMERA
