@@ -131,9 +131,12 @@ PRESETS: dict[str, ModelPreset] = {
     "tiny": ModelPreset(
         name="tiny",
         transformer=TransformerSpec(
-            num_attention_heads=2,
-            attention_head_dim=32,
-            ffn_dim=128,
+            # Width 256: each 2x2 token carries 4 x 16 x 4 = 256 input values (noise, mask,
+            # scene, skeleton); at width 64 the model could not pass the scene render through
+            # and lost to copying it (measured 18.6 vs 20.7 dB on held-out clips).
+            num_attention_heads=4,
+            attention_head_dim=64,
+            ffn_dim=512,
             num_layers=2,
             text_dim=32,
             freq_dim=32,

@@ -250,6 +250,157 @@ def synth(
         raise _fail(exc) from exc
 
 
+def _model_errors() -> tuple[type[BaseException], ...]:
+    from egosim.model.errors import ModelError
+
+    return (*USER_ERRORS, ModelError, ValueError)
+
+
+@app.command()
+def train(
+    data: Annotated[
+        list[Path], typer.Option("--data", help="Pack shards, folders of them, or a run folder.")
+    ],
+    out: Annotated[Path, typer.Option("--out", help="Run directory (resumed when it exists).")],
+    preset: Annotated[str, typer.Option("--preset", help="Model preset (tiny, wan2.1-...).")] = (
+        "tiny"
+    ),
+    steps: Annotated[int | None, typer.Option("--steps", help="Optimizer steps in total.")] = None,
+    set_: Annotated[
+        list[str] | None, typer.Option("--set", help="TrainConfig field key=value (e.g. lr=3e-4).")
+    ] = None,
+    fresh: Annotated[bool, typer.Option("--fresh", help="Ignore existing checkpoints.")] = False,
+    sample_steps: Annotated[
+        int, typer.Option("--sample-steps", help="Euler steps of RUN/sample.mp4 (0: none).")
+    ] = 20,
+    scheduler: Annotated[
+        str | None,
+        typer.Option("--scheduler", help="Dask scheduler tcp://HOST:PORT: run on a GPU worker."),
+    ] = None,
+) -> None:
+    """Train the simulator on pack shards; writes config, metrics, checkpoints, previews, sample."""
+    from egosim.model.train import TrainConfig
+    from egosim.pipeline.stage import build_config
+    from egosim.stages.train.run import TrainJob, run_training, submit_training
+
+    try:
+        params: dict[str, object] = {"preset": preset, **_params(set_ or [], "--set")}
+        if steps is not None:
+            params["steps"] = steps
+        config = build_config(TrainConfig, params, where="train")  # type: ignore[arg-type]
+        job = TrainJob(tuple(str(p) for p in data), str(out), config, not fresh, sample_steps)
+        summary = submit_training(job, scheduler) if scheduler else run_training(job)
+    except _model_errors() as exc:
+        raise _fail(exc) from exc
+    curve = ", ".join(
+        f"{c['from_step']}-{c['to_step']}: {c['loss']:.4f}" for c in summary["loss_curve"]
+    )
+    typer.echo(
+        f"trained {summary['preset']} to step {summary['step']} on {summary['clips']} clips in "
+        f"{summary['seconds']:.0f}s; loss {curve}; run in {out}"
+    )
+
+
+def _shard_task(stage_name: str, params: dict, inputs: dict[str, Path], out: Path, i: int, n: int):
+    """A one-shard task of ``stage_name`` writing ``out/shard-i`` (fingerprinted like `run`)."""
+    stage_cls = get_stage(stage_name)
+    stage_obj = stage_cls.from_params(params)
+    in_fps = {}
+    for role, path in inputs.items():
+        with ShardReader(path) as reader:
+            in_fps[role] = reader.meta.fingerprint
+    task = ShardTask(
+        step=stage_name,
+        stage=stage_name,
+        params=stage_obj.params(),
+        shard_index=i,
+        shard_count=n,
+        output=out / f"shard-{i:05d}.parquet",
+        rejects=out / f"rejects-{i:05d}.parquet",
+        inputs=inputs,
+        input_fingerprints=in_fps,
+    )
+    fp = task_fingerprint(stage_cls, task.params, in_fps, i, n)
+    return dataclasses.replace(task, fingerprint=fp)
+
+
+@app.command()
+def simulate(
+    data: Annotated[
+        list[Path], typer.Option("--data", help="Pack shards, folders of them, or a run folder.")
+    ],
+    out: Annotated[Path, typer.Option("--out", help="Folder for simulation shards and videos.")],
+    checkpoint: Annotated[
+        str, typer.Option("--checkpoint", help="Run directory or checkpoint .pt ('' = untrained).")
+    ] = "",
+    param: Annotated[
+        list[str] | None, typer.Option("--param", help="simulate parameter key=value (steps=50).")
+    ] = None,
+) -> None:
+    """Generate every packed clip; writes OUT/shard-*.parquet and OUT/videos/<clip_id>.mp4."""
+    from egosim.pipeline.media import decode_rgb_video, write_video_file
+    from egosim.stages.pack.dataset import find_pack_shards
+
+    try:
+        params = {"checkpoint": checkpoint, **_params(param or [], "--param")}
+        shards = find_pack_shards(data)
+        for i, shard in enumerate(shards):
+            task = _shard_task("simulate", params, {"pack": shard}, out, i, len(shards))
+            result = run_shard_task(task)
+            with ShardReader(task.output) as reader:
+                for row in reader.iter_rows():
+                    video = decode_rgb_video(row["video"], row["height"], row["width"])
+                    path = out / "videos" / f"{row['clip_id']}.mp4"
+                    path.parent.mkdir(parents=True, exist_ok=True)
+                    write_video_file(path, video, fps=row["fps"])
+            typer.echo(f"{task.output}: {result.rows} clips, {result.rejected} rejected")
+    except _model_errors() as exc:
+        raise _fail(exc) from exc
+
+
+@app.command()
+def evaluate(
+    data: Annotated[
+        list[Path], typer.Option("--data", help="Pack shards, folders of them, or a run folder.")
+    ],
+    simulation: Annotated[
+        Path, typer.Option("--simulation", help="Folder written by `egosim simulate`.")
+    ],
+    out: Annotated[Path, typer.Option("--out", help="Folder for evaluation shards.")],
+    param: Annotated[
+        list[str] | None,
+        typer.Option("--param", help="evaluate parameter key=value (camera_backend=sfm)."),
+    ] = None,
+) -> None:
+    """Evaluate generated clips against their pack samples; prints per-clip and overall tables."""
+    from egosim.stages.evaluate.report import format_table, read_evaluations
+    from egosim.stages.pack.dataset import find_pack_shards
+
+    try:
+        params = _params(param or [], "--param")
+        shards = find_pack_shards(data)
+        for i, shard in enumerate(shards):
+            sim = simulation / f"shard-{i:05d}.parquet"
+            inputs = {"pack": shard, "simulation": sim}
+            run_shard_task(_shard_task("evaluate", params, inputs, out, i, len(shards)))
+        typer.echo(format_table(read_evaluations([out])))
+    except _model_errors() as exc:
+        raise _fail(exc) from exc
+
+
+@app.command()
+def report(
+    paths: Annotated[list[Path], typer.Argument(help="Evaluation shards or folders of them.")],
+) -> None:
+    """Print the per-clip and overall table of evaluation shards."""
+    from egosim.stages.evaluate.report import format_table, read_evaluations
+
+    try:
+        typer.echo(format_table(read_evaluations(paths)))
+    except USER_ERRORS as exc:
+        raise _fail(exc) from exc
+
+
 def main() -> None:  # pragma: no cover - console entry point
     """Console entry point."""
     app()

@@ -17,6 +17,7 @@ from egosim.schemas.hand_mask import HAND_MASK
 from egosim.schemas.hands import HANDS
 from egosim.schemas.inpaint import INPAINT
 from egosim.schemas.keypoints import KEYPOINTS
+from egosim.schemas.pack import EVALUATION, PACK, SIMULATION
 from egosim.schemas.poses import POSES
 from egosim.schemas.rejects import REJECTS
 from egosim.schemas.scene import SCENE_CLOUD, SCENE_RENDER
@@ -35,6 +36,9 @@ SCHEMAS: dict[str, ShardSchema] = {
         KEYPOINTS,
         HAND_MASK,
         INPAINT,
+        PACK,
+        SIMULATION,
+        EVALUATION,
     )
 }
 

@@ -3,14 +3,17 @@
 from egosim.pipeline.stage import register_stage
 from egosim.stages.caption.stage import CaptionStage
 from egosim.stages.depth_camera.stage import DepthCameraStage
+from egosim.stages.evaluate.stage import EvaluateStage
 from egosim.stages.hand_mask.stage import HandMaskStage
 from egosim.stages.hands.stage import HandsStage
 from egosim.stages.ingest.stage import IngestStage
 from egosim.stages.inpaint.stage import InpaintStage
 from egosim.stages.keypoint_render.stage import KeypointRenderStage
+from egosim.stages.pack.stage import PackStage
 from egosim.stages.pose_clean.stage import PoseCleanStage
 from egosim.stages.scene_cloud.stage import SceneCloudStage
 from egosim.stages.scene_render.stage import SceneRenderStage
+from egosim.stages.simulate.stage import SimulateStage
 
 register_stage(IngestStage)
 register_stage(CaptionStage)
@@ -22,3 +25,6 @@ register_stage(KeypointRenderStage)
 register_stage(HandMaskStage)
 register_stage(InpaintStage)
 register_stage(DepthCameraStage)
+register_stage(PackStage)
+register_stage(SimulateStage)
+register_stage(EvaluateStage)

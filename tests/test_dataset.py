@@ -18,11 +18,12 @@ from egosim.stages.world import WorldConfig, render_clip
 from egosim.stages.world.egodex_export import write_egodex
 
 REPO = Path(__file__).resolve().parents[1]
-TINY = ["height=64", "width=112", "num_frames=6", "fps=8"]
+TINY = ["height=64", "width=112", "num_frames=9", "fps=8"]
 
 
 def test_dataset_workflow_builds_checked_shards_from_the_synthetic_world(tmp_path: Path) -> None:
     overrides = [f"ingest.{kv}" for kv in [*TINY, "synthetic_count=3", "units_per_shard=2"]]
+    overrides.append("pack.frame_stride=1")  # 9 source frames make one 9-frame sample
     wf = load_workflow(REPO / "workflows" / "dataset.yaml", overrides)
     out = tmp_path / "data"
     summary = run_workflow(wf, out, n_workers=2, gpu_workers=0)
@@ -41,7 +42,7 @@ def test_dataset_workflow_builds_checked_shards_from_the_synthetic_world(tmp_pat
         "synth-tabletop-00001",
         "synth-art-00002",
     ]
-    truth = render_clip(WorldConfig(seed=1, height=64, width=112, num_frames=6, fps=8.0))
+    truth = render_clip(WorldConfig(seed=1, height=64, width=112, num_frames=9, fps=8.0))
     np.testing.assert_array_equal(clips[1].world_from_cam, truth.world_from_cam)
     np.testing.assert_array_equal(clips[1].hand_mask, truth.hand_mask)
     np.testing.assert_allclose(clips[1].hand_joints, truth.hand_joints, atol=1e-6)

@@ -1,0 +1,1 @@
+"""The ``evaluate`` stage (per-clip figures) and the per-clip + overall report."""

@@ -1,0 +1,1 @@
+"""The ``pack`` stage (training samples with a quality gate) and the pack-shard reader."""

@@ -1,0 +1,1 @@
+"""Training on pack shards (``egosim train``): a whole-dataset step, not a per-clip stage."""
