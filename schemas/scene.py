@@ -69,7 +69,8 @@ SCENE_CLOUD = ShardSchema(
             pa.string(),
             "Where colour and depth came from, as '<image>+<depth>[-hand_mask]': image one of "
             "inpaint, first_frame_clean, frames; depth one of depth0 (depth_camera), "
-            "static_depth, depth; '-hand_mask' when hand pixels were left out.",
+            "static_depth, depth, static_plane (static camera); '-hand_mask' when hand pixels "
+            "were left out.",
         ),
         Column(
             "kept_fraction",

@@ -29,7 +29,7 @@ from egosim.stages.inpaint.stage import InpaintConfig, InpaintStage
 from egosim.stages.world import WorldConfig, render_clip
 from tests.conftest import translated, write_cameras
 
-SEEDS = (0, 1, 3)
+SEEDS = (0, 1, 2, 3)
 
 
 @cache
@@ -60,8 +60,8 @@ def test_reprojection_beats_opencv_alone() -> None:
         assert set(np.unique(result.fill_source[result.filled])) <= {1, 2}
     mean_gain = float(np.mean([g[2] for g in gains.values()]))
     # Measured (ours, OpenCV alone, gain dB): 0 (21.98, 17.28, 4.70), 1 (21.86, 17.64, 4.22),
-    # 3 (22.57, 19.21, 3.35); seed 2 gains only 1.3 dB (its forearm covers the same pixels
-    # in every frame).
+    # 2 (19.99, 18.66, 1.32: its forearm covers the same pixels in every frame, so later frames
+    # cannot fill them), 3 (22.57, 19.21, 3.35).
     assert mean_gain >= 2.0, f"PSNR gain {mean_gain:.2f} dB; per seed (ours, cv2, gain) {gains}"
 
 

@@ -441,17 +441,27 @@ def test_stages_use_connected_poses_and_inpaint(world_clip, tmp_path: Path) -> N
     assert (renders["render_moved"] == renders["render_own"]).mean() < 0.9
 
 
-def test_cloud_rejects_static_camera_without_depth(world_clip, tmp_path: Path) -> None:
+def test_static_camera_repeats_the_first_frame(world_clip, tmp_path: Path) -> None:
     clip = dataclasses.replace(world_clip, depth=None, static_depth=None)
     clips = tmp_path / "clips.parquet"
     write_clips(clips, [clip])
     still = np.repeat(clip.world_from_cam[:1], T, axis=0)  # (T, 4, 4)
     cameras = write_cameras(tmp_path / "cameras.parquet", clip, still)  # static: no depth0
-    task = _task("scene_cloud", tmp_path, {"clips": clips, "cameras": cameras}, "cloud")
-    assert run_shard_task(task).rejected == 1
-    with open_shard(task.rejects) as reader:
-        reason = next(reader.iter_rows())["reason"]
-    assert clip.clip_id in reason and "static camera" in reason
+    inputs = {"clips": clips, "cameras": cameras}
+    cloud_task = _task("scene_cloud", tmp_path, inputs, "cloud")
+    assert run_shard_task(cloud_task).rows == 1
+    with open_shard(cloud_task.output) as reader:
+        assert next(reader.iter_rows())["image_source"] == "first_frame_clean+static_plane"
+    render_task = _task("scene_render", tmp_path, {**inputs, "scene_cloud": cloud_task.output}, "r")
+    assert run_shard_task(render_task).rows == 1
+    with open_shard(render_task.output) as reader:
+        row = next(reader.iter_rows())
+    video = media.decode_rgb_video(row["scene_video"], H, W)
+    visible = media.decode_lossless_video(row["visible"])
+    assert visible.all()  # every pixel of the plane lands back on itself
+    assert psnr(video[0], clip.first_frame_clean, visible[0] > 0) >= 30.0  # H.264 of frame 0
+    for frame in video[1:]:  # the same frame again (up to H.264 of a still video)
+        assert np.abs(frame.astype(int) - video[0]).mean() < 1.0
 
 
 def test_depth_under_inpainted_pixels_continues_the_surface() -> None:

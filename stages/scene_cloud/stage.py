@@ -11,9 +11,10 @@ and the intrinsics come from :func:`egosim.stages.common.cameras.resolve_cameras
 - else the clip's ``first_frame_clean`` when the depth is its ``static_depth``;
 - else ``video[0]`` with the ``hand_mask[0]`` pixels removed.
 
-A static camera (a ``cameras`` row with ``static_camera`` and no depth0) is rejected unless the
-clip has depth: without parallax there is no depth, and the fixed-camera recipe repeats the
-(inpainted) first frame instead of rendering a cloud. Pixels with unknown depth (0) are skipped;
+A static camera (a ``cameras`` row with ``static_camera`` and no depth0) and a clip without
+depth: without parallax there is no depth, so frame 0 is placed on a fronto-parallel plane at
+``STATIC_PLANE_DEPTH``; rendered from the one pose, that repeats the (inpainted) first frame in
+every frame, the fixed-camera recipe of DWM. Pixels with unknown depth (0) are skipped;
 negative or non-finite depth rejects the clip. Flying pixels (depth interpolated across an
 occlusion edge by estimators and codecs) are removed where inverse depth breaks planarity: the
 second difference of ``1/z`` along a row, a column or a diagonal, relative to ``1/z``, exceeds
@@ -37,6 +38,8 @@ from egosim.schemas import CLIPS, ShardSchema
 from egosim.schemas.inpaint import INPAINT
 from egosim.schemas.scene import SCENE_CLOUD
 from egosim.stages.common.cameras import CAMERA_ROLES, first_frame_depth, resolve_cameras
+
+STATIC_PLANE_DEPTH = 1.0  # depth of the plane that stands in for a static camera's scene
 
 
 class SceneCloudError(ValueError):
@@ -181,7 +184,9 @@ class SceneCloudStage(ClipStage):
     optional_inputs: ClassVar[Mapping[str, ShardSchema]] = {**CAMERA_ROLES, "inpaint": INPAINT}
     output = SCENE_CLOUD
     backends = ("first_frame",)
-    version = 2  # 2: static_depth beats depth for frames+hand_mask; image_source names the depth
+    # 2: static_depth beats depth for frames+hand_mask; image_source names the depth
+    # 3: a static camera gets a plane at STATIC_PLANE_DEPTH instead of a reject
+    version = 3
     config: SceneCloudConfig
 
     def process(self, rows: Mapping[str, Mapping[str, Any]]) -> dict[str, Any]:
@@ -235,15 +240,15 @@ def _first_frame(
     row, cams, inpaint = rows["clips"], rows.get("cameras"), rows.get("inpaint")
     cid, h, w = row["clip_id"], row["height"], row["width"]
     depth = first_frame_depth(rows)  # (H, W)
-    if depth is None:
-        if cams is not None and cams["static_camera"]:
-            raise ClipRejected(
-                f"clip {cid!r}: static camera: depth_camera has no depth0 (no parallax) and the "
-                "clip has no depth; scene_render repeats the first frame for static cameras"
-            )
-        raise ClipRejected(f"clip {cid!r}: no depth (needs depth0, static_depth or depth)")
     depth_name = _depth_name(rows)
-    hand_free = depth_name == "static_depth"
+    if depth is None:
+        if cams is None or not cams["static_camera"]:
+            raise ClipRejected(f"clip {cid!r}: no depth (needs depth0, static_depth or depth)")
+        # A static camera has no parallax, hence no depth (DWM's fixed-camera recipe): a
+        # fronto-parallel plane seen from the one pose makes scene_render repeat frame 0.
+        depth = np.full((h, w), STATIC_PLANE_DEPTH, np.float32)
+        depth_name = "static_plane"
+    hand_free = depth_name in ("static_depth", "static_plane")
     if inpaint is not None:
         image = media.decode_png(inpaint["first_frame"], f"clip {cid} inpaint first_frame")
         if not hand_free:
