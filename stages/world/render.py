@@ -56,6 +56,7 @@ class WorldRenderer:
             [(uv[:, 0] - cx) / fx, (uv[:, 1] - cy) / fy, np.ones(len(uv))], axis=1
         ).astype(np.float32)  # (H*W, 3)
         self._dirs_cam_t = np.ascontiguousarray(self.dirs_cam.T)  # (3, H*W) for fast rotation
+        self._dirs_norm = np.linalg.norm(self.dirs_cam, axis=1)  # (H*W,) rotation-invariant
         self.intrinsics = np.asarray(intrinsics, dtype=np.float64)
         self.height, self.width = height, width
         self.scene = scene
@@ -90,7 +91,7 @@ class WorldRenderer:
             if not len(idx):
                 continue
             lev = np.clip(level[idx], 0, len(pyramid) - 1)  # (m,)
-            for k in np.unique(lev):
+            for k in np.flatnonzero(np.bincount(lev)):  # the levels present
                 sel = idx[lev == k] if len(pyramid) > 1 else idx
                 inv = np.float32(2.0**-k)
                 # cv2.remap wants maps under 32767 rows: lay the m samples out in rows of 1024.
@@ -138,7 +139,8 @@ class WorldRenderer:
     ) -> Layer:
         """Background and objects seen from ``world_from_cam``; ids index ``self.bodies``.
 
-        ``rays`` (from :meth:`rays` for the same camera) may be passed to avoid recomputing them.
+        ``rays`` (from :meth:`rays` for the same camera, all pixels) may be passed to avoid
+        recomputing them.
         """
         rays = self.rays(world_from_cam) if rays is None else rays  # (H*W, 6)
         hit = self._static_scene(object_poses).cast_rays(rays, nthreads=self.nthreads)
@@ -163,7 +165,7 @@ class WorldRenderer:
         u = a * scale + self._tex_centre[body] + 97 * axis  # (n,) level-0 texel coordinates;
         v = b * scale + self._tex_centre[body]  # a different patch per face direction
         # Pixel footprint on the surface in level-0 texels picks the mip level (no aliasing).
-        cos = np.abs(np.sum(normals * dirs, axis=1)) / np.linalg.norm(dirs, axis=1)
+        cos = np.abs(np.einsum("ij,ij->i", normals, dirs)) / self._dirs_norm  # (H*W,)
         footprint = np.where(found, depth, 1.0) / self._fx / np.maximum(cos, 0.25) * scale
         albedo = self._sample(body, u, v, np.log2(np.maximum(footprint, 1.0)))  # (n, 3)
         shade = _shade(normals, dirs) * (1.0 / 255.0)  # (H*W,)
