@@ -17,22 +17,14 @@ import pyarrow as pa
 
 from egosim.schemas.base import Column, ShardSchema
 from egosim.schemas.clips import POSE
-from egosim.schemas.invariants import se3_problems
+from egosim.schemas.invariants import frame_count_problems, frame_size_problems, se3_problems
 
 BACKENDS = ("sfm", "given", "da3")
 
 
 def _check_counts(row: Mapping[str, Any]) -> list[str]:
-    t = row["num_frames"]
-    if t is None or t < 1:
-        return [f"num_frames must be >= 1, got {t}"]
-    problems: list[str] = []
-    for name in ("world_from_cam", "registered"):
-        if len(row[name]) != t:
-            problems.append(f"{name} has {len(row[name])} entries, num_frames is {t}")
-    if row["width"] < 1 or row["height"] < 1:
-        problems.append(f"width and height must be positive, got {row['width']}x{row['height']}")
-    return problems
+    problems = frame_count_problems(row, ("world_from_cam", "registered"))
+    return problems + frame_size_problems(row)
 
 
 def _check_camera(row: Mapping[str, Any]) -> list[str]:

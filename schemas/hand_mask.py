@@ -9,17 +9,17 @@ import numpy as np
 import pyarrow as pa
 
 from egosim.schemas.base import Column, ShardSchema
+from egosim.schemas.invariants import frame_count_problems, frame_size_problems
 
 HAND_MASK_BACKENDS = ("keypoints", "sam")
 
 
 def _check_hand_mask(row: Mapping[str, Any]) -> list[str]:
-    problems: list[str] = []
+    problems = frame_count_problems(row)
+    if problems:
+        return problems
     t = row["num_frames"]
-    if t is None or t < 1:
-        return [f"num_frames must be >= 1, got {t}"]
-    if row["width"] < 1 or row["height"] < 1:
-        problems.append(f"width and height must be positive, got {row['width']}x{row['height']}")
+    problems += frame_size_problems(row)
     coverage = np.asarray(row["coverage"], dtype=np.float64)
     if coverage.shape != (t,):
         problems.append(f"coverage has {coverage.size} entries, num_frames is {t}")

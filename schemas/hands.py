@@ -15,16 +15,12 @@ import pyarrow as pa
 
 from egosim.schemas.base import Column, ShardSchema
 from egosim.schemas.clips import HAND_JOINTS_PER_FRAME
+from egosim.schemas.invariants import frame_count_problems
 
 
 def _check_hands(row: Mapping[str, Any]) -> list[str]:
-    problems: list[str] = []
+    problems = frame_count_problems(row, ("hand_joints", "hand_valid", "hand_confidence"))
     t = row["num_frames"]
-    if t is None or t < 1:
-        return [f"num_frames must be >= 1, got {t}"]
-    for name in ("hand_joints", "hand_valid", "hand_confidence"):
-        if len(row[name]) != t:
-            problems.append(f"{name} has {len(row[name])} entries, num_frames is {t}")
     if problems:
         return problems
     joints = np.asarray(row["hand_joints"], dtype=np.float64).reshape(t, 2, 21 * 3)

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+from typing import Any
+
 import numpy as np
 
 
@@ -24,3 +27,22 @@ def se3_problems(transform: np.ndarray, tol: float = 1e-4) -> list[str]:
     if np.abs(bottom - np.array([0.0, 0.0, 0.0, 1.0])).max(initial=0.0) > tol:
         problems.append("last row is not [0, 0, 0, 1]")
     return problems
+
+
+def frame_count_problems(row: Mapping[str, Any], per_frame: tuple[str, ...] = ()) -> list[str]:
+    """``num_frames >= 1`` and each ``per_frame`` column (when not null) has that many entries."""
+    t = row["num_frames"]
+    if t is None or t < 1:
+        return [f"num_frames must be >= 1, got {t}"]
+    return [
+        f"{name} has {len(row[name])} entries, num_frames is {t}"
+        for name in per_frame
+        if row.get(name) is not None and len(row[name]) != t
+    ]
+
+
+def frame_size_problems(row: Mapping[str, Any]) -> list[str]:
+    """``width`` and ``height`` are positive."""
+    if row["width"] < 1 or row["height"] < 1:
+        return [f"width and height must be positive, got {row['width']}x{row['height']}"]
+    return []

@@ -14,18 +14,14 @@ import numpy as np
 import pyarrow as pa
 
 from egosim.schemas.base import Column, ShardSchema
+from egosim.schemas.invariants import frame_count_problems
 
 NUM_KEYPOINTS = 2 * 21  # both hands
 
 
 def _check_keypoints(row: Mapping[str, Any]) -> list[str]:
-    problems: list[str] = []
+    problems = frame_count_problems(row, ("keypoints_2d", "keypoint_depth", "keypoint_visible"))
     t = row["num_frames"]
-    if t is None or t < 1:
-        return [f"num_frames must be >= 1, got {t}"]
-    for name in ("keypoints_2d", "keypoint_depth", "keypoint_visible"):
-        if len(row[name]) != t:
-            problems.append(f"{name} has {len(row[name])} entries, num_frames is {t}")
     if problems:
         return problems
     uv = np.asarray(row["keypoints_2d"], dtype=np.float64).reshape(t, NUM_KEYPOINTS, 2)

@@ -18,6 +18,7 @@ import numpy as np
 import pyarrow as pa
 
 from egosim.schemas.base import Column, ShardSchema
+from egosim.schemas.invariants import frame_count_problems, frame_size_problems
 
 
 def _check_cloud(row: Mapping[str, Any]) -> list[str]:
@@ -85,12 +86,11 @@ SCENE_CLOUD = ShardSchema(
 
 
 def _check_render(row: Mapping[str, Any]) -> list[str]:
-    problems: list[str] = []
+    problems = frame_count_problems(row)
+    if problems:
+        return problems
     t = row["num_frames"]
-    if t is None or t < 1:
-        return [f"num_frames must be >= 1, got {t}"]
-    if row["width"] < 1 or row["height"] < 1:
-        problems.append(f"width and height must be positive, got {row['width']}x{row['height']}")
+    problems += frame_size_problems(row)
     frac = np.asarray(row["visible_fraction"], dtype=np.float64)
     if frac.shape != (t,):
         problems.append(f"visible_fraction has {frac.size} entries, num_frames is {t}")
