@@ -59,7 +59,7 @@ class DepthCameraConfig(StageConfig):
     sfm_init_min_tri_angle: float = 4.0  # degrees; COLMAP's 16 fails on small head motion
     sfm_max_mapping_seconds: int = 60  # mapping time cap per focal prior
     sfm_timeout_s: float = 600.0  # the SfM subprocess is killed after this many seconds
-    sfm_threads: int = 2  # threads of the SfM subprocess
+    sfm_threads: int = 1  # threads of the SfM subprocess; 1 is reproducible (more was not)
     min_registered_fraction: float = 0.8  # fewer registered frames than this = reject
     depth_scale: float = 0.5  # plane sweep resolution as a fraction of the frame size
     depth_planes: int = 64  # inverse-depth planes of the sweep
@@ -383,7 +383,7 @@ class DepthCameraStage(ClipStage):
 
     name = "depth_camera"
     description = "intrinsics, poses and first-frame depth: pycolmap SfM + plane sweep, or given"
-    version = 2  # 2: visibility-aware source agreement, 8 sources, no confidence at range ends
+    version = 3  # 3: one SfM thread (reproducible); 2: visibility-aware depth confidence
     config_class = DepthCameraConfig
     inputs: ClassVar[Mapping[str, ShardSchema]] = {"clips": CLIPS}
     output = DEPTH_CAMERA
