@@ -115,13 +115,22 @@ def encode_lossless_video(frames: np.ndarray) -> bytes:
     return buffer.getvalue()
 
 
-def decode_lossless_video(data: bytes, what: str = "lossless video") -> np.ndarray:
-    """Decode FFV1 bytes to ``(T, H, W)`` uint8 or uint16, exactly as encoded."""
+def decode_lossless_video(
+    data: bytes, what: str = "lossless video", max_frames: int | None = None
+) -> np.ndarray:
+    """Decode FFV1 bytes to ``(T, H, W)`` uint8 or uint16, exactly as encoded.
+
+    ``max_frames`` stops after that many frames (e.g. 1 for a clip's first-frame mask or depth).
+    """
+    frames: list[np.ndarray] = []
     try:
         with av.open(io.BytesIO(data), mode="r") as container:
             stream = container.streams.video[0]
             fmt = "gray16le" if stream.codec_context.pix_fmt == "gray16le" else "gray"
-            frames = [f.to_ndarray(format=fmt) for f in container.decode(stream)]
+            for frame in container.decode(stream):
+                frames.append(frame.to_ndarray(format=fmt))
+                if max_frames is not None and len(frames) >= max_frames:
+                    break
     except (av.error.FFmpegError, IndexError, OSError) as exc:
         raise MediaError(f"cannot decode {what}: {exc}") from exc
     if not frames:
@@ -153,9 +162,13 @@ def encode_depth_video(depth: np.ndarray, unit: float) -> bytes:
     return encode_lossless_video(steps.astype(np.uint16))
 
 
-def decode_depth_video(data: bytes, unit: float, what: str = "depth video") -> np.ndarray:
+def decode_depth_video(
+    data: bytes, unit: float, what: str = "depth video", max_frames: int | None = None
+) -> np.ndarray:
     """Decode depth bytes to ``(T, H, W)`` float32 metres (0 = unknown)."""
-    return (decode_lossless_video(data, what).astype(np.float64) * unit).astype(np.float32)
+    return (decode_lossless_video(data, what, max_frames).astype(np.float64) * unit).astype(
+        np.float32
+    )
 
 
 def encode_png(image: np.ndarray) -> bytes:

@@ -40,6 +40,8 @@ def test_lossless_masks_labels_and_depth_are_exact() -> None:
     out = media.decode_depth_video(media.encode_depth_video(depth, unit), unit)
     assert np.abs(out - depth).max() <= unit / 2 + 1e-6
     assert out[0, 0, 0] == 0.0
+    first = media.decode_depth_video(media.encode_depth_video(depth, unit), unit, max_frames=1)
+    np.testing.assert_array_equal(first, out[:1])  # stops after the first frame
 
 
 def test_png_round_trip_is_exact() -> None:

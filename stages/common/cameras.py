@@ -69,9 +69,9 @@ def first_frame_depth(rows: Mapping[str, Mapping[str, Any]]) -> np.ndarray | Non
     cams = rows.get("cameras")
     if cams is not None and cams.get("depth0") is not None:
         what = f"clip {clip['clip_id']} depth0"
-        return media.decode_depth_video(cams["depth0"], cams["depth_unit_m"], what)[0]
+        return media.decode_depth_video(cams["depth0"], cams["depth_unit_m"], what, max_frames=1)[0]
     for key in ("static_depth", "depth"):
         if clip.get(key) is not None:
             what = f"clip {clip['clip_id']} {key}"
-            return media.decode_depth_video(clip[key], clip["depth_unit_m"], what)[0]
+            return media.decode_depth_video(clip[key], clip["depth_unit_m"], what, max_frames=1)[0]
     return None

@@ -297,7 +297,7 @@ def estimate_given(
     # The static (hand-free) depth when the source has it: the scene behind the hands.
     key = "static_depth" if row.get("static_depth") is not None else "depth"
     if row.get(key) is not None and row.get("depth_unit_m"):
-        depth0 = media.decode_lossless_video(row[key], f"clip {clip_id} {key}")[0]
+        depth0 = media.decode_lossless_video(row[key], f"clip {clip_id} {key}", 1)[0]
         depth0 = depth0.astype(np.float32) * float(row["depth_unit_m"])
     try:
         res = given.given_camera(

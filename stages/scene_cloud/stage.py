@@ -268,5 +268,5 @@ def _first_frame(
             "contain hands"
         )
     image = media.decode_rgb_video(row["video"], h, w, f"clip {cid} video")[0]
-    hands = media.decode_lossless_video(row["hand_mask"], f"clip {cid} hand_mask")[0]
+    hands = media.decode_lossless_video(row["hand_mask"], f"clip {cid} hand_mask", 1)[0]
     return image, depth, hands, f"frames+{depth_name}-hand_mask"
