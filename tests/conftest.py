@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from egosim.pipeline import media
+from egosim.pipeline.execute import ShardTask
 from egosim.pipeline.geometry import intrinsics_from_fov, look_at
 from egosim.pipeline.media import write_video_file
 from egosim.pipeline.records import Clip
@@ -139,3 +140,24 @@ def shared_data(*parts: str) -> Path:
     if not path.exists():
         pytest.skip(f"{path} is absent")
     return path
+
+
+def one_shard_task(
+    stage: str,
+    out_dir: Path,
+    inputs: dict[str, Path],
+    name: str | None = None,
+    params: dict | None = None,
+) -> ShardTask:
+    """A one-shard task of ``stage`` writing ``out_dir/<name>.parquet`` (and its rejects)."""
+    name = name or stage
+    return ShardTask(
+        step=stage,
+        stage=stage,
+        params=params or {},
+        shard_index=0,
+        shard_count=1,
+        output=out_dir / f"{name}.parquet",
+        rejects=out_dir / f"{name}-rejects.parquet",
+        inputs=inputs,
+    )

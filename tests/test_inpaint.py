@@ -27,7 +27,7 @@ from egosim.stages.inpaint.diffusers_backend import (
 from egosim.stages.inpaint.reproject_fill import dilate, opencv_fill, reproject_fill
 from egosim.stages.inpaint.stage import InpaintConfig, InpaintStage
 from egosim.stages.world import WorldConfig, render_clip
-from tests.conftest import translated, write_cameras
+from tests.conftest import one_shard_task, translated, write_cameras
 
 SEEDS = (0, 1, 2, 3)
 
@@ -88,16 +88,7 @@ def test_stage_chain_through_shard_tasks(tmp_path: Path) -> None:
     write_clips(clips, [world_clip(0)])
 
     def task(stage: str, inputs: dict[str, Path]) -> ShardTask:
-        return ShardTask(
-            step=stage,
-            stage=stage,
-            params={},
-            shard_index=0,
-            shard_count=1,
-            output=tmp_path / f"{stage}.parquet",
-            rejects=tmp_path / f"{stage}-rejects.parquet",
-            inputs=inputs,
-        )
+        return one_shard_task(stage, tmp_path, inputs)
 
     masks = task("hand_mask", {"clips": clips})
     assert run_shard_task(masks).rows == 1
@@ -176,16 +167,7 @@ def test_stage_takes_depth_and_cameras_from_connected_roles(tmp_path: Path) -> N
     cameras = write_cameras(tmp_path / "cameras.parquet", clip, moved, depth0=gt.depth[0])
 
     def run(inputs: dict[str, Path], name: str) -> tuple[int, int]:
-        task = ShardTask(
-            step="inpaint",
-            stage="inpaint",
-            params={},
-            shard_index=0,
-            shard_count=1,
-            output=tmp_path / f"{name}.parquet",
-            rejects=tmp_path / f"{name}-rejects.parquet",
-            inputs=inputs,
-        )
+        task = one_shard_task("inpaint", tmp_path, inputs, name)
         result = run_shard_task(task)
         return result.rows, result.rejected
 

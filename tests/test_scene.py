@@ -38,7 +38,7 @@ from egosim.stages.scene_render.splat import (
 )
 from egosim.stages.world.clip import render_clip
 from egosim.stages.world.config import WorldConfig
-from tests.conftest import translated, write_cameras, write_poses
+from tests.conftest import one_shard_task, translated, write_cameras, write_poses
 
 H, W, T = 64, 112, 8
 
@@ -375,16 +375,7 @@ def test_cpu_and_gpu_agree(world_clip) -> None:
 
 
 def _task(stage: str, tmp_path: Path, inputs: dict[str, Path], name: str) -> ShardTask:
-    return ShardTask(
-        step=stage,
-        stage=stage,
-        params={},
-        shard_index=0,
-        shard_count=1,
-        output=tmp_path / f"{name}.parquet",
-        rejects=tmp_path / f"{name}-rejects.parquet",
-        inputs=inputs,
-    )
+    return one_shard_task(stage, tmp_path, inputs, name)
 
 
 def test_stages_use_connected_poses_and_inpaint(world_clip, tmp_path: Path) -> None:
