@@ -174,6 +174,7 @@ def test_freihand_2d_keypoints(mediapipe: object) -> None:
         raw = detect_landmarks(rgb[None], MediaPipeParams(video_mode=False))
         truth = np.array(anns[image["id"]]["keypoints"]).reshape(21, 3)[:, :2]
         if not raw.present[0].any():
+            pcks.append(0.0)  # a missed hand scores 0: finding a hard hand must not lower it
             continue
         errors = [
             np.linalg.norm(raw.uv[0, k] - truth, axis=1) for k in np.flatnonzero(raw.present[0])
@@ -181,8 +182,9 @@ def test_freihand_2d_keypoints(mediapipe: object) -> None:
         err = min(errors, key=lambda e: e.mean())
         side = (truth.max(axis=0) - truth.min(axis=0)).max()
         pcks.append(float((err < 0.2 * side).mean()))
-    assert len(pcks) >= 6, f"found {len(pcks)} of 8 hands"
-    assert np.mean(pcks) >= 0.7, pcks
+    assert sum(p > 0 for p in pcks) >= 7, f"found {sum(p > 0 for p in pcks)} of 8 hands"
+    # Full frame only: 7 of 8 found, 0.675 over all 8; with the zoomed tiles 8 of 8, 0.69.
+    assert np.mean(pcks) >= 0.65, pcks
 
 
 def test_interhand_lift_against_3d_joints(mediapipe: object) -> None:

@@ -1,0 +1,340 @@
+"""Real development videos through the default dataset workflow: what comes out, and how good.
+
+``python -m bench.real_video [--data ../shared/data] [--out runs/real] [--only NAME]`` (or
+``make eval-real``) runs ``workflows/dataset.yaml`` with default settings on every real video in
+``../shared/data`` (DWM clips with ``ingest.preset=dwm``), then prints one table and writes
+``OUT/real_video.json``. Per video:
+
+- ``clips``: clips ingested and samples packed (the training clips the video gave);
+- ``posed``: frames posed by estimation (mapper, PnP tracking or rotation model) / all frames,
+  over every window of the video; interpolated frames are not counted;
+- ``model``: the camera model each window used (sfm, rotation, static, given);
+- ``fov``: horizontal field of view of the estimated focal, beside the nominal one the clip came
+  with (the ingest prior: source metadata or the 70 degree guess);
+- ``scale``: metres per reconstruction unit and where it came from;
+- ``hand/surf``: hand-to-surface depth ratio at contact: for each valid hand and frame, the median
+  over the five fingertips of fingertip depth / depth of the scene cloud under the fingertip
+  (cleaned poses, scene cloud rendered into that frame); the contact frames of a hand are the
+  quarter of its frames where that ratio is largest (the fingertips closest to the surface behind
+  them, i.e. touching it); the figure is the median over contact frames. 1 = hands lie on the
+  surfaces they touch. n/a without depth (static and rotation-only cameras);
+- for DWM clips with a ground-truth static-scene video (``videos_static``): PSNR of the scene
+  render against it on the pixels the render marks visible and no hand covers (``videos_hands``
+  dilated by 15 px), and the mean distance in px from the render's Canny edges to the truth's,
+  each beside the baseline of repeating frame 0 of the real video on the same pixels, averaged
+  over t = 0..end.
+
+The figures are read from the shards the run wrote; nothing here is tuned to these videos.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from egosim.pipeline import media
+from egosim.pipeline.geometry import invert_se3
+from egosim.pipeline.shards import open_shard
+from egosim.pipeline.workflow import load_workflow
+
+ROOT = Path(__file__).resolve().parents[1]
+DEFAULT_DATA = ROOT.parent / "shared" / "data"
+WORKFLOW = ROOT / "workflows" / "dataset.yaml"
+FINGERTIPS = (4, 8, 12, 16, 20)  # MANO order
+HAND_DILATE_PX = 15  # ground-truth hand renders grow by this before leaving pixels out
+HAND_RENDER_THRESHOLD = 30  # a videos_hands pixel brighter than this (any channel) is hand
+
+
+@dataclass(frozen=True)
+class RealCase:
+    """One real development video."""
+
+    name: str  # row label
+    video: str  # path under the data folder
+    preset: str  # ingest preset
+    static_truth: str = ""  # ground-truth static-scene video (DWM dynamic clips)
+    hands_truth: str = ""  # ground-truth hand renders on black (DWM dynamic clips)
+
+
+CASES = (
+    RealCase("egodex_sample", "egodex_sample/sample.mp4", "egosim"),
+    *(
+        RealCase(
+            f"dwm_{cid}",
+            f"dwm_realworld/realworld_dynamic/videos/{cid}.mp4",
+            "dwm",
+            f"dwm_realworld/realworld_dynamic/videos_static/{cid}.mp4",
+            f"dwm_realworld/realworld_dynamic/videos_hands/{cid}.mp4",
+        )
+        for cid in ("00013", "00017")
+    ),
+    RealCase("pour_coke", "dwm_realworld/realworld_fixed/pour_coke.mp4", "dwm"),
+    RealCase("lift_tumbler", "dwm_realworld/realworld_fixed/lift_tumbler.mp4", "dwm"),
+)
+
+
+def read_step(run: Path, step: str, columns: list[str] | None = None) -> dict[str, dict]:
+    """Rows of every shard of ``step`` by clip id ({} when the step wrote nothing)."""
+    rows: dict[str, dict] = {}
+    for path in sorted((run / step).glob("shard-*.parquet")):
+        with open_shard(path) as reader:
+            for row in reader.iter_rows(columns=columns):
+                rows[row["clip_id"]] = row
+    return rows
+
+
+def run_case(case: RealCase, data: Path, out: Path, workers: int) -> float:
+    """Run the dataset workflow on one video; returns wall-clock seconds."""
+    from egosim.pipeline.runner import run_workflow
+
+    workflow = load_workflow(WORKFLOW, [f"ingest.preset={case.preset}"])
+    start = time.perf_counter()
+    run_workflow(workflow, out, source=str(data / case.video), n_workers=workers)
+    return time.perf_counter() - start
+
+
+def _poses(run: Path, cid: str, cams: dict) -> np.ndarray:
+    """World-from-camera ``(T, 4, 4)``: cleaned poses when present, else the estimate."""
+    poses = read_step(run, "poses", ["clip_id", "world_from_cam"]).get(cid)
+    src = poses if poses is not None else cams
+    return np.asarray(src["world_from_cam"], dtype=np.float64).reshape(-1, 4, 4)
+
+
+def _scene_depth(points: np.ndarray, cam_from_world: np.ndarray, k: np.ndarray, hw: tuple) -> Any:
+    """Z-buffer depth ``(H, W)`` of world ``points (N, 3)`` seen from one camera (0 = none)."""
+    h, w = hw
+    pc = points @ cam_from_world[:3, :3].T + cam_from_world[:3, 3]  # (N, 3)
+    pc = pc[pc[:, 2] > 1e-6]
+    u = np.floor(k[0] * pc[:, 0] / pc[:, 2] + k[2]).astype(np.int64)
+    v = np.floor(k[1] * pc[:, 1] / pc[:, 2] + k[3]).astype(np.int64)
+    ok = (u >= 0) & (u < w) & (v >= 0) & (v < h)
+    depth = np.full(h * w, np.inf)
+    np.minimum.at(depth, v[ok] * w + u[ok], pc[ok, 2])
+    depth[~np.isfinite(depth)] = 0.0
+    return depth.reshape(h, w)
+
+
+def _depth_at(depth: np.ndarray, u: float, v: float, radius: int = 4) -> float:
+    h, w = depth.shape
+    iu, iv = int(u), int(v)
+    if not (0 <= iu < w and 0 <= iv < h):
+        return float("nan")
+    patch = depth[max(0, iv - radius) : iv + radius + 1, max(0, iu - radius) : iu + radius + 1]
+    vals = patch[patch > 0]
+    return float(np.median(vals)) if len(vals) else float("nan")
+
+
+def hand_surface_ratio(run: Path, cid: str, cams: dict) -> float | None:
+    """Median fingertip/scene depth ratio over each hand's contact frames (see module doc)."""
+    cloud = read_step(run, "scene_cloud").get(cid)
+    hands = read_step(run, "hands", ["clip_id", "hand_joints", "hand_valid"]).get(cid)
+    if cloud is None or hands is None or cams.get("depth0") is None:
+        return None
+    pts = np.frombuffer(cloud["points_xyz"], dtype="<f4").reshape(-1, 3).astype(np.float64)
+    k = np.asarray(cams["intrinsics"], dtype=np.float64)
+    hw = (int(cams["height"]), int(cams["width"]))
+    cam_from_world = invert_se3(_poses(run, cid, cams))  # (T, 4, 4)
+    joints = np.asarray(hands["hand_joints"], dtype=np.float64).reshape(-1, 2, 21, 3)
+    valid = np.asarray(hands["hand_valid"], dtype=bool)  # (T, 2)
+    per_hand: list[list[float]] = [[], []]
+    for t in np.flatnonzero(valid.any(axis=1)):
+        depth = _scene_depth(pts, cam_from_world[t], k, hw)
+        for s in np.flatnonzero(valid[t]):
+            tips = joints[t, s, list(FINGERTIPS)]  # (5, 3) world
+            tc = tips @ cam_from_world[t, :3, :3].T + cam_from_world[t, :3, 3]  # (5, 3)
+            ratios = []
+            for x, y, z in tc:
+                if z <= 0:
+                    continue
+                zs = _depth_at(depth, k[0] * x / z + k[2], k[1] * y / z + k[3])
+                if np.isfinite(zs):
+                    ratios.append(z / zs)
+            if ratios:
+                per_hand[s].append(float(np.median(ratios)))
+    contact: list[float] = []
+    for values in per_hand:
+        if values:
+            top = np.sort(values)[-max(1, len(values) // 4) :]
+            contact.extend(top.tolist())
+    return float(np.median(contact)) if contact else None
+
+
+def _video_frames(path: Path) -> np.ndarray:
+    frames, _ = media.read_video_file(path)
+    return frames
+
+
+def _fit(frames: np.ndarray, indices: np.ndarray, hw: tuple[int, int]) -> np.ndarray:
+    """Source frames at ``indices`` scaled to cover ``hw`` and centre-cropped (ingest's rule)."""
+    from egosim.stages.ingest.standardise import plan_resize
+
+    plan = plan_resize(frames.shape[2], frames.shape[1], hw[1], hw[0])
+    return np.stack([plan.apply(frames[min(i, len(frames) - 1)]) for i in indices])
+
+
+def _psnr(a: np.ndarray, b: np.ndarray, mask: np.ndarray) -> float:
+    if mask.sum() == 0:
+        return float("nan")
+    err = np.mean((a[mask].astype(np.float64) - b[mask].astype(np.float64)) ** 2)
+    return float(10 * np.log10(255.0**2 / max(err, 1e-10)))
+
+
+def _edge_distance(a: np.ndarray, b: np.ndarray, mask: np.ndarray) -> float:
+    """Mean distance (px) from ``a``'s Canny edges inside ``mask`` to the nearest edge of ``b``."""
+    ea = cv2.Canny(cv2.cvtColor(a, cv2.COLOR_RGB2GRAY), 50, 150) > 0
+    eb = cv2.Canny(cv2.cvtColor(b, cv2.COLOR_RGB2GRAY), 50, 150) > 0
+    if not eb.any():
+        return float("nan")
+    dist = cv2.distanceTransform((~eb).astype(np.uint8), cv2.DIST_L2, 5)
+    sel = ea & mask
+    return float(dist[sel].mean()) if sel.any() else float("nan")
+
+
+def scene_vs_truth(run: Path, cid: str, case: RealCase, data: Path) -> dict[str, float] | None:
+    """Scene render vs the ground-truth static video, and the repeat-frame-0 baseline."""
+    render = read_step(run, "scene_render").get(cid)
+    clip = read_step(run, "ingest").get(cid)
+    if render is None or clip is None or not case.static_truth:
+        return None
+    h, w = int(render["height"]), int(render["width"])
+    scene = media.decode_rgb_video(render["scene_video"], h, w, f"{cid} scene")
+    visible = media.decode_lossless_video(render["visible"], f"{cid} visible") > 0
+    real = media.decode_rgb_video(clip["video"], h, w, f"{cid} video")
+    indices = clip.get("source_frame_indices")
+    if indices is None:  # clips v1: the source rate equals the clip rate
+        indices = np.arange(len(scene))
+    indices = np.asarray(indices, dtype=np.int64)
+    truth = _fit(_video_frames(data / case.static_truth), indices, (h, w))
+    hands = _fit(_video_frames(data / case.hands_truth), indices, (h, w))
+    kernel = cv2.getStructuringElement(
+        cv2.MORPH_ELLIPSE, (2 * HAND_DILATE_PX + 1, 2 * HAND_DILATE_PX + 1)
+    )
+    figures: dict[str, list[float]] = {"psnr": [], "psnr_base": [], "edge": [], "edge_base": []}
+    for t in range(len(scene)):
+        hand = cv2.dilate((hands[t].max(axis=2) > HAND_RENDER_THRESHOLD).astype(np.uint8), kernel)
+        mask = visible[t] & (hand == 0)
+        figures["psnr"].append(_psnr(scene[t], truth[t], mask))
+        figures["psnr_base"].append(_psnr(real[0], truth[t], mask))
+        figures["edge"].append(_edge_distance(scene[t], truth[t], mask))
+        figures["edge_base"].append(_edge_distance(real[0], truth[t], mask))
+    out = {k: float(np.nanmean(v)) for k, v in figures.items()}
+    out["visible_fraction"] = float(visible.mean())
+    return out
+
+
+def _fov_deg(fx: float, width: int) -> float:
+    return float(np.degrees(2 * np.arctan(width / (2 * fx))))
+
+
+def summarise(case: RealCase, run: Path, data: Path, seconds: float) -> dict[str, Any]:
+    """The table row of one video from the shards its run wrote."""
+    clips = read_step(run, "ingest", ["clip_id", "intrinsics", "width", "num_frames", "fps"])
+    cams = read_step(run, "cameras")
+    packed = read_step(run, "pack", ["clip_id"])
+    rejects: list[str] = []
+    rej_path = run / "rejects.parquet"
+    if rej_path.is_file():
+        with open_shard(rej_path) as reader:
+            rejects = [f"{r['step']}: {r['reason']}"[:160] for r in reader.iter_rows()]
+    posed = total = 0
+    models, fovs, nominal, scales, ratios, scene = [], [], [], [], [], []
+    for cid, cam in cams.items():
+        t = int(cam["num_frames"])
+        total += t
+        posed += int(np.sum(np.asarray(cam["registered"], dtype=bool)))
+        models.append(cam.get("camera_model") or ("static" if cam["static_camera"] else "sfm"))
+        fovs.append(_fov_deg(cam["intrinsics"][0], int(cam["width"])))
+        nominal.append(_fov_deg(clips[cid]["intrinsics"][0], int(clips[cid]["width"])))
+        if cam.get("metric_scale") is not None:
+            scales.append(f"{cam['metric_scale']:.3g} ({cam.get('scale_source')})")
+        ratio = hand_surface_ratio(run, cid, cam)
+        if ratio is not None:
+            ratios.append(ratio)
+        fig = scene_vs_truth(run, cid, case, data)
+        if fig is not None:
+            scene.append(fig)
+    row: dict[str, Any] = {
+        "video": case.name,
+        "preset": case.preset,
+        "clips_ingested": len(clips),
+        "clips_packed": len(packed),
+        "frames_posed": posed,
+        "frames_total": total,
+        "camera_models": sorted(set(models)),
+        "fov_deg": fovs,
+        "nominal_fov_deg": nominal,
+        "scale": scales,
+        "hand_surface_ratio": ratios,
+        "seconds": seconds,
+        "rejects": rejects,
+    }
+    if scene:
+        row["scene_vs_truth"] = {k: float(np.mean([f[k] for f in scene])) for k in scene[0]}
+    return row
+
+
+def print_table(rows: list[dict[str, Any]]) -> None:
+    """One line per video, then the rejects."""
+    head = (
+        f"{'video':<14} {'clips':>7} {'posed':>9} {'model':<14} {'fov est/nom':>12} "
+        f"{'hand/surf':>9} {'scene dB (base)':>16} {'edge px (base)':>15} {'s':>5}"
+    )
+    print(head)
+    print("-" * len(head))
+    for r in rows:
+        posed = f"{r['frames_posed']}/{r['frames_total']}"
+        fov = (
+            f"{np.mean(r['fov_deg']):.0f}/{np.mean(r['nominal_fov_deg']):.0f}"
+            if r["fov_deg"]
+            else "-"
+        )
+        ratio = f"{np.median(r['hand_surface_ratio']):.2f}" if r["hand_surface_ratio"] else "n/a"
+        sv = r.get("scene_vs_truth")
+        db = f"{sv['psnr']:.1f} ({sv['psnr_base']:.1f})" if sv else "-"
+        edge = f"{sv['edge']:.1f} ({sv['edge_base']:.1f})" if sv else "-"
+        clips = f"{r['clips_ingested']}->{r['clips_packed']}"
+        print(
+            f"{r['video']:<14} {clips:>7} {posed:>9} {','.join(r['camera_models']):<14} "
+            f"{fov:>12} {ratio:>9} {db:>16} {edge:>15} {r['seconds']:>5.0f}"
+        )
+    for r in rows:
+        if r["scale"]:
+            print(f"{r['video']}: scale {', '.join(r['scale'])}")
+        for reason in r["rejects"][:5]:
+            print(f"{r['video']}: rejected at {reason}")
+
+
+def main() -> int:
+    """Run every case (or ``--only``), print the table; exit 1 if a video packed nothing."""
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--data", type=Path, default=DEFAULT_DATA, help="the shared data folder")
+    parser.add_argument("--out", type=Path, default=ROOT / "runs" / "real", help="run folders")
+    parser.add_argument("--only", default="", help="run the cases whose name contains this")
+    parser.add_argument("--workers", type=int, default=2, help="local Dask workers")
+    parser.add_argument("--no-run", action="store_true", help="only read existing run folders")
+    args = parser.parse_args()
+    rows = []
+    for case in CASES:
+        if args.only and args.only not in case.name:
+            continue
+        if not (args.data / case.video).is_file():
+            print(f"{case.name}: {args.data / case.video} not found, skipped")
+            continue
+        run = args.out / case.name
+        seconds = 0.0 if args.no_run else run_case(case, args.data, run, args.workers)
+        rows.append(summarise(case, run, args.data, seconds))
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "real_video.json").write_text(json.dumps(rows, indent=1))
+    print_table(rows)
+    return 0 if rows and all(r["clips_packed"] > 0 for r in rows) else 1
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
