@@ -14,7 +14,7 @@ WORKFLOW ?= workflows/dataset.yaml
 SET ?=
 WORKERS ?=
 
-.PHONY: setup test test-all lint format dataset check train bench clean
+.PHONY: setup test test-all lint format dataset check train bench eval-real clean
 
 setup: $(STAMP)
 
@@ -77,6 +77,12 @@ train: setup
 
 bench: setup
 	$(BIN)/python -m bench.run
+
+# The dataset workflow with default settings on every real video in ../shared/data: clips per
+# video, frames posed, focal, metric scale, hand/surface depth ratio, scene render vs the DWM
+# ground-truth static video (table, and runs/real/real_video.json). About 15 minutes on 2 cores.
+eval-real: setup
+	$(BIN)/python -m bench.real_video --out runs/real
 
 clean:
 	rm -rf $(VENV) data/dataset bench/results.jsonl

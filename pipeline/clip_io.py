@@ -56,6 +56,12 @@ def row_from_clip(clip: Clip, crf: int = media.DEFAULT_CRF) -> dict[str, Any]:
         "num_objects": n_obj,
         "object_poses": _opt(clip.object_poses, lambda a: a.reshape(-1, 16).tolist()),
         "text": clip.text,
+        "source_fps": _opt(clip.source_fps, float),
+        "source_num_frames": _opt(clip.source_num_frames, int),
+        "source_frame_indices": _opt(
+            clip.source_frame_indices, lambda a: np.asarray(a, dtype=np.int64).tolist()
+        ),
+        "clip_policy": clip.clip_policy,
     }
 
 
@@ -105,6 +111,10 @@ def clip_from_row(row: Mapping[str, Any]) -> Clip:
         object_mask=lossless("object_mask"),
         object_poses=_opt(row.get("object_poses"), lambda v: _arr(v).reshape(t, n_obj, 4, 4)),
         text=row.get("text"),
+        source_fps=_opt(row.get("source_fps"), float),
+        source_num_frames=_opt(row.get("source_num_frames"), int),
+        source_frame_indices=_opt(row.get("source_frame_indices"), lambda v: _arr(v, np.int64)),
+        clip_policy=row.get("clip_policy"),
     )
     return clip.check()
 

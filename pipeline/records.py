@@ -42,6 +42,10 @@ class Clip:
     object_mask: np.ndarray | None = None  # (T, H, W) uint8 object instance id, 0 = none
     object_poses: np.ndarray | None = None  # (T, N, 4, 4) float64 world_from_object
     text: str | None = None  # description of the interaction
+    source_fps: float | None = None  # frame rate of the source the clip was cut from
+    source_num_frames: int | None = None  # frames in that source (None when unknown)
+    source_frame_indices: np.ndarray | None = None  # (T,) int index of each frame in the source
+    clip_policy: str | None = None  # what ingest's clip policy did: "full|short|tail[:preset]"
 
     @property
     def num_frames(self) -> int:
@@ -93,6 +97,18 @@ class Clip:
             value = getattr(self, name)
             if value is not None and tuple(value.shape) != shape:
                 out.append(f"{name} shape {tuple(value.shape)} != {shape}")
+        if self.source_frame_indices is not None:
+            idx = np.asarray(self.source_frame_indices)
+            if idx.shape != (t,) or not np.issubdtype(idx.dtype, np.integer):
+                out.append(
+                    f"source_frame_indices must be ({t},) integers, got {idx.shape} {idx.dtype}"
+                )
+            elif t and (idx.min() < 0 or np.any(np.diff(idx) < 0)):
+                out.append("source_frame_indices must be >= 0 and non-decreasing")
+        if self.source_fps is not None and not (
+            np.isfinite(self.source_fps) and self.source_fps > 0
+        ):
+            out.append(f"source_fps must be positive, got {self.source_fps}")
         if self.object_poses is not None:
             shape = self.object_poses.shape
             if len(shape) != 4 or shape[0] != t or shape[2:] != (4, 4):

@@ -4,6 +4,11 @@ Per-frame arrays are list columns with one entry per frame; images, masks, depth
 encoded bytes (see :mod:`egosim.pipeline.media`): RGB video as H.264 MP4, masks and depth as
 lossless FFV1 video, single images as PNG. Optional columns hold ground truth when the source has
 it (the synthetic world, EgoDex) and are null otherwise.
+
+Version 2 adds what ingest's clip policy did (``source_fps``, ``source_num_frames``,
+``source_frame_indices``, ``clip_policy``; see ``docs/design.md``, "Clip policy / clips v2").
+Version 1 shards have none of these and are refused by readers (``SchemaCompatibilityError``):
+re-run ``ingest`` to rewrite them.
 """
 
 from __future__ import annotations
@@ -85,9 +90,40 @@ def _check_hands(row: Mapping[str, Any]) -> list[str]:
     return problems
 
 
+CLIP_POLICY_KINDS = ("full", "short", "tail")  # first part of the clip_policy column
+RATE_TOLERANCE = 1e-6  # relative: fps may exceed source_fps by this much (float rounding)
+
+
+def _check_policy(row: Mapping[str, Any]) -> list[str]:
+    problems: list[str] = []
+    t = row["num_frames"]
+    idx = row.get("source_frame_indices")
+    if idx is not None:
+        arr = np.asarray(idx, dtype=np.int64)
+        if len(arr) != t:
+            problems.append(f"source_frame_indices has {len(arr)} entries, num_frames is {t}")
+        elif len(arr) and (arr.min() < 0 or np.any(np.diff(arr) < 0)):
+            problems.append(f"source_frame_indices must be >= 0 and non-decreasing, got {arr[:8]}")
+    source_fps, fps = row.get("source_fps"), row["fps"]
+    if source_fps is not None:
+        if not (np.isfinite(source_fps) and source_fps > 0):
+            problems.append(f"source_fps must be positive, got {source_fps}")
+        elif fps > source_fps * (1 + RATE_TOLERANCE):
+            problems.append(f"fps {fps} exceeds source_fps {source_fps}: clips are never upsampled")
+    n = row.get("source_num_frames")
+    if n is not None and n < 1:
+        problems.append(f"source_num_frames must be >= 1, got {n}")
+    policy = row.get("clip_policy")
+    if policy is not None and policy.split(":")[0] not in CLIP_POLICY_KINDS:
+        problems.append(
+            f"clip_policy must start with one of {list(CLIP_POLICY_KINDS)}, got {policy!r}"
+        )
+    return problems
+
+
 CLIPS = ShardSchema(
     name="clips",
-    version=1,
+    version=2,
     doc="Standardised clips: video, timing, intrinsics and optional ground truth, one per row.",
     columns=(
         Column("clip_id", pa.string(), "Unique clip id within the dataset."),
@@ -131,6 +167,33 @@ CLIPS = ShardSchema(
         Column("num_objects", pa.int32(), "Number of tracked objects N.", True),
         Column("object_poses", pa.list_(POSE), "(T*N, 16) world_from_object, frame-major.", True),
         Column("text", pa.string(), "Text description of the interaction.", True),
+        Column(
+            "source_fps",
+            pa.float64(),
+            "Frame rate of the source; fps equals it when the source was slower than the target "
+            "(never upsampled). Null when unknown.",
+            True,
+        ),
+        Column(
+            "source_num_frames",
+            pa.int32(),
+            "Frames in the source (a video file's declared count); null when unknown.",
+            True,
+        ),
+        Column(
+            "source_frame_indices",
+            pa.list_(pa.int32()),
+            "(T,) index of each stored frame in the source, non-decreasing.",
+            True,
+        ),
+        Column(
+            "clip_policy",
+            pa.string(),
+            "What ingest's clip policy made: 'full' (a num_frames window), 'short' (the longest "
+            "1+4k frames of a source shorter than one clip) or 'tail' (the remainder after the "
+            "last full window), then ':' and the ingest preset, e.g. 'short:egosim'.",
+            True,
+        ),
     ),
-    validators=(_check_counts, _check_camera, _check_poses, _check_hands),
+    validators=(_check_counts, _check_camera, _check_poses, _check_hands, _check_policy),
 )

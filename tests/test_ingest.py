@@ -11,7 +11,7 @@ from egosim.pipeline.geometry import intrinsics_from_fov, project_points
 from egosim.pipeline.media import write_video_file
 from egosim.pipeline.stage import ClipRejected, ConfigError
 from egosim.stages.ingest.stage import IngestConfig, IngestStage
-from egosim.stages.ingest.standardise import plan_resize, resample_windows
+from egosim.stages.ingest.standardise import WindowPolicy, plan_resize, resample_windows
 from egosim.stages.ingest.video_source import read_video_clips
 from tests.conftest import shared_data, smooth_frames
 
@@ -20,13 +20,14 @@ SMALL = {"height": 48, "width": 80, "num_frames": 8, "fps": 8.0}
 
 def test_resample_picks_nearest_source_frames_for_any_rate() -> None:
     src = [(i / 30.0, np.array([i])) for i in range(90)]  # 3 s at 30 fps
-    windows = list(resample_windows(iter(src), fps=16.0, num_frames=10, stride=0))
+    policy = WindowPolicy(fps=16.0, num_frames=10, min_frames=9, tail="drop")
+    windows = list(resample_windows(iter(src), policy, source_fps=30.0))
     assert len(windows) == 4  # 48 target frames in 3 s -> 4 windows of 10
     np.testing.assert_allclose(windows[1].timestamps, (10 + np.arange(10)) / 16.0)
     expected = np.rint((10 + np.arange(10)) / 16.0 * 30.0).astype(int)
     np.testing.assert_array_equal(windows[1].source_indices, expected)
-    strided = list(resample_windows(iter(src), fps=16.0, num_frames=10, stride=5))
-    assert [w.index for w in strided] == list(range(8))
+    strided = WindowPolicy(fps=16.0, num_frames=10, stride=5, min_frames=9, tail="drop")
+    assert [w.index for w in resample_windows(iter(src), strided)] == list(range(8))
 
 
 def test_resize_plan_keeps_projection_consistent() -> None:
@@ -57,7 +58,7 @@ def test_video_file_becomes_standard_clips(video_file: Path) -> None:
 def test_short_video_is_rejected_with_the_reason(tmp_path: Path) -> None:
     path = tmp_path / "short.mp4"
     write_video_file(path, smooth_frames(5, 32, 32), fps=30.0)
-    with pytest.raises(ClipRejected, match=r"short\.mp4 is shorter than one clip"):
+    with pytest.raises(ClipRejected, match=r"short\.mp4 is shorter than one clip.*minimum is 8"):
         list(read_video_clips(path, IngestConfig(**SMALL)))
 
 

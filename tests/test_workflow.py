@@ -70,8 +70,8 @@ def test_build_config_converts_strings_and_reports_all_problems() -> None:
 
 
 def test_ingest_config_checks_values() -> None:
-    with pytest.raises(ConfigError, match="num_frames must be >= 1, got 0"):
-        get_stage("ingest").from_params({"num_frames": 0})
+    with pytest.raises(ConfigError, match="num_frames must be >= 1, got -1"):
+        get_stage("ingest").from_params({"num_frames": -1})
 
 
 def test_workflow_reports_every_problem_before_running() -> None:
@@ -95,7 +95,7 @@ def test_workflow_reports_every_problem_before_running() -> None:
         "parameter 'fps'",
         "unknown step 'nostep'",
         "unknown stage 'no_such_stage'",
-        "needs schema 'rejects' v1 but step 'ingest' writes 'clips' v1",
+        "needs schema 'rejects' v1 but step 'ingest' writes 'clips' v2",
         "unknown step 'missing_step'",
     ):
         assert expected in message, expected

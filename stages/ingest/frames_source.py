@@ -12,7 +12,7 @@ import numpy as np
 from egosim.pipeline.records import Clip
 from egosim.pipeline.stage import ClipRejected
 from egosim.stages.ingest.standardise import plan_resize, resample_windows
-from egosim.stages.ingest.video_source import ClipFormat, source_intrinsics
+from egosim.stages.ingest.video_source import ClipFormat, source_intrinsics, window_policy
 
 IMAGE_SUFFIXES = frozenset({".jpg", ".jpeg", ".png", ".bmp", ".webp"})
 
@@ -44,7 +44,7 @@ def _read_rgb(path: Path) -> np.ndarray:
 
 
 def read_frame_clips(folder: Path, cfg: FramesFormat) -> Iterator[Clip]:
-    """Cut a folder of frames into standardised clips."""
+    """Cut a folder of frames (taken at ``frames_fps``) into clips by the clip policy."""
     if not cfg.frames_fps > 0:
         raise ClipRejected(f"frame folder {folder}: set frames_fps, the rate the frames were taken")
     files = _images(folder)
@@ -62,23 +62,19 @@ def read_frame_clips(folder: Path, cfg: FramesFormat) -> Iterator[Clip]:
                 raise ClipRejected(f"{f}: size {image.shape[:2]} differs from {(height, width)}")
             yield i / cfg.frames_fps, plan.apply(image)
 
-    count = 0
-    windows = resample_windows(
-        frames(), cfg.fps, cfg.num_frames, cfg.stride, cfg.max_clips_per_source
-    )
-    for window in windows:
-        count += 1
+    policy = window_policy(cfg)
+    what = f"frame folder {folder}"
+    for window in resample_windows(frames(), policy, cfg.frames_fps, what):
         yield Clip(
             clip_id=f"{folder.name}-w{window.index:03d}",
             source="frames",
             source_uri=str(folder),
-            fps=cfg.fps,
+            fps=window.fps,
             timestamps=window.timestamps,
             intrinsics=intrinsics,
             frames=window.frames,
+            source_fps=float(cfg.frames_fps),
+            source_num_frames=len(files),
+            source_frame_indices=window.source_indices,
+            clip_policy=policy.label(window.kind),
         ).check()
-    if count == 0:
-        raise ClipRejected(
-            f"frame folder {folder}: {len(files)} frames at {cfg.frames_fps} fps are shorter "
-            f"than one {cfg.num_frames}-frame clip at {cfg.fps} fps"
-        )

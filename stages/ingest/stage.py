@@ -11,6 +11,13 @@ Sources (``source`` parameter; ``auto`` picks per input path):
 
 Units are the input files (or folders of frames, or synthetic seeds); ``units_per_shard`` of them
 make one shard. A unit that cannot be read goes to the rejects table with the reason.
+
+Clip format: ``preset`` names a common format (:data:`CLIP_PRESETS`: ``egosim`` 61 frames at
+16 fps, 480x832; ``dwm`` 49 frames at 8 fps, 480x720). The fields ``fps``, ``num_frames``,
+``min_frames``, ``height`` and ``width`` default to 0, meaning "the preset's"; a value given
+explicitly overrides the preset. The resolved values are what the config holds (and what the
+shard's provenance records). How clips are cut in time (rate, windows, short sources, the tail)
+is the clip policy of :mod:`egosim.stages.ingest.standardise`.
 """
 
 from __future__ import annotations
@@ -33,16 +40,39 @@ SourceKind = Literal["auto", "video", "frames", "egodex", "mcap", "synthetic"]
 
 
 @dataclasses.dataclass(frozen=True)
+class ClipPreset:
+    """A common clip format: what the fields left at 0 in :class:`IngestConfig` become."""
+
+    fps: float  # target frames per second
+    num_frames: int  # frames of a full clip (1 + 4k for the Wan VAE)
+    min_frames: int  # fewest frames of a short or tail clip
+    height: int  # frame height in pixels
+    width: int  # frame width in pixels
+
+
+CLIP_PRESETS: dict[str, ClipPreset] = {
+    # EgoSim / Wan2.1-Fun-InP: 61 frames at 16 fps (3.75 s), 480x832.
+    "egosim": ClipPreset(fps=16.0, num_frames=61, min_frames=33, height=480, width=832),
+    # DWM (papers/dwm-paper.txt, 720x480 with 49 frames; its real-world clips are at 8 fps).
+    "dwm": ClipPreset(fps=8.0, num_frames=49, min_frames=33, height=480, width=720),
+}
+PRESET_FIELDS = ("fps", "num_frames", "min_frames", "height", "width")  # 0 = the preset's
+
+
+@dataclasses.dataclass(frozen=True)
 class IngestConfig(StageConfig):
     """Parameters of ``ingest``."""
 
     source: SourceKind = "auto"  # which reader; auto: by file type of each input path
-    fps: float = 16.0  # target frames per second of every clip
-    num_frames: int = 61  # frames per clip
-    height: int = 480  # target frame height in pixels
-    width: int = 832  # target frame width in pixels
-    stride: int = 0  # target frames between window starts in long videos; 0 = num_frames
-    max_clips_per_source: int = 0  # windows kept per input video; 0 = all
+    preset: Literal["egosim", "dwm"] = "egosim"  # clip format filling the fields left at 0
+    fps: float = 0.0  # target frames per second (a slower source keeps its own); 0 = preset's
+    num_frames: int = 0  # frames of a full clip; 0 = the preset's
+    min_frames: int = 0  # fewest frames of a short or tail clip (1 + 4k long); 0 = preset's
+    height: int = 0  # target frame height in pixels; 0 = the preset's
+    width: int = 0  # target frame width in pixels; 0 = the preset's
+    stride: int = 0  # clip frames between window starts in long videos; 0 = num_frames
+    tail: Literal["keep", "drop"] = "keep"  # keep: a remainder >= min_frames gives a 1+4k clip
+    max_clips_per_source: int = 0  # clips kept per input video; 0 = all
     horizontal_fov_deg: float = 70.0  # FOV guess for sources without intrinsics
     intrinsics: tuple[float, ...] = ()  # fx, fy, cx, cy of the source frames, when known
     frames_fps: float = 0.0  # frame rate of image-folder sources (required for them)
@@ -55,11 +85,19 @@ class IngestConfig(StageConfig):
 
     def __post_init__(self) -> None:
         problems = []
+        if self.preset not in CLIP_PRESETS:
+            problems.append(f"preset must be one of {sorted(CLIP_PRESETS)}, got {self.preset!r}")
+        preset = CLIP_PRESETS.get(self.preset, CLIP_PRESETS["egosim"])
+        for name in PRESET_FIELDS:  # 0 = not given: take the preset's value
+            if getattr(self, name) == 0:
+                object.__setattr__(self, name, getattr(preset, name))
         if not self.fps > 0:
-            problems.append(f"fps must be > 0, got {self.fps}")
-        for name in ("num_frames", "height", "width", "units_per_shard", "crf"):
+            problems.append(f"fps must be > 0 (or 0 for the preset's), got {self.fps}")
+        for name in ("num_frames", "min_frames", "height", "width", "units_per_shard", "crf"):
             if getattr(self, name) < 1:
                 problems.append(f"{name} must be >= 1, got {getattr(self, name)}")
+        if self.tail not in ("keep", "drop"):
+            problems.append(f"tail must be 'keep' or 'drop', got {self.tail!r}")
         for name in ("stride", "max_clips_per_source", "synthetic_count"):
             if getattr(self, name) < 0:
                 problems.append(f"{name} must be >= 0, got {getattr(self, name)}")
@@ -81,6 +119,7 @@ class IngestStage(SourceStage):
     config_class = IngestConfig
     output = CLIPS
     backends = ("video", "frames", "egodex", "mcap", "synthetic")
+    version = 2  # 2: clip policy (short and tail clips, source rate kept), clips v2 columns
     config: IngestConfig
 
     def list_units(self, source: str | None) -> list[str]:

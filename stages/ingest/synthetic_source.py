@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
 from typing import Protocol
+
+import numpy as np
 
 from egosim.pipeline.records import Clip
 from egosim.pipeline.stage import ClipRejected
@@ -13,6 +16,7 @@ from egosim.stages.world.config import WorldConfig
 class SyntheticFormat(Protocol):
     """Ingest parameters the synthetic source reads (an ``IngestConfig`` satisfies it)."""
 
+    preset: str
     fps: float
     num_frames: int
     height: int
@@ -35,7 +39,11 @@ def list_units(cfg: SyntheticFormat) -> list[str]:
 
 
 def render_unit(spec: str, cfg: SyntheticFormat) -> Clip:
-    """Render the clip a unit spec (``<mode>:<seed>[:articulated]``) names."""
+    """Render the clip a unit spec (``<mode>:<seed>[:articulated]``) names.
+
+    The world renders exactly ``num_frames`` frames at ``fps``, so the clip is one full window
+    of its own source (``source_frame_indices`` 0..T-1).
+    """
     parts = spec.split(":")
     try:
         mode, seed = parts[0], int(parts[1])
@@ -51,4 +59,11 @@ def render_unit(spec: str, cfg: SyntheticFormat) -> Clip:
         articulated="articulated" in parts[2:],
     )
     kind = "art" if world.articulated else mode
-    return render_clip(world, clip_id=f"synth-{kind}-{seed:05d}")
+    clip = render_clip(world, clip_id=f"synth-{kind}-{seed:05d}")
+    return replace(
+        clip,
+        source_fps=float(cfg.fps),
+        source_num_frames=clip.num_frames,
+        source_frame_indices=np.arange(clip.num_frames),
+        clip_policy=f"full:{cfg.preset}" if cfg.preset else "full",
+    ).check()

@@ -1,4 +1,9 @@
-"""Ingest backend for video files, and the resampling of already-decoded clips."""
+"""Ingest backend for video files, and the standardising of already-decoded clips.
+
+Both apply the clip policy of :mod:`egosim.stages.ingest.standardise` (rate, full windows, short
+sources, tail) and record what it did on every clip: ``source_fps``, ``source_num_frames``,
+``source_frame_indices`` and ``clip_policy``.
+"""
 
 from __future__ import annotations
 
@@ -13,7 +18,7 @@ from egosim.pipeline.geometry import intrinsics_from_fov
 from egosim.pipeline.media import MediaError, iter_video_file, probe_video_file
 from egosim.pipeline.records import Clip
 from egosim.pipeline.stage import ClipRejected
-from egosim.stages.ingest.standardise import plan_resize, resample_windows
+from egosim.stages.ingest.standardise import WindowPolicy, plan_resize, resample_windows
 
 VIDEO_SUFFIXES = frozenset({".mp4", ".mov", ".mkv", ".avi", ".webm", ".m4v"})
 
@@ -21,14 +26,30 @@ VIDEO_SUFFIXES = frozenset({".mp4", ".mov", ".mkv", ".avi", ".webm", ".m4v"})
 class ClipFormat(Protocol):
     """The ingest parameters that shape a clip (an ``IngestConfig`` satisfies it)."""
 
+    preset: str
     fps: float
     num_frames: int
+    min_frames: int
     height: int
     width: int
     stride: int
+    tail: str
     max_clips_per_source: int
     horizontal_fov_deg: float
     intrinsics: tuple[float, ...]
+
+
+def window_policy(cfg: ClipFormat) -> WindowPolicy:
+    """The clip policy in time that an ingest config asks for."""
+    return WindowPolicy(
+        fps=cfg.fps,
+        num_frames=cfg.num_frames,
+        min_frames=cfg.min_frames,
+        stride=cfg.stride,
+        tail=cfg.tail,  # type: ignore[arg-type]  (checked by the config)
+        max_windows=cfg.max_clips_per_source,
+        preset=cfg.preset,
+    )
 
 
 def source_intrinsics(cfg: ClipFormat, width: int, height: int) -> np.ndarray:
@@ -39,7 +60,10 @@ def source_intrinsics(cfg: ClipFormat, width: int, height: int) -> np.ndarray:
 
 
 def read_video_clips(path: Path, cfg: ClipFormat) -> Iterator[Clip]:
-    """Cut one video file into standardised clips (streaming: one clip in memory at a time)."""
+    """Cut one video file into standardised clips (streaming: one clip in memory at a time).
+
+    ``source_num_frames`` is the container's declared frame count (None when it declares none).
+    """
     try:
         info = probe_video_file(path)
     except MediaError as exc:
@@ -47,60 +71,59 @@ def read_video_clips(path: Path, cfg: ClipFormat) -> Iterator[Clip]:
     plan = plan_resize(info.width, info.height, cfg.width, cfg.height)
     intrinsics = plan.intrinsics(source_intrinsics(cfg, info.width, info.height))
     frames = ((t, plan.apply(f)) for t, f in iter_video_file(path))
+    policy = window_policy(cfg)
     count = 0
     try:
-        for window in resample_windows(
-            frames, cfg.fps, cfg.num_frames, cfg.stride, cfg.max_clips_per_source
-        ):
+        for window in resample_windows(frames, policy, info.fps, f"video file {path}"):
             count += 1
             yield Clip(
                 clip_id=f"{path.stem}-w{window.index:03d}",
                 source="video",
                 source_uri=str(path),
-                fps=cfg.fps,
+                fps=window.fps,
                 timestamps=window.timestamps,
                 intrinsics=intrinsics,
                 frames=window.frames,
+                source_fps=float(info.fps),
+                source_num_frames=info.num_frames or None,
+                source_frame_indices=window.source_indices,
+                clip_policy=policy.label(window.kind),
             ).check()
     except MediaError as exc:
         raise ClipRejected(f"{exc} (after {count} complete clip(s))") from exc
-    if count == 0:
-        needed = (cfg.num_frames - 1) / cfg.fps
-        raise ClipRejected(
-            f"video file {path} is shorter than one clip: {cfg.num_frames} frames at "
-            f"{cfg.fps} fps need {needed:.2f} s"
-        )
 
 
 def standardise_clip(clip: Clip, cfg: ClipFormat) -> Iterator[Clip]:
-    """Resample and resize a decoded clip (with its ground truth) into standard clips."""
+    """Resample and resize a decoded clip (with its ground truth) into standard clips.
+
+    Every per-frame array (frames, poses, depth, hands, masks, object poses) is picked with the
+    same source indices, so ground truth stays aligned with the frames. A clip that already
+    records its source (``source_frame_indices``) keeps indices into that original source.
+    """
     plan = plan_resize(clip.width, clip.height, cfg.width, cfg.height)
+    policy = window_policy(cfg)
     pairs = zip(clip.timestamps.tolist(), range(clip.num_frames), strict=True)
     windows = resample_windows(
-        ((t, np.array([i])) for t, i in pairs),
-        cfg.fps,
-        cfg.num_frames,
-        cfg.stride,
-        cfg.max_clips_per_source,
+        ((t, np.array([i])) for t, i in pairs), policy, clip.fps, f"clip {clip.clip_id}"
     )
-    count = 0
     for window in windows:
-        idx = window.source_indices  # (T,) indices into the source clip
+        idx = window.source_indices  # (T,) indices into the decoded clip
 
         def pick(a: np.ndarray | None, idx: np.ndarray = idx) -> np.ndarray | None:
             return None if a is None else a[idx]
 
-        def image(a: np.ndarray | None, nearest: bool = False, idx: np.ndarray = idx):
+        def image(
+            a: np.ndarray | None, nearest: bool = False, idx: np.ndarray = idx
+        ) -> np.ndarray | None:
             if a is None:
                 return None
-            out = [plan.apply(a[i], nearest) for i in idx]
-            return np.stack(out)
+            return np.stack([plan.apply(a[i], nearest) for i in idx])
 
-        count += 1
+        origin = clip.source_frame_indices
         yield replace(
             clip,
             clip_id=f"{clip.clip_id}-w{window.index:03d}",
-            fps=cfg.fps,
+            fps=window.fps,
             timestamps=window.timestamps,
             intrinsics=plan.intrinsics(clip.intrinsics),
             frames=image(clip.frames),
@@ -117,10 +140,8 @@ def standardise_clip(clip: Clip, cfg: ClipFormat) -> Iterator[Clip]:
             hand_mask=image(clip.hand_mask, nearest=True),
             object_mask=image(clip.object_mask, nearest=True),
             object_poses=pick(clip.object_poses),
+            source_fps=clip.source_fps if clip.source_fps is not None else float(clip.fps),
+            source_num_frames=clip.source_num_frames or clip.num_frames,
+            source_frame_indices=idx if origin is None else np.asarray(origin)[idx],
+            clip_policy=policy.label(window.kind),
         ).check()
-    if count == 0:
-        raise ClipRejected(
-            f"clip {clip.clip_id} ({clip.num_frames} frames over "
-            f"{clip.timestamps[-1] - clip.timestamps[0]:.2f} s) is shorter than one "
-            f"{cfg.num_frames}-frame clip at {cfg.fps} fps"
-        )

@@ -5,7 +5,11 @@ visibility), its keypoints (skeleton video) and caption, plus the optional inpai
 estimated or cleaned cameras and hand masks, and writes them at one size and frame count:
 
 - frames: ``frame_stride`` apart from frame 0; ``num_frames`` of them (0: as many as fit), always
-  ``1 + 4k`` because that is the model's latent layout;
+  ``1 + 4k`` because that is the model's latent layout. Ingest's clip policy makes clips of
+  different lengths (61 or 49 frames, and short or tail clips down to its ``min_frames``, 33 by
+  default, all ``1 + 4k``): ``num_frames`` 0 packs each whole, which needs ``batch_size`` 1 in
+  training when lengths differ; a fixed ``num_frames`` gives one length and rejects the clips
+  shorter than it;
 - size: ``height`` x ``width`` (0: the clip's), area-resized; masks are resized by area and
   thresholded at one half, intrinsics scaled with the image. Resizing here (not at train time)
   makes the pack shard exactly what the model sees, and cheap to read for ``tiny`` training.
@@ -88,7 +92,8 @@ def sample_frame_indices(clip_frames: int, num_frames: int, stride: int) -> np.n
     n = num_frames or 1 + 4 * ((available - 1) // 4)
     if n > available:
         raise ClipRejected(
-            f"clip has {clip_frames} frames: too short for {n} sample frames at stride {stride}"
+            f"clip has {clip_frames} frames: too short for {n} sample frames at stride {stride} "
+            "(pack num_frames=0 takes the most 1 + 4k frames that fit)"
         )
     return np.arange(n) * stride
 
