@@ -1,6 +1,14 @@
 """The ``egosim`` command line: thin commands that build configs and call library code.
 
 Library code raises typed errors; only this module turns them into a message and an exit code.
+
+Exit codes (documented in README.md, "The CLI"):
+
+- 0: success; for ``run`` and ``stage``, every final step has clips (some may be rejected);
+- 1: ``egosim check`` found violations (or an unexpected crash, with a traceback);
+- 2: a bad command line, workflow, parameter, input or shard, or a task that failed as a whole;
+- 3: ``run``/``stage``: a step rejected every clip it was given (a source step made no clip);
+- 4: ``run``/``stage``: a final step wrote no clip although no step rejected everything.
 """
 
 from __future__ import annotations
@@ -19,6 +27,13 @@ from egosim.pipeline.media import MediaError
 from egosim.pipeline.records import ClipValueError
 from egosim.pipeline.shards import ShardError, ShardReader
 from egosim.pipeline.stage import SourceStage, StageError, get_stage, registered_stages
+from egosim.pipeline.summary import (
+    FinalStepEmptyError,
+    RunReport,
+    StepRejectedAllError,
+    format_report,
+    summarize_tasks,
+)
 from egosim.pipeline.workflow import load_workflow
 from egosim.schemas import SchemaError
 
@@ -30,10 +45,27 @@ app = typer.Typer(
 
 USER_ERRORS = (StageError, ShardError, SchemaError, MediaError, ClipValueError, OSError)
 
+EXIT_USER_ERROR = 2  # bad workflow, parameter, input or shard; a task failed as a whole
+EXIT_STEP_REJECTED_ALL = 3  # a step rejected every clip it was given (a source made none)
+EXIT_FINAL_STEP_EMPTY = 4  # a final step wrote no clip
+
 
 def _fail(exc: BaseException) -> typer.Exit:
     typer.secho(f"error: {exc}", fg=typer.colors.RED, err=True)
-    return typer.Exit(code=2)
+    return typer.Exit(code=EXIT_USER_ERROR)
+
+
+def _finish_with_report(report: RunReport) -> None:
+    """Print ``report`` and exit with code 3 or 4 when the run (or stage) produced nothing."""
+    typer.echo(format_report(report))
+    try:
+        report.raise_for_outcome()
+    except StepRejectedAllError as exc:
+        typer.secho(f"error: {exc}", fg=typer.colors.RED, err=True)
+        raise typer.Exit(code=EXIT_STEP_REJECTED_ALL) from exc
+    except FinalStepEmptyError as exc:
+        typer.secho(f"error: {exc}", fg=typer.colors.RED, err=True)
+        raise typer.Exit(code=EXIT_FINAL_STEP_EMPTY) from exc
 
 
 def _params(items: list[str], flag: str) -> dict[str, str]:
@@ -63,10 +95,20 @@ def run(
         list[str] | None, typer.Option("--set", help="Override a parameter: step.param=value.")
     ] = None,
 ) -> None:
-    """Run a workflow on a Dask cluster (local by default); skips finished shards."""
+    """Run a workflow on a Dask cluster (local by default); skips finished shards.
+
+    Ends with a summary per step (clips in, out, rejected, top reject reasons),
+    also written to OUT/summary.json.
+
+    Exit codes:
+    0  every final step has clips (some clips may have been rejected)
+    2  bad workflow, parameter or input; or a task failed as a whole
+    3  a step rejected every clip it was given (or the source made no clip)
+    4  a final step wrote no clip
+    """
     from rich.progress import Progress
 
-    from egosim.pipeline.runner import run_workflow
+    from egosim.pipeline.runner import RunError, run_workflow
 
     try:
         wf = load_workflow(workflow, set_ or [])
@@ -85,12 +127,15 @@ def run(
                 wf, out, source=input, scheduler=scheduler, n_workers=workers, progress=progress
             )
     except USER_ERRORS as exc:
+        if isinstance(exc, RunError) and exc.report is not None:
+            typer.echo(format_report(exc.report))
         raise _fail(exc) from exc
     skipped = sum(r.skipped for r in summary.results)
     typer.echo(
         f"done: {len(summary.results)} shard tasks ({skipped} skipped), "
-        f"{summary.rejected} clips rejected; outputs in {out}"
+        f"{summary.rejected} clips rejected in this run; outputs in {out}"
     )
+    _finish_with_report(summary.report)
 
 
 @app.command()
@@ -105,7 +150,12 @@ def stage(
         list[str] | None, typer.Option("--param", help="Stage parameter key=value.")
     ] = None,
 ) -> None:
-    """Run one stage on one shard, in this process, without a cluster."""
+    """Run one stage on one shard, in this process, without a cluster.
+
+    Ends with the same summary and exit codes as `egosim run`:
+    3 when the stage rejected every clip (or ingest made no clip),
+    4 when it wrote no clip and rejected none (an empty input).
+    """
     try:
         stage_cls = get_stage(name)
         stage_obj = stage_cls.from_params(_params(param or [], "--param"))
@@ -138,9 +188,11 @@ def stage(
         fp = task_fingerprint(stage_cls, task.params, task.input_fingerprints, 0, 1)
         task = dataclasses.replace(task, fingerprint=fp)
         result = run_shard_task(task)
+        report = summarize_tasks([task])
     except USER_ERRORS as exc:
         raise _fail(exc) from exc
     typer.echo(f"{output}: {result.rows} rows, {result.rejected} rejected (see {rejects})")
+    _finish_with_report(report)
 
 
 @app.command()

@@ -8,8 +8,10 @@
   cluster gives one worker per visible CUDA device that resource; with none, GPU steps run on
   the CPU workers (with a warning) instead of waiting forever.
 - Output layout: ``OUT/<step>/shard-00000.parquet`` and ``rejects-00000.parquet``,
-  ``OUT/rejects.parquet`` (all rejects), ``OUT/manifest.json`` (per-shard results) and
-  ``OUT/workflow.resolved.yaml``.
+  ``OUT/rejects.parquet`` (all rejects), ``OUT/manifest.json`` (per-shard results),
+  ``OUT/summary.json`` (per step: clips in, out, rejected, top reasons; see
+  :mod:`egosim.pipeline.summary`) and ``OUT/workflow.resolved.yaml``. The JSON and YAML files
+  are written to a temporary file and renamed into place, like shards.
 """
 
 from __future__ import annotations
@@ -18,6 +20,7 @@ import json
 import logging
 import math
 import os
+import uuid
 import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
@@ -27,8 +30,9 @@ from typing import Any
 import yaml
 
 from egosim.pipeline.execute import ShardResult, ShardTask, run_shard_task, task_fingerprint
-from egosim.pipeline.shards import ShardReader, ShardWriter
+from egosim.pipeline.shards import TMP_MARKER, ShardReader, ShardWriter
 from egosim.pipeline.stage import SourceStage, StageError, get_stage
+from egosim.pipeline.summary import RunReport, summarize_tasks
 from egosim.pipeline.workflow import Workflow
 from egosim.schemas import REJECTS
 
@@ -38,6 +42,10 @@ log = logging.getLogger(__name__)
 class RunError(StageError):
     """Some tasks of a run failed as a whole (not a per-clip reject); lists each of them."""
 
+    def __init__(self, message: str, report: RunReport | None = None) -> None:
+        super().__init__(message)
+        self.report = report  # what the tasks that finished produced (None before any ran)
+
 
 @dataclass(frozen=True)
 class RunSummary:
@@ -45,6 +53,7 @@ class RunSummary:
 
     out: Path  # output folder
     results: list[ShardResult]  # one per task, in completion order
+    report: RunReport  # per step: clips in, out, rejected, reasons (also OUT/summary.json)
     workers: dict[str, str] = field(default_factory=dict)  # task key -> worker that ran it
 
     @property
@@ -164,8 +173,9 @@ def run_workflow(
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    (out / "workflow.resolved.yaml").write_text(
-        yaml.safe_dump({**workflow.to_dict(), "input": source}, sort_keys=False)
+    write_text_atomic(
+        out / "workflow.resolved.yaml",
+        yaml.safe_dump({**workflow.to_dict(), "input": source}, sort_keys=False),
     )
     tasks = plan_tasks(workflow, source, out)
     cluster = None
@@ -213,10 +223,11 @@ def run_workflow(
         client.close()
         if cluster is not None:
             cluster.close()
-    _write_run_records(out, tasks, results)
+    report = _write_run_records(out, tasks, results)
     if failures:
-        raise RunError(f"{len(failures)} task(s) failed:\n  - " + "\n  - ".join(failures))
-    return RunSummary(out=out, results=results, workers=workers)
+        message = f"{len(failures)} task(s) failed:\n  - " + "\n  - ".join(failures)
+        raise RunError(message, report)
+    return RunSummary(out=out, results=results, report=report, workers=workers)
 
 
 def _workers_with_gpu(client: Any) -> bool:
@@ -224,16 +235,37 @@ def _workers_with_gpu(client: Any) -> bool:
     return any(w.get("resources", {}).get("GPU", 0) > 0 for w in info.values())
 
 
-def _write_run_records(out: Path, tasks: Sequence[ShardTask], results: list[ShardResult]) -> None:
-    """Write ``manifest.json`` and the merged ``rejects.parquet`` of the run."""
+def write_text_atomic(path: Path, text: str) -> None:
+    """Write ``text`` to a temporary file next to ``path`` and rename it into place.
+
+    A reader sees the old file or the new one, never a half-written one.
+    """
+    path = Path(path)
+    # Same naming as shard writes (and mode from the umask, unlike mkstemp's 0600).
+    tmp = path.with_name(f"{path.name}{TMP_MARKER}{uuid.uuid4().hex[:8]}")
+    try:
+        tmp.write_text(text)
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+
+
+def _write_run_records(
+    out: Path, tasks: Sequence[ShardTask], results: list[ShardResult]
+) -> RunReport:
+    """Write ``manifest.json``, the merged ``rejects.parquet`` and ``summary.json`` of the run."""
     manifest = {
         "tasks": [json.loads(json.dumps(asdict(t), default=str)) for t in tasks],
         "results": [asdict(r) for r in results],
     }
-    (out / "manifest.json").write_text(json.dumps(manifest, indent=1, default=str))
+    write_text_atomic(out / "manifest.json", json.dumps(manifest, indent=1, default=str))
     with ShardWriter(out / "rejects.parquet", REJECTS, stage="runner") as writer:
         for task in tasks:
             if task.rejects.is_file():
                 with ShardReader(task.rejects, REJECTS) as reader:
                     for row in reader.iter_rows():
                         writer.write_row(row)
+    report = summarize_tasks(tasks)
+    write_text_atomic(out / "summary.json", report.to_json())
+    return report

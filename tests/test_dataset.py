@@ -8,7 +8,7 @@ import numpy as np
 from typer.testing import CliRunner
 
 from egosim.pipeline.check import check_shard
-from egosim.pipeline.cli import app
+from egosim.pipeline.cli import EXIT_STEP_REJECTED_ALL, app
 from egosim.pipeline.clip_io import read_clips
 from egosim.pipeline.runner import run_workflow
 from egosim.pipeline.shards import ShardReader
@@ -81,7 +81,7 @@ def test_egodex_file_with_a_missing_key_is_rejected_by_name(tmp_path: Path) -> N
             *[a for kv in TINY for a in ("--param", kv)],
         ],
     )
-    assert result.exit_code == 0, result.output
+    assert result.exit_code == EXIT_STEP_REJECTED_ALL, result.output  # nothing came through
     assert "0 rows, 1 rejected" in result.output
     with ShardReader(tmp_path / "o.rejects.parquet") as reader:
         (row,) = list(reader.iter_rows())
