@@ -19,6 +19,10 @@ from egosim.schemas.invariants import se3_problems
 JITTER_DOC = (
     "Jitter = RMS over frames 1..T-2 of the norm of the second difference {what}; 0 when T < 3."
 )
+MILLI_UNITS = (
+    "in thousandths of the poses' length unit: millimetres only when the poses are metric (a "
+    "clip's own poses, or cameras with metric_scale set), else thousandths of an SfM unit"
+)
 
 
 def _check_counts(row: Mapping[str, Any]) -> list[str]:
@@ -61,7 +65,8 @@ POSES = ShardSchema(
         Column(
             "world_from_cam",
             pa.list_(POSE),
-            "(T, 16) cleaned camera-to-world, row-major 4x4, OpenCV axes, metres.",
+            "(T, 16) cleaned camera-to-world, row-major 4x4, OpenCV axes, in the input poses' "
+            "units (metres when they are metric).",
         ),
         Column(
             "outlier_frames",
@@ -72,12 +77,12 @@ POSES = ShardSchema(
         Column(
             "jitter_before_mm",
             pa.float64(),
-            JITTER_DOC.format(what="of the input camera centre, millimetres"),
+            JITTER_DOC.format(what=f"of the input camera centre, {MILLI_UNITS}"),
         ),
         Column(
             "jitter_after_mm",
             pa.float64(),
-            JITTER_DOC.format(what="of the cleaned camera centre, millimetres"),
+            JITTER_DOC.format(what=f"of the cleaned camera centre, {MILLI_UNITS}"),
         ),
         Column(
             "jitter_before_deg",

@@ -25,6 +25,8 @@ from egosim.pipeline.shards import ShardReader
 from egosim.pipeline.stage import ClipRejected, ConfigError
 from egosim.schemas import POSES, REJECTS
 from egosim.stages.pose_clean import kalman
+from egosim.stages.pose_clean.harness import Corruption, added_error, pose_errors, spike_frames
+from egosim.stages.pose_clean.harness import corrupt as corrupt_with
 from egosim.stages.pose_clean.outliers import detect_outliers, repair_outliers
 from egosim.stages.pose_clean.stage import (
     PoseCleanConfig,
@@ -366,3 +368,104 @@ def test_stage_cleans_the_cameras_trajectory_when_connected(tmp_path: Path) -> N
     expected = clean_trajectory(translated(gt, offset), fps=FPS).world_from_cam
     np.testing.assert_allclose(out, expected, atol=1e-9)
     assert np.abs(out[:, :3, 3] - gt[:, :3, 3] - offset).max() < 0.01
+
+
+HELD_OUT = range(100, 108)  # camera-path seeds no threshold was tuned on
+
+
+@pytest.mark.parametrize("fps", [16.0, 30.0])
+def test_exact_poses_pass_nearly_unchanged(fps: float) -> None:
+    exact = [camera_path(s, m, T, fps) for s in HELD_OUT for m in MODES]
+    results = clean_batch(exact, PoseCleanConfig(), fps)
+    added = np.array(
+        [added_error(r.world_from_cam, e, e) for r, e in zip(results, exact, strict=True)]
+    )
+    assert not any(r.outliers.any() for r in results)
+    assert added[:, 0].max() < 0.2e-3, added[:, 0]  # metres: < 0.2 mm on every clip
+    assert added[:, 1].max() < 0.02, added[:, 1]  # degrees
+
+
+def test_near_exact_poses_are_not_made_worse() -> None:
+    rng = np.random.default_rng(3)
+    small = Corruption(noise_translation=0.15e-3, noise_rotation_deg=0.0125)
+    exact = [camera_path(s, m, T, FPS) for s in HELD_OUT for m in MODES]
+    near = [corrupt_with(e, rng, np.zeros(0, dtype=int), small)[0] for e in exact]
+    results = clean_batch(near, PoseCleanConfig(), FPS)
+    added = np.array(
+        [added_error(r.world_from_cam, n, e) for r, n, e in zip(results, near, exact, strict=True)]
+    )
+    assert added[:, 0].mean() <= 0.0 and added[:, 1].mean() <= 0.0, added.mean(axis=0)
+    assert added[:, 0].max() < 0.1e-3 and added[:, 1].max() < 0.01, added.max(axis=0)
+
+
+def test_spike_harness_with_adjacent_pairs() -> None:
+    """50 noisy trajectories, 3 spike groups each: single spikes and pairs 1 or 2 frames apart."""
+    rng = np.random.default_rng(11)
+    tp = fp = fn = pairs = 0
+    for seed in range(25):
+        for mode in MODES:
+            exact = camera_path(seed + 200, mode, T, FPS)
+            spikes = spike_frames(T, rng, groups=3)
+            pairs += int(np.sum(np.diff(spikes) <= 2))
+            _, spiked = corrupt_with(exact, rng, spikes)
+            truth = np.zeros(T, dtype=bool)
+            truth[spikes] = True
+            found = detect_outliers(spiked)
+            tp += int(np.sum(found & truth))
+            fp += int(np.sum(found & ~truth))
+            fn += int(np.sum(~found & truth))
+    assert pairs >= 30  # the harness really has spikes that could hide each other
+    assert tp / (tp + fn) >= 0.95, (tp, fn)
+    assert tp / max(tp + fp, 1) >= 0.9, (tp, fp)
+
+
+@pytest.mark.parametrize("gaps", [(1,), (2,), (1, 2)])
+def test_neighbouring_rotation_spikes_are_found_by_orientation(gaps: tuple[int, ...]) -> None:
+    exact = camera_path(5, "wild", T, FPS)
+    noisy = corrupt_with(exact, np.random.default_rng(0), np.zeros(0, dtype=int))[0]
+    spikes = [20]
+    for gap in gaps:
+        spikes.append(spikes[-1] + gap)
+    spiked = noisy.copy()
+    for i, axis in zip(spikes, np.eye(3), strict=False):  # 10 degrees, centre unchanged
+        spiked[i, :3, :3] = (
+            spiked[i, :3, :3] @ Rotation.from_rotvec(np.deg2rad(10) * axis).as_matrix()
+        )
+    np.testing.assert_array_equal(spiked[:, :3, 3], noisy[:, :3, 3])
+    assert np.flatnonzero(detect_outliers(spiked)).tolist() == spikes
+
+
+def test_three_translation_spikes_in_a_row() -> None:
+    exact = camera_path(6, "tabletop", T, FPS)
+    noisy = corrupt_with(exact, np.random.default_rng(1), np.zeros(0, dtype=int))[0]
+    spiked = noisy.copy()
+    spiked[30:33, :3, 3] += [[0.1, 0.0, 0.0], [0.0, 0.1, 0.0], [-0.1, 0.0, 0.0]]  # three glitches
+    assert np.flatnonzero(detect_outliers(spiked)).tolist() == [30, 31, 32]
+    fixed = clean_trajectory(spiked).world_from_cam
+    assert pose_errors(fixed, exact)[0][30:33].max() < 0.02
+
+
+@pytest.mark.parametrize("scale", [1e-3, 1e3])
+def test_cleaning_is_scale_free(scale: float) -> None:
+    """SfM units are arbitrary: scaling the centres scales the output and keeps the flags."""
+    rng = np.random.default_rng(2)
+    exact = camera_path(7, "wild", T, FPS)
+    _, spiked = corrupt_with(exact, rng, spike_frames(T, rng, groups=3))
+    scaled = spiked.copy()
+    scaled[:, :3, 3] *= scale
+    a, b = clean_trajectory(spiked), clean_trajectory(scaled)
+    np.testing.assert_array_equal(a.outliers, b.outliers)
+    assert a.outliers.any()
+    np.testing.assert_allclose(
+        b.world_from_cam[:, :3, 3], scale * a.world_from_cam[:, :3, 3], rtol=1e-6, atol=1e-9 * scale
+    )
+    np.testing.assert_allclose(b.world_from_cam[:, :3, :3], a.world_from_cam[:, :3, :3], atol=1e-9)
+    assert b.jitter_before_mm == pytest.approx(scale * a.jitter_before_mm, rel=1e-9)
+
+
+def test_noise_estimate_ignores_smooth_motion() -> None:
+    exact = np.stack([camera_path(s, "wild", T, 30.0)[:, :3, 3] for s in range(3)])  # (3, T, 3)
+    noise = np.random.default_rng(4).normal(0.0, 0.005, exact.shape)
+    assert kalman.noise_std(exact).max() < 0.05e-3  # metres: the motion is not noise
+    # pooled over the 3 axes, as the stage uses it
+    np.testing.assert_allclose(kalman.noise_std(exact + noise).mean(axis=-1), 0.005, rtol=0.2)

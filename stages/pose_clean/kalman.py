@@ -17,9 +17,10 @@ quaternion renormalisation couples the four rotation channels. Two implementatio
 - :func:`batched_smooth`: numpy over a batch of clips at once (what the stage uses; equal to the
   filterpy result to rounding, see the tests).
 
-``q`` and ``r`` come from the data: ``r`` from the residual of a local quadratic fit
-(:func:`estimate_noise`), ``q`` by maximising the filter's innovation likelihood over a grid
-around a first guess (:func:`fit_process_noise`).
+``q`` and ``r`` come from the data, per clip: ``r`` is the input's own measurement noise, the
+robust spread of its high-order differences (:func:`estimate_noise`), so near-exact poses get a
+tiny ``r`` and pass nearly unchanged while noisy ones are smoothed; ``q`` by maximising the
+filter's innovation likelihood over a grid around a first guess (:func:`fit_process_noise`).
 """
 
 from __future__ import annotations
@@ -31,30 +32,47 @@ from filterpy.common import Q_discrete_white_noise
 from filterpy.kalman import KalmanFilter
 from scipy.signal import savgol_filter
 
-FIT_WINDOW = 7  # frames of the local quadratic fit used to estimate the noise
+FIT_WINDOW = 7  # frames of the local quadratic fit that gives the first guess of q
+NOISE_DIFF_ORDER = 6  # order of the differences whose spread estimates the measurement noise
 MAD_TO_SIGMA = 1.4826  # robust standard deviation of a Gaussian from its median absolute dev.
 Q_GRID = np.logspace(-4.0, 4.0, 13)  # multiples of the first q estimate tried by the ML fit
+
+
+def noise_std(z: np.ndarray, order: int = NOISE_DIFF_ORDER) -> np.ndarray:
+    """Robust measurement-noise standard deviation per channel of ``z (..., T, C)``; ``(..., C)``.
+
+    The ``order``-th difference along time is, up to a constant, the residual of a local
+    polynomial fit of degree ``order - 1`` over ``order + 1`` frames: it removes smooth motion
+    (its response at frequency ``w`` is ``(2 sin(w / 2))^order``, small below a quarter of the
+    frame rate) and keeps white noise, whose ``order``-th difference has variance
+    ``binom(2 order, order) sigma^2``. Its median absolute value (about 0, robust to the odd
+    jump) gives ``sigma``. ``order`` is lowered for short clips; 0 when ``T < 3``.
+    """
+    z = np.asarray(z, dtype=np.float64)
+    t = z.shape[-2]
+    order = min(order, t - 2)
+    if order < 1:
+        return np.zeros((*z.shape[:-2], z.shape[-1]))
+    diff = np.diff(z, n=order, axis=-2)  # (..., T - order, C)
+    return MAD_TO_SIGMA * np.median(np.abs(diff), axis=-2) / math.sqrt(math.comb(2 * order, order))
 
 
 def estimate_noise(z: np.ndarray, dt: float, pooled: bool = True) -> tuple[np.ndarray, np.ndarray]:
     """First estimates ``(q (..., C), r (..., C))`` for channels ``z (..., T, C)`` every ``dt`` s.
 
-    ``r``: measurement variance, from the robust spread of the residual of a local quadratic fit
-    over :data:`FIT_WINDOW` frames, divided by ``1 - c0`` (``c0`` the fit's centre weight) so that
-    it estimates the raw noise. ``q``: mean squared acceleration of the fitted curve, a first
-    guess that :func:`fit_process_noise` refines. Both are floored to stay positive and, with
-    ``pooled``, averaged over channels. Leading axes are a batch of clips.
+    ``r``: measurement variance, :func:`noise_std` squared: the input's own noise level, so
+    exact or near-exact poses get a tiny ``r`` and are followed closely. ``q``: mean squared
+    acceleration of a local quadratic fit over :data:`FIT_WINDOW` frames, a first guess that
+    :func:`fit_process_noise` refines. Both are floored to stay positive (relative to the
+    channels' spread, so the floor is scale-free) and, with ``pooled``, averaged over channels.
+    Leading axes are a batch of clips.
     """
     z = np.asarray(z, dtype=np.float64)
     t, c = z.shape[-2:]
     window = min(FIT_WINDOW, t if t % 2 == 1 else t - 1)
     if window < 5:
         return np.full((*z.shape[:-2], c), 1e-6), np.full((*z.shape[:-2], c), 1e-6)
-    fit = savgol_filter(z, window, 2, axis=-2, mode="interp")  # (..., T, C)
-    c0 = savgol_filter(np.eye(window)[window // 2], window, 2, mode="interp")[window // 2]
-    resid = z - fit  # (..., T, C)
-    mad = np.median(np.abs(resid - np.median(resid, axis=-2, keepdims=True)), axis=-2)
-    r = (MAD_TO_SIGMA * mad) ** 2 / max(1.0 - c0, 1e-6)  # (..., C)
+    r = noise_std(z) ** 2  # (..., C)
     acc = savgol_filter(z, window, 2, deriv=2, axis=-2, mode="interp") / dt**2  # (..., T, C)
     q = np.mean(acc**2, axis=-2)  # (..., C)
     scale = np.var(z, axis=-2) + 1e-12  # (..., C)
