@@ -209,3 +209,40 @@ def test_auto_backend_uses_labels_when_the_clip_has_them() -> None:
     assert resolved_backend(row, HandsConfig(backend="auto")) == "given"
     row["hand_joints"] = None
     assert resolved_backend(row, HandsConfig(backend="auto")) == "mediapipe"
+
+
+def _rotate_about_centre(hand: np.ndarray, angle_deg: float, axis: np.ndarray) -> np.ndarray:
+    """``hand (21, 3)`` rotated by ``angle_deg`` about ``axis (3,)`` through its joints' mean."""
+    axis = axis / np.linalg.norm(axis)
+    a = np.radians(angle_deg)
+    k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    rot = np.eye(3) + np.sin(a) * k + (1 - np.cos(a)) * k @ k  # Rodrigues
+    centre = hand.mean(axis=0)
+    return (hand - centre) @ rot.T + centre
+
+
+def test_rotation_spikes_caught(tracks) -> None:
+    """Harness: isolated 60-150 degree turns of one hand about its own centre (the centre barely
+    moves, so the position test alone misses them) are caught >= 90%; clean frames stay."""
+    rng = np.random.default_rng(2)
+    caught = total = 0
+    for joints, poses in tracks:
+        valid = np.ones((len(joints), 2), dtype=bool)
+        spiked = joints.astype(np.float64).copy()
+        frames = np.arange(3, len(joints) - 2, 5)
+        hands = rng.integers(0, 2, len(frames))
+        for f, s in zip(frames, hands, strict=True):
+            angle = rng.uniform(60.0, 150.0)
+            spiked[f, s] = _rotate_about_centre(spiked[f, s], angle, rng.normal(size=3))
+        found = temporal_outliers(spiked, valid, poses, FPS, max_speed=2.5)
+        position_only = temporal_outliers(
+            spiked, valid, poses, FPS, max_speed=2.5, max_angular_speed=np.inf
+        )
+        caught += int(found[frames, hands].sum())
+        total += len(frames)
+        assert position_only[frames, hands].mean() < 0.5  # the old test misses most of them
+        others = found.copy()
+        others[frames, hands] = False
+        assert others.sum() <= 0.01 * others.size
+        assert not temporal_outliers(joints, valid, poses, FPS).any()  # clean: nothing dropped
+    assert caught >= 0.9 * total, f"{caught} of {total} rotation spikes caught"

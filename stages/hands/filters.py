@@ -5,10 +5,14 @@ to a 2D box; detections whose boxes overlap with IoU above a threshold are linke
 detections are grouped by breadth-first search, each group keeps its most confident detection,
 and then each side keeps its most confident survivor.
 
-Temporal outliers: a hand's position is the mean of its joints in *camera* coordinates; a frame
-whose incoming and outgoing speeds (``|p_t - p_{t-1}| * fps`` and ``|p_{t+1} - p_t| * fps``) both
-exceed ``max_speed`` is dropped. Frames without a valid neighbour on both sides are kept (they
-cannot be tested); a spike lasting two or more frames is not caught by this test.
+Temporal outliers: a hand's position is the mean of its joints in *camera* coordinates and its
+orientation the palm's frame (wrist, middle, index and pinky knuckles) there; a frame whose
+incoming and outgoing speeds (``|p_t - p_{t-1}| * fps`` and ``|p_{t+1} - p_t| * fps``) both
+exceed ``max_speed``, or whose incoming and outgoing turns (angle of ``R_{t-1}^T R_t`` times
+``fps``) both exceed ``max_angular_speed``, is dropped. (Position alone caught 1 of 10 rotation
+spikes on the peer harness: a hand flipped about its centre barely moves its centre.) Frames
+without a valid neighbour on both sides are kept (they cannot be tested); a spike lasting two or
+more frames is not caught by this test.
 """
 
 from __future__ import annotations
@@ -152,17 +156,33 @@ def to_hands(det: Detections) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return joints, valid, conf
 
 
+def palm_rotations(joints: np.ndarray) -> np.ndarray:
+    """Palm frames ``(..., 3, 3)`` (columns x, y, z) of ``joints (..., 21, 3)``: x from the wrist to
+    the middle knuckle, y from the pinky knuckle towards the index knuckle (orthogonalised),
+    z = x cross y. NaN where the joints are NaN or degenerate."""
+    x = joints[..., 9, :] - joints[..., 0, :]  # (..., 3)
+    y = joints[..., 5, :] - joints[..., 17, :]  # (..., 3)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        x = x / np.linalg.norm(x, axis=-1, keepdims=True)
+        y = y - x * np.sum(x * y, axis=-1, keepdims=True)
+        y = y / np.linalg.norm(y, axis=-1, keepdims=True)
+    return np.stack([x, y, np.cross(x, y)], axis=-1)
+
+
 def temporal_outliers(
     joints: np.ndarray,
     valid: np.ndarray,
     world_from_cam: np.ndarray,
     fps: float,
     max_speed: float = 2.5,
+    max_angular_speed: float = 720.0,
 ) -> np.ndarray:
     """``(T, 2)`` True where a hand-frame is a bidirectional spike (see the module docstring).
 
     ``joints (T, 2, 21, 3)`` world metres, ``valid (T, 2)``, ``world_from_cam (T, 4, 4)``,
-    ``max_speed`` metres per second in camera space.
+    ``max_speed`` metres per second of the hand centre in camera space, ``max_angular_speed``
+    degrees per second of the palm's orientation in camera space (``inf`` = position only). A
+    frame is a spike when its incoming and outgoing motion both exceed one of the two limits.
     """
     t = joints.shape[0]
     if world_from_cam.shape != (t, 4, 4) or valid.shape != (t, 2):
@@ -170,14 +190,20 @@ def temporal_outliers(
             f"{t} frames of joints, poses {world_from_cam.shape}, valid {valid.shape}"
         )
     cam_from_world = invert_se3(world_from_cam)  # (T, 4, 4)
-    centre = np.stack(
-        [transform_points(cam_from_world[f], joints[f]).mean(axis=1) for f in range(t)]
-    )  # (T, 2, 3) hand centres in camera metres
+    joints_cam = np.stack([transform_points(cam_from_world[f], joints[f]) for f in range(t)])
+    centre = joints_cam.mean(axis=2)  # (T, 2, 3) hand centres in camera metres
     out = np.zeros((t, 2), dtype=bool)
     if t < 3:
         return out
-    speed = np.linalg.norm(np.diff(centre, axis=0), axis=-1) * fps  # (T-1, 2)
+    speed = np.linalg.norm(np.diff(centre, axis=0), axis=-1) * fps  # (T-1, 2) m/s
+    rot = palm_rotations(joints_cam)  # (T, 2, 3, 3) cam_from_palm
+    relative = np.einsum("tsji,tsjk->tsik", rot[:-1], rot[1:])  # (T-1, 2, 3, 3) R_t^T R_t+1
+    cos = (np.trace(relative, axis1=-2, axis2=-1) - 1.0) / 2.0  # (T-1, 2)
+    angular = np.degrees(np.arccos(np.clip(np.nan_to_num(cos, nan=1.0), -1.0, 1.0))) * fps
     both_valid = valid[:-1] & valid[1:]  # (T-1, 2) speed defined
-    fast = both_valid & (speed > max_speed)  # (T-1, 2)
-    out[1:-1] = fast[:-1] & fast[1:] & valid[1:-1]
+    fast_move = both_valid & (speed > max_speed)  # (T-1, 2)
+    fast_turn = both_valid & (angular > max_angular_speed)  # (T-1, 2)
+    spike_move = fast_move[:-1] & fast_move[1:]  # (T-2, 2)
+    spike_turn = fast_turn[:-1] & fast_turn[1:]  # (T-2, 2)
+    out[1:-1] = (spike_move | spike_turn) & valid[1:-1]
     return out

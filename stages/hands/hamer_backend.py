@@ -103,7 +103,10 @@ def hamer_detections(clip: Clip, path: Path) -> Detections:
             continue  # HaMeR put the hand behind its camera: unusable
         uv = uv * to_clip
         observed = depth_under(clip.depth[f], uv) if clip.depth is not None else None
-        points_cam = lift_to_camera(uv, shape - shape.mean(axis=0), clip.intrinsics, observed)
+        # HaMeR's keypoints are already in the camera's axes: place them by translation only.
+        points_cam = lift_to_camera(
+            uv, shape - shape.mean(axis=0), clip.intrinsics, observed, method="translation"
+        )
         k = slot[f]
         slot[f] += 1
         joints[f, k] = (

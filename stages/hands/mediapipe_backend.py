@@ -21,10 +21,14 @@ Steps, for one clip:
    track are filled by linear interpolation (lower confidence), then image and world landmarks
    are smoothed over time with a Gaussian of ``smooth_sigma`` frames (landmarks jitter by a few
    percent of the hand's size frame to frame).
-4. **Lift** (:func:`lift_to_camera`): the world landmarks are translated so that their projection
-   fits the 2D landmarks (linear least squares), then scaled about the camera centre (which keeps
-   that projection) so that their median depth equals the median depth observed under the 2D
-   landmarks; without depth the size prior of the world landmarks sets the distance. Then to world
+4. **Lift** (:func:`lift_to_camera`): MediaPipe's world landmarks give a hand *shape* but their
+   axes are not the camera's (on the synthetic world they were 74-82 degrees off), so the palm is
+   placed by a planar PnP of an average palm template onto the 2D palm landmarks (of its two
+   poses, the one with the fingers pointing away from a head-mounted camera), the world
+   landmarks are rotated onto that palm to give each joint a depth, and each joint is put on its
+   pixel's ray. The points are then scaled about the camera centre (which keeps the projection)
+   so that their median depth equals the median depth observed under the 2D landmarks; without
+   depth the template's average-hand size sets the distance. Then to world
    with ``world_from_cam``.
 
 :func:`mediapipe_hands` runs all of it; :func:`mediapipe_detections` wraps it for the stage.
@@ -46,6 +50,19 @@ from egosim.stages.hands.filters import Detections
 
 BRIDGED_CONFIDENCE_FACTOR = 0.5  # confidence of interpolated frames relative to detected ones
 MIDDLE_MCP = 9  # joint index of the middle finger's knuckle (hand size: wrist to it)
+PALM_JOINTS = (0, 5, 9, 13, 17)  # wrist and the index, middle, ring and pinky knuckles
+# An average adult right palm (metres; x from the wrist towards the fingers, y towards the thumb,
+# z = 0: the palm is taken as flat): wrist to middle knuckle 9 cm, index to pinky knuckle 6.4 cm.
+# Rows follow PALM_JOINTS; a left hand mirrors y.
+PALM_TEMPLATE = np.array(
+    [
+        [0.0, 0.0, 0.0],
+        [0.085, 0.027, 0.0],
+        [0.090, 0.005, 0.0],
+        [0.084, -0.014, 0.0],
+        [0.074, -0.031, 0.0],
+    ]
+)  # (5, 3)
 
 
 class MediaPipeUnavailableError(ImportError):
@@ -71,6 +88,8 @@ class MediaPipeParams:
     )  # extra search regions (x0, y0, x1, y1) as fractions of the frame; () = full frame only
     tile_zoom: float = 2.0  # tiles are enlarged by this factor before detection
     duplicate_distance: float = 0.5  # a tile hand this near a kept hand (in hand sizes) is the same
+    lift: str = "palm_pnp"  # 3D lift: "palm_pnp" (template palm PnP) or "translation" (old)
+    prefer_fingers_away: bool = True  # palm PnP: of its two poses take knuckles beyond the wrist
 
 
 @dataclass
@@ -207,6 +226,43 @@ def merge_tile_detections(kept: list, extra: list, duplicate_distance: float) ->
     return merged
 
 
+def drop_overlapping(raw: RawLandmarks, duplicate_distance: float) -> RawLandmarks:
+    """``raw`` without a second detection of one hand in a frame.
+
+    MediaPipe's tracker sometimes returns two hands at one place (on the synthetic world: the
+    left hand twice, once labelled right with score 0.91), which would then take both sides. Of
+    two detections whose centres are within ``duplicate_distance`` hand sizes, the one nearer
+    the detections of the neighbouring frames is kept (the earlier slot when neither has any).
+    """
+    present = raw.present.copy()  # (T, K)
+    centre = _centres(raw.uv)  # (T, K, 2)
+    size = hand_size(raw.uv)  # (T, K)
+    t = present.shape[0]
+    for f in range(t):
+        slots = np.flatnonzero(present[f])
+        for a, b in itertools.combinations(slots, 2):
+            if not (present[f, a] and present[f, b]):
+                continue
+            limit = duplicate_distance * max(size[f, a], size[f, b])
+            if np.linalg.norm(centre[f, a] - centre[f, b]) > limit:
+                continue
+            near = [  # centres of the neighbouring frames' detections
+                centre[g, k]
+                for g in (f - 1, f + 1)
+                if 0 <= g < t
+                for k in np.flatnonzero(raw.present[g])
+            ]
+
+            cost = [_nearest(centre[f, k], near) for k in (a, b)]
+            present[f, b if cost[0] <= cost[1] else a] = False
+    return RawLandmarks(raw.uv, raw.world, raw.label_right, present)
+
+
+def _nearest(point: np.ndarray, others: list[np.ndarray]) -> float:
+    """Distance from ``point (2,)`` to the nearest of ``others`` (each ``(2,)``); 0 if none."""
+    return min((float(np.linalg.norm(point - c)) for c in others), default=0.0)
+
+
 def hand_size(uv: np.ndarray) -> np.ndarray:
     """Hand size ``(...,)`` in pixels: the diagonal of the landmarks' box, ``uv (..., 21, 2)``."""
     return np.linalg.norm(uv.max(axis=-2) - uv.min(axis=-2), axis=-1)
@@ -234,7 +290,10 @@ def _tracks(raw: RawLandmarks, params: MediaPipeParams) -> list[list[tuple[int, 
                 continue
             for k in dets:
                 dist = np.linalg.norm(centre[f, k] - centre[lf, lk])
-                limit = params.link_distance * max(size[lf, lk], size[f, k]) * (f - lf)
+                # The allowed jump grows with the gap but stops at two frames' worth: a hand
+                # reappearing far away after a gap is another hand (the synthetic world's right
+                # hand at frame 0 was linked to the left hand's track 5 frames and 250 px later).
+                limit = params.link_distance * max(size[lf, lk], size[f, k]) * min(f - lf, 2)
                 if dist <= limit:
                     candidates.append((dist, ti, k))
         used_t: set[int] = set()
@@ -361,24 +420,23 @@ def depth_under(depth: np.ndarray, uv: np.ndarray) -> float:
     return float(np.median(values)) if values.size else float("nan")
 
 
-def lift_to_camera(
+def place_by_translation(
     uv: np.ndarray,
     world_landmarks: np.ndarray,
     intrinsics: np.ndarray,
-    observed_depth: float | None = None,
     weights: np.ndarray | None = None,
 ) -> np.ndarray:
-    """Camera joints ``(21, 3)`` from 2D ``uv (21, 2)`` and metric ``world_landmarks (21, 3)``.
+    """Camera joints ``(N, 3)``: ``world_landmarks (N, 3)`` translated to fit ``uv (N, 2)``.
 
-    Finds the translation ``t`` minimising the (depth-weighted) reprojection error of
+    Finds the translation ``t`` minimising the (weighted) reprojection error of
     ``world_landmarks + t`` in closed form: for each joint ``x_n (W_z + t_z) = W_x + t_x`` and
-    likewise for y, with ``x_n = (u - cx) / fx``. Then, when ``observed_depth`` (metres) is given,
-    scales the points about the camera centre so that their median depth equals it; the scaling
-    keeps every projection.
+    likewise for y, with ``x_n = (u - cx) / fx``. The rotation stays the landmarks' own, so this
+    is right only when their axes are the camera's (MediaPipe's are not, see
+    :func:`lift_to_camera`).
     """
     fx, fy, cx, cy = np.asarray(intrinsics, dtype=np.float64)
-    x_n = (uv[:, 0] - cx) / fx  # (21,)
-    y_n = (uv[:, 1] - cy) / fy  # (21,)
+    x_n = (uv[:, 0] - cx) / fx  # (N,)
+    y_n = (uv[:, 1] - cy) / fy  # (N,)
     n = len(uv)
     a = np.zeros((2 * n, 3))
     b = np.zeros(2 * n)
@@ -388,12 +446,119 @@ def lift_to_camera(
         wts = np.sqrt(np.concatenate([weights, weights]))  # (2N,)
         a, b = a * wts[:, None], b * wts
     t, *_ = np.linalg.lstsq(a, b, rcond=None)  # (3,)
-    points = world_landmarks + t  # (21, 3)
+    return world_landmarks + t  # (N, 3)
+
+
+def best_rotation(source: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """Rotation ``(3, 3)`` (det +1) minimising ``|R (source - mean) - (target - mean)|`` (Kabsch);
+    ``source``, ``target`` ``(N, 3)``."""
+    a = source - source.mean(axis=0)  # (N, 3)
+    b = target - target.mean(axis=0)  # (N, 3)
+    u, _, vt = np.linalg.svd(b.T @ a)
+    d = np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))])
+    return u @ d @ vt
+
+
+def palm_candidates(uv: np.ndarray, intrinsics: np.ndarray, right: bool) -> list[np.ndarray]:
+    """Camera points ``(5, 3)`` of :data:`PALM_TEMPLATE` (mirrored for a left hand) that project
+    onto the palm landmarks ``uv[PALM_JOINTS]``: the two poses of a planar PnP (IPPE), best first.
+    Empty when the PnP fails (degenerate landmarks)."""
+    fx, fy, cx, cy = np.asarray(intrinsics, dtype=np.float64)
+    camera_matrix = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+    template = PALM_TEMPLATE * np.array([1.0, 1.0 if right else -1.0, 1.0])  # (5, 3)
+    image = np.ascontiguousarray(uv[list(PALM_JOINTS)], dtype=np.float64)  # (5, 2)
+    if not np.all(np.isfinite(image)):
+        return []
+    try:
+        count, rvecs, tvecs, _ = cv2.solvePnPGeneric(
+            template, image, camera_matrix, None, flags=cv2.SOLVEPNP_IPPE
+        )
+    except cv2.error:
+        return []
+    out = []
+    for rvec, tvec in zip(rvecs[:count], tvecs[:count], strict=True):
+        rot = cv2.Rodrigues(rvec)[0]  # (3, 3) cam_from_template
+        points = template @ rot.T + tvec.ravel()  # (5, 3) camera metres
+        if np.all(points[:, 2] > 0):
+            out.append(points)
+    return out
+
+
+def lift_to_camera(
+    uv: np.ndarray,
+    world_landmarks: np.ndarray,
+    intrinsics: np.ndarray,
+    observed_depth: float | None = None,
+    weights: np.ndarray | None = None,
+    right: bool = True,
+    method: str = "palm_pnp",
+    prefer_fingers_away: bool = True,
+) -> np.ndarray:
+    """Camera joints ``(21, 3)`` from 2D ``uv (21, 2)`` and metric ``world_landmarks (21, 3)``.
+
+    MediaPipe's world landmarks are *not* in camera-aligned axes: on the synthetic world their
+    rotation to the true camera-frame hand averages 74-82 degrees (mostly about the camera's x
+    axis: a hand pointing away from a head-mounted camera comes out pointing up or towards it).
+    So only their shape is used, never their orientation. ``method``:
+
+    - ``"palm_pnp"`` (default): the palm (wrist and the four knuckles, nearly coplanar) is placed by
+      a planar PnP of :data:`PALM_TEMPLATE`, an average adult palm (mirrored for a left hand,
+      ``right``), onto the palm landmarks. A planar PnP has two poses (the palm tilted towards or
+      away from the camera); with ``prefer_fingers_away`` the one whose knuckles are further from
+      the camera than the wrist is taken (egocentric prior: the forearm comes from the camera),
+      otherwise the one nearer MediaPipe's own orientation. The world landmarks are rotated onto
+      that palm (Kabsch on the palm joints) to give every joint a depth, and each joint is then
+      put on its own pixel's ray at that depth, so the result reprojects exactly onto ``uv``.
+    - ``"translation"``: the landmarks translated only (:func:`place_by_translation`), the old
+      method, kept for comparison.
+
+    When ``observed_depth`` (metres) is given, the points are then scaled about the camera centre
+    so that their median depth equals it; the scaling keeps every projection.
+    """
+    points = None
+    if method == "palm_pnp":
+        points = _palm_pnp_lift(uv, world_landmarks, intrinsics, right, prefer_fingers_away)
+    elif method != "translation":
+        raise ValueError(f"lift method must be 'palm_pnp' or 'translation', got {method!r}")
+    if points is None:  # translation asked for, or the PnP failed
+        points = place_by_translation(uv, world_landmarks, intrinsics, weights)
     if observed_depth is not None and np.isfinite(observed_depth) and observed_depth > 0:
         median_z = float(np.median(points[:, 2]))
         if median_z > 0:
             points = points * (observed_depth / median_z)
     return points
+
+
+def _palm_pnp_lift(
+    uv: np.ndarray,
+    world_landmarks: np.ndarray,
+    intrinsics: np.ndarray,
+    right: bool,
+    prefer_fingers_away: bool,
+) -> np.ndarray | None:
+    """The ``"palm_pnp"`` lift of :func:`lift_to_camera` (no depth scaling); None on failure."""
+    candidates = palm_candidates(uv, intrinsics, right)  # each (5, 3)
+    if not candidates:
+        return None
+    palm = list(PALM_JOINTS)
+    if prefer_fingers_away:
+        # PALM_JOINTS[2] is the middle knuckle, [0] the wrist: larger depth step = pointing away.
+        chosen = max(candidates, key=lambda p: p[2, 2] - p[0, 2])
+    else:
+        own = world_landmarks[palm]  # (5, 3) in MediaPipe's axes
+        chosen = min(candidates, key=lambda p: _angle_deg(best_rotation(own, p)))
+    rot = best_rotation(world_landmarks[palm], chosen)  # (3, 3) cam_from_landmarks
+    model = (world_landmarks - world_landmarks[palm].mean(axis=0)) @ rot.T + chosen.mean(axis=0)
+    z = np.maximum(model[:, 2], 1e-3)  # (21,) depth of each joint from the posed model
+    fx, fy, cx, cy = np.asarray(intrinsics, dtype=np.float64)
+    x_n = (uv[:, 0] - cx) / fx  # (21,)
+    y_n = (uv[:, 1] - cy) / fy  # (21,)
+    return np.stack([x_n * z, y_n * z, z], axis=1)  # (21, 3) on each landmark's ray
+
+
+def _angle_deg(rot: np.ndarray) -> float:
+    """Rotation angle of ``rot (3, 3)`` in degrees."""
+    return float(np.degrees(np.arccos(np.clip((np.trace(rot) - 1.0) / 2.0, -1.0, 1.0))))
 
 
 @dataclass
@@ -422,13 +587,36 @@ def mediapipe_hands(
     """
     params = params or MediaPipeParams()
     raw = detect_landmarks(frames, params)
-    side = assign_sides(raw, frames.shape[2], params)
+    return hands_from_raw(raw, frames.shape[2], intrinsics, world_from_cam, depth, params)
+
+
+def hands_from_raw(
+    raw: RawLandmarks,
+    width: int,
+    intrinsics: np.ndarray,
+    world_from_cam: np.ndarray | None = None,
+    depth: np.ndarray | None = None,
+    params: MediaPipeParams | None = None,
+) -> MediaPipeResult:
+    """Everything after detection: sides, bridging, smoothing and lifting of ``raw`` landmarks
+    found in frames ``width`` pixels wide (arguments otherwise as :func:`mediapipe_hands`)."""
+    params = params or MediaPipeParams()
+    raw = drop_overlapping(raw, params.duplicate_distance)
+    side = assign_sides(raw, width, params)
     lm = bridge_and_smooth(raw, side, params)
-    t = frames.shape[0]
+    t = raw.present.shape[0]
     joints = np.full((t, 2, NUM_HAND_JOINTS, 3), np.nan)
     for f, s in zip(*np.nonzero(lm.present), strict=True):
         observed = depth_under(depth[f], lm.uv[f, s]) if depth is not None else None
-        points_cam = lift_to_camera(lm.uv[f, s], lm.world[f, s], intrinsics, observed)
+        points_cam = lift_to_camera(
+            lm.uv[f, s],
+            lm.world[f, s],
+            intrinsics,
+            observed,
+            right=bool(s == RIGHT),
+            method=params.lift,
+            prefer_fingers_away=params.prefer_fingers_away,
+        )
         if world_from_cam is not None:
             points_cam = transform_points(world_from_cam[f], points_cam)  # now world
         joints[f, s] = points_cam

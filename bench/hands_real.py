@@ -1,0 +1,209 @@
+"""How well the ``hands`` backend ``mediapipe`` finds hands in real and synthetic development video.
+
+``python -m bench.hands_real [--data ../shared/data] [--seeds 11 13] [--skip-synthetic]`` prints,
+with the default :class:`~egosim.stages.hands.mediapipe_backend.MediaPipeParams`:
+
+- **DWM dynamic clips** (``dwm_realworld/realworld_dynamic/videos/*.mp4``, whose
+  ``videos_hands`` renders paint the true left hand green and the right hand red): per side, the
+  frames where the render shows that hand (at least ``MIN_RENDER_PIXELS`` pixels of its colour)
+  and the fraction of them with a detection of that side (recall); false positives: detections
+  whose keypoint centroid is further than ``FAR_PX`` from every rendered hand pixel of either
+  side (the renders are partial: a real hand the render leaves out is not counted against the
+  detector); side-label agreement: of the detections that lie on a rendered hand, the fraction
+  whose side is that hand's colour; the mean distance from the keypoint centroid to the rendered
+  hand's pixel centroid on frames where both exist.
+- **Fixed-camera and EgoDex videos** (``realworld_fixed/*.mp4``, ``egodex_sample/sample.mp4``),
+  standardised as ingest does (16 fps by nearest timestamp, first 61 frames, scaled to cover
+  480x832 and centre-cropped with :func:`~egosim.stages.ingest.standardise.plan_resize`):
+  frames with 0 / 1 / 2 hands and the first frame with each hand (no ground truth there).
+- **Synthetic world** (``render_clip(WorldConfig(seed, mode))``, true joints known): recall, 2D
+  error, 3D orientation error and wrist-relative MPJPE (:mod:`egosim.stages.hands.metrics`),
+  for the palm-PnP lift and the old translation-only lift on the same detections.
+- Seconds per clip of the whole backend (detection, sides, smoothing, lift).
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+from egosim.pipeline.geometry import intrinsics_from_fov
+from egosim.pipeline.media import read_video_file
+from egosim.stages.hands.mediapipe_backend import (
+    MediaPipeParams,
+    detect_landmarks,
+    hands_from_raw,
+)
+from egosim.stages.hands.metrics import combine, hand_accuracy
+from egosim.stages.ingest.standardise import plan_resize
+
+DEFAULT_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+MIN_RENDER_PIXELS = 150  # a render shows a hand when at least this many pixels have its colour
+FAR_PX = 40.0  # a detection this far (px) from every rendered hand pixel is a false positive
+FPS, NUM_FRAMES, HEIGHT, WIDTH = 16.0, 61, 480, 832  # the egosim clip preset
+SIDES = ("left", "right")
+
+
+def render_masks(render: np.ndarray) -> np.ndarray:
+    """``(T, 2, H, W)`` bool: green (left) and red (right) pixels of renders ``(T, H, W, 3)``."""
+    r, g, b = (render[..., c].astype(np.int16) for c in range(3))
+    green = (g > 100) & (g > r + 50) & (g > b + 50)  # (T, H, W)
+    red = (r > 100) & (r > g + 50) & (r > b + 50)  # (T, H, W)
+    return np.stack([green, red], axis=1)
+
+
+def dwm_figures(video: Path, render_path: Path) -> dict[str, float]:
+    """Recall, false positives, side agreement and centroid distance on one DWM clip."""
+    frames, _ = read_video_file(video)
+    render, _ = read_video_file(render_path)
+    t = min(len(frames), len(render))
+    frames, render = frames[:t], render[:t]
+    w = frames.shape[2]
+    start = time.perf_counter()
+    res = _run(frames)
+    seconds = time.perf_counter() - start
+    masks = render_masks(render)  # (T, 2, H, W)
+    shown = masks.sum(axis=(2, 3)) >= MIN_RENDER_PIXELS  # (T, 2)
+    any_hand = masks.any(axis=1)  # (T, H, W)
+    out: dict[str, float] = {"frames": float(t), "seconds": seconds}
+    agree = total_on = 0
+    dists: list[float] = []
+    for s in range(2):
+        found = shown[:, s] & res.valid[:, s]
+        out[f"{SIDES[s]}_shown"] = float(shown[:, s].sum())
+        out[f"{SIDES[s]}_recall"] = float(found.sum() / max(shown[:, s].sum(), 1))
+        fp = 0
+        for f in np.flatnonzero(res.valid[:, s]):
+            c = np.nanmean(res.landmarks.uv[f, s], axis=0)  # (2,) keypoint centroid
+            rows, cols = np.nonzero(any_hand[f])
+            if rows.size == 0:
+                fp += 1
+                continue
+            near = np.min(np.hypot(cols + 0.5 - c[0], rows + 0.5 - c[1]))
+            if near > FAR_PX:
+                fp += 1
+                continue
+            on = [k for k in range(2) if shown[f, k]]
+            if on:
+                colour = min(on, key=lambda k: _dist_to_mask(masks[f, k], c))
+                total_on += 1
+                agree += int(colour == s)
+            if shown[f, s]:
+                rr, cc = np.nonzero(masks[f, s])
+                dists.append(float(np.hypot(cc.mean() + 0.5 - c[0], rr.mean() + 0.5 - c[1])))
+        out[f"{SIDES[s]}_false_pos_frames"] = float(fp)
+    out["side_agreement"] = agree / total_on if total_on else float("nan")
+    out["centroid_px"] = float(np.mean(dists)) if dists else float("nan")
+    out["size"] = float(w)
+    return out
+
+
+def _dist_to_mask(mask: np.ndarray, point: np.ndarray) -> float:
+    rows, cols = np.nonzero(mask)
+    return float(np.min(np.hypot(cols + 0.5 - point[0], rows + 0.5 - point[1])))
+
+
+def _run(frames: np.ndarray, params: MediaPipeParams | None = None):
+    """The whole backend on ``frames (T, H, W, 3)`` with a 90-degree camera (2D figures only)."""
+    params = params or MediaPipeParams()
+    k = intrinsics_from_fov(frames.shape[2], frames.shape[1], 90.0)
+    raw = detect_landmarks(frames, params)
+    return hands_from_raw(raw, frames.shape[2], k, None, None, params)
+
+
+def standardised(path: Path) -> np.ndarray:
+    """``(T <= 61, 480, 832, 3)`` frames of a video as ingest's egosim preset would cut them."""
+    frames, stamps = read_video_file(path)
+    targets = np.arange(NUM_FRAMES) / FPS
+    targets = targets[targets <= stamps[-1] + 0.5 / FPS]
+    idx = np.abs(stamps[None, :] - targets[:, None]).argmin(axis=1)  # nearest by timestamp
+    plan = plan_resize(frames.shape[2], frames.shape[1], WIDTH, HEIGHT)
+    return np.stack([plan.apply(frames[i]) for i in idx])
+
+
+def count_figures(path: Path) -> dict[str, float]:
+    """Frames with 0 / 1 / 2 hands and the first frame of each side on one standardised video."""
+    frames = standardised(path)
+    start = time.perf_counter()
+    res = _run(frames)
+    seconds = time.perf_counter() - start
+    n = res.valid.sum(axis=1)  # (T,)
+    out = {"frames": float(len(frames)), "seconds": seconds}
+    for c in range(3):
+        out[f"{c}_hands"] = float((n == c).sum())
+    for s in range(2):
+        hit = np.flatnonzero(res.valid[:, s])
+        out[f"first_{SIDES[s]}"] = float(hit[0]) if hit.size else float("nan")
+    return out
+
+
+def synthetic_figures(seeds: list[int]) -> dict[str, dict[str, float]]:
+    """Accuracy against the synthetic world's true joints, palm-PnP vs translation-only lift."""
+    from egosim.stages.world.clip import render_clip
+    from egosim.stages.world.config import WorldConfig
+
+    parts: dict[str, list] = {"palm_pnp": [], "translation": []}
+    seconds = []
+    for seed in seeds:
+        clip = render_clip(WorldConfig(seed=seed, mode="tabletop" if seed % 2 else "wild"))
+        params = MediaPipeParams()
+        start = time.perf_counter()
+        raw = detect_landmarks(clip.frames, params)
+        seconds.append(time.perf_counter() - start)
+        truth_valid = (
+            clip.hand_valid if clip.hand_valid is not None else np.ones((clip.num_frames, 2), bool)
+        )
+        for lift in parts:
+            p = replace(params, lift=lift)
+            res = hands_from_raw(raw, clip.width, clip.intrinsics, None, None, p)
+            parts[lift].append(
+                hand_accuracy(
+                    res.joints,
+                    res.landmarks.uv,
+                    res.valid,
+                    clip.hand_joints,
+                    truth_valid,
+                    clip.world_from_cam,
+                    clip.intrinsics,
+                    (clip.width, clip.height),
+                )
+            )
+    out = {lift: combine(p).summary() for lift, p in parts.items()}
+    for figures in out.values():
+        figures["detect_seconds_per_clip"] = float(np.mean(seconds))
+    return out
+
+
+def _line(name: str, figures: dict[str, float]) -> str:
+    return f"{name:28s} " + "  ".join(f"{k}={v:.3g}" for k, v in figures.items())
+
+
+def main(argv: list[str] | None = None) -> None:
+    """Print the figures described in the module docstring."""
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--data", type=Path, default=DEFAULT_DATA, help="the shared data folder")
+    ap.add_argument("--seeds", type=int, nargs="*", default=[11, 13], help="synthetic seeds")
+    ap.add_argument("--skip-synthetic", action="store_true", help="real videos only")
+    args = ap.parse_args(argv)
+    dyn = args.data / "dwm_realworld" / "realworld_dynamic"
+    print("DWM dynamic clips (ground-truth hand renders; 'false_pos' = far from any render)")
+    for video in sorted((dyn / "videos").glob("*.mp4")):
+        print(_line(video.stem, dwm_figures(video, dyn / "videos_hands" / video.name)))
+    print("Fixed-camera and EgoDex videos (standardised 16 fps, 480x832, <= 61 frames)")
+    others = sorted((args.data / "dwm_realworld" / "realworld_fixed").glob("*.mp4"))
+    others.append(args.data / "egodex_sample" / "sample.mp4")
+    for video in others:
+        if video.is_file():
+            print(_line(video.stem, count_figures(video)))
+    if not args.skip_synthetic:
+        print(f"Synthetic world, seeds {args.seeds} (odd seeds tabletop, even wild)")
+        for lift, figures in synthetic_figures(args.seeds).items():
+            print(_line(lift, figures))
+
+
+if __name__ == "__main__":
+    main()
