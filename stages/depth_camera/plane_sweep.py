@@ -1,4 +1,4 @@
-"""Plane-sweep multi-view stereo for the first frame, in torch (CPU or GPU).
+"""Plane-sweep multi-view stereo for the first frame: OpenCV on the CPU, torch on a GPU.
 
 Fronto-parallel planes of the reference camera, spaced uniformly in inverse depth over the depth
 range of the SfM points, are warped into each source frame by their homography; the matching cost
@@ -14,17 +14,39 @@ pixel do not vote, so hands that later cover the scene, or a camera that pans aw
 veto pixels other sources agree on. Pixels whose reference window has no texture, that lie under
 the hand mask, that no source sees, or whose winner is the first or last plane (the surface may
 lie outside the depth range), get zero.
+
+Two implementations of the same algorithm (``PlaneSweepParams.backend``):
+
+- ``opencv`` (the CPU default): one plane at a time, each source warped by the plane-induced
+  homography ``H = K (R + t n^T / d) K^-1`` with ``cv2.warpPerspective`` and scored with box
+  filters, while running winners (best score, its plane, and the scores of the planes on either
+  side for the parabola) are kept per source and for the aggregate. Memory is ``O(S H W)`` instead
+  of the ``O(S D H W)`` cost volume; horizontal bands of the image run on ``threads`` worker
+  threads. Hand masks are burnt into the source images as a sentinel value, so one warp per
+  plane and source carries both the image and its mask.
+- ``torch``: the whole cost volume with ``grid_sample`` and ``avg_pool2d``; the default on a GPU
+  (``device`` other than ``cpu``), and the reference the OpenCV path is tested against.
+
+Both share the window semantics: a window at the image border averages the pixels inside the
+image only, and counts as seen by a source when every one of those pixels samples (bilinearly)
+valid pixels of the source only, in front of its camera: pixels whose value would blend in a
+hand, or the zeros beyond the source image, are not seen.
 """
 
 from __future__ import annotations
 
+import itertools
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 import torch
 import torch.nn.functional as nnf
 
 from egosim.pipeline.geometry import intrinsics_matrix
+
+BACKENDS = ("auto", "opencv", "torch")
 
 
 class PlaneSweepError(ValueError):
@@ -43,7 +65,35 @@ class PlaneSweepParams:
     agreement_planes: float = 1.5  # a source agrees when its own winner is this close, plane steps
     min_support: int = 2  # sources that see the pixel and agree needed for any confidence
     min_texture: float = 2.0  # reference window standard deviation (grey levels) below = no texture
-    device: str = "cpu"  # torch device
+    device: str = "cpu"  # torch device (torch backend only)
+    backend: str = "auto"  # "opencv", "torch", or "auto" = opencv on device "cpu", else torch
+    threads: int = 0  # worker threads of the opencv backend; 0 = torch.get_num_threads()
+
+    def __post_init__(self) -> None:
+        """Raise :class:`PlaneSweepError` naming every bad field at once."""
+        problems: list[str] = []
+        if self.num_planes < 3:
+            problems.append(f"num_planes must be >= 3, got {self.num_planes}")
+        if self.window < 1 or self.window % 2 == 0:
+            problems.append(f"window must be odd and >= 1, got {self.window}")
+        if self.top_k < 1:
+            problems.append(f"top_k must be >= 1, got {self.top_k}")
+        if not self.max_zncc > self.min_zncc:
+            problems.append(
+                f"max_zncc must exceed min_zncc, got {self.min_zncc} and {self.max_zncc}"
+            )
+        if self.backend not in BACKENDS:
+            problems.append(f"backend must be one of {list(BACKENDS)}, got {self.backend!r}")
+        if self.threads < 0:
+            problems.append(f"threads must be >= 0, got {self.threads}")
+        if problems:
+            raise PlaneSweepError("; ".join(problems))
+
+    def resolved_backend(self) -> str:
+        """``opencv`` or ``torch``: the backend ``auto`` stands for on this ``device``."""
+        if self.backend != "auto":
+            return self.backend
+        return "opencv" if torch.device(self.device).type == "cpu" else "torch"
 
 
 @dataclass(frozen=True)
@@ -56,6 +106,55 @@ class PlaneSweepResult:
     agreement: np.ndarray  # (H, W) bool, at least ``min_support`` sources agree
     support: np.ndarray  # (H, W) int, sources that see the pixel and agree with its depth
     visible: np.ndarray  # (H, W) int, sources that see the pixel at its depth
+
+
+@dataclass(frozen=True)
+class _Winners:
+    """What both backends hand to :func:`_finish`: the sweep's winners, as numpy arrays."""
+
+    inv: np.ndarray  # (H, W) float32 refined inverse depth of the aggregate winner
+    best: np.ndarray  # (H, W) float32 winning aggregated ZNCC
+    arg: np.ndarray  # (H, W) int winning plane index
+    per_src_inv: np.ndarray  # (S, H, W) float32 refined inverse depth of each source's winner
+    seen: np.ndarray  # (S, H, W) bool, source sees the pixel at the aggregate winner's plane
+    ref_std: np.ndarray  # (H, W) float32 reference window standard deviation
+
+
+def _finish(
+    won: _Winners,
+    ref_valid: np.ndarray,
+    step: float,
+    far: float,
+    p: PlaneSweepParams,
+) -> PlaneSweepResult:
+    """Depth, visibility-aware agreement and confidence from the winners of either backend."""
+    # a winner on the first or last plane is no peak: the surface may lie outside the range
+    interior = (won.arg > 0) & (won.arg < p.num_planes - 1)  # (H, W)
+    # Visibility-aware cross-check: every source that sees the pixel at the chosen depth (window
+    # inside its image and off its hands) votes with its own winner; sources that do not see it
+    # (out of view, or a hand covers the scene later in the clip) neither support nor veto.
+    close = np.abs(won.per_src_inv - won.inv[None]) <= np.float32(p.agreement_planes * step)
+    agrees = won.seen & close  # (S, H, W)
+    support = agrees.sum(0)  # (H, W)
+    visible = won.seen.sum(0)  # (H, W)
+    agree = support >= p.min_support
+    span = np.float32(p.max_zncc - p.min_zncc)
+    photometric = np.clip((won.best - np.float32(p.min_zncc)) / span, 0.0, 1.0)
+    textured = won.ref_std >= p.min_texture
+    ok = agree & interior & textured & (np.asarray(ref_valid) > 0.5) & (won.best > -1.0)
+    conf = np.where(ok, photometric, np.float32(0.0))
+    depth = 1.0 / np.maximum(won.inv, np.float32(1.0 / (far * 4.0)))
+    return PlaneSweepResult(
+        depth=depth.astype(np.float32),
+        confidence=conf.astype(np.float32),
+        zncc=won.best.astype(np.float32),
+        agreement=agree,
+        support=support,
+        visible=visible,
+    )
+
+
+# --- torch backend: the whole cost volume ------------------------------------------------------
 
 
 def _box(x: torch.Tensor, window: int) -> torch.Tensor:
@@ -84,10 +183,11 @@ def _zncc_volume(
     valid = nnf.grid_sample(
         src_valid.expand(d, -1, -1, -1),
         grid,
-        mode="nearest",
+        mode="bilinear",
         padding_mode="zeros",
         align_corners=False,
-    )  # (D, 1, H, W), 0 outside the image or on a hand
+    )  # (D, 1, H, W), < 1 where the sample blends in the outside or a hand
+    valid = (valid > 0.999).float()  # weights under 1/1024 do not count (as in OpenCV's warps)
     mean_j = _box(warped, window)  # (D, 1, H, W)
     var_j = (_box(warped * warped, window) - mean_j * mean_j).clamp_min(0.0)
     cov = _box(warped * ref, window) - mean_j * ref_mean  # (D, 1, H, W)
@@ -147,6 +247,373 @@ def _winner(
     return inv, best, idx
 
 
+def _sweep_torch(
+    ref_image: np.ndarray,
+    src_images: np.ndarray,
+    intrinsics: np.ndarray,
+    src_from_ref: np.ndarray,
+    inv_depths: np.ndarray,
+    src_valid: np.ndarray,
+    p: PlaneSweepParams,
+) -> _Winners:
+    """Winners of the sweep from the full ``(S, D, H, W)`` cost volume on ``p.device``.
+
+    ``ref_image (H, W)``, ``src_images (S, H, W)``, ``src_from_ref (S, 4, 4)``, ``inv_depths
+    (D,)`` increasing, ``src_valid (S, H, W)`` 1 where source pixels may be matched.
+    """
+    dev = p.device
+    s = len(src_images)
+    h, w = ref_image.shape
+    inv_t = torch.as_tensor(inv_depths, dtype=torch.float32, device=dev)  # (D,)
+    ref = torch.as_tensor(ref_image, device=dev)[None, None]  # (1, 1, H, W)
+    ref_mean = _box(ref, p.window)
+    ref_std = (_box(ref * ref, p.window) - ref_mean * ref_mean).clamp_min(0.0).sqrt()
+    scores = []
+    for j in range(s):
+        grid = _grids(intrinsics, src_from_ref[j], inv_t, h, w, dev)  # (D, H, W, 2)
+        src = torch.as_tensor(src_images[j], device=dev)[None, None]
+        valid = torch.as_tensor(np.asarray(src_valid[j], np.float32), device=dev)[None, None]
+        scores.append(_zncc_volume(ref, ref_mean, ref_std, src, valid, grid, p.window))
+        del grid
+    vol = torch.stack(scores)  # (S, D, H, W)
+    del scores
+    k = max(1, min(p.top_k, s))
+    agg = vol.topk(k, dim=0).values.mean(0)  # (D, H, W)
+    inv, best, arg = _winner(agg, inv_t)
+    at_final = vol.gather(1, arg[None, None].expand(s, 1, -1, -1))[:, 0]  # (S, H, W)
+    per_src = torch.stack([_winner(vol[j], inv_t)[0] for j in range(s)])  # (S, H, W)
+    return _Winners(
+        inv=inv.cpu().numpy(),
+        best=best.cpu().numpy(),
+        arg=arg.cpu().numpy(),
+        per_src_inv=per_src.cpu().numpy(),
+        seen=(at_final > -1.0).cpu().numpy(),
+        ref_std=ref_std[0, 0].cpu().numpy(),
+    )
+
+
+# --- OpenCV backend: one plane at a time, running winners ------------------------------------
+
+
+class _RunningWinner:
+    """Winner-take-all over planes fed one at a time, with what the parabola needs.
+
+    Equivalent to :func:`_winner` over the stacked scores: the first maximum wins, and the scores
+    of the planes just before and after it are kept. All arrays have the pixel grid's ``shape``;
+    the caller must keep the previous plane's scores unchanged until the next update.
+    """
+
+    def __init__(self, shape: tuple[int, int]) -> None:
+        self.best = np.full(shape, -np.inf, np.float32)  # best score so far
+        self.idx = np.zeros(shape, np.int32)  # plane of the best score
+        self.lo = np.zeros(shape, np.float32)  # score of the plane before the best
+        self.hi = np.zeros(shape, np.float32)  # score of the plane after the best
+        # where each plane won (uint8 255/0, by plane parity): masks for cv2.copyTo, which is
+        # an order of magnitude faster than a masked np.copyto
+        self._better = [np.zeros(shape, np.uint8), np.zeros(shape, np.uint8)]
+        self._prev: np.ndarray | None = None  # scores of the previous plane
+
+    def update(self, score: np.ndarray, plane: np.ndarray) -> np.ndarray:
+        """Feed ``score`` of the next plane, whose index fills the int32 array ``plane``.
+
+        Planes come in order from 0. Returns where this plane now wins (uint8 255/0), a mask that
+        stays valid until the update after next.
+        """
+        d = int(plane.flat[0])
+        better = self._better[d % 2]
+        if self._prev is not None:  # pixels won by the previous plane: this is their "after"
+            cv2.copyTo(score, self._better[(d - 1) % 2], self.hi)
+        cv2.compare(score, self.best, cv2.CMP_GT, dst=better)
+        cv2.copyTo(score if self._prev is None else self._prev, better, self.lo)
+        np.maximum(self.best, score, out=self.best)
+        cv2.copyTo(plane, better, self.idx)
+        self._prev = score
+        return better
+
+    def refined(self, inv_depths: np.ndarray) -> np.ndarray:
+        """Inverse depth of the winner, refined by a parabola through its neighbours."""
+        d = len(inv_depths)
+        np.copyto(self.hi, self.best, where=self.idx == d - 1)  # the clamp of :func:`_winner`
+        denom = self.lo - 2.0 * self.best + self.hi
+        peak = (self.idx > 0) & (self.idx < d - 1) & (denom < -1e-6)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            offset = np.where(peak, 0.5 * (self.lo - self.hi) / denom, 0.0)
+        offset = np.clip(offset, -0.5, 0.5).astype(np.float32)
+        inv_f32 = inv_depths.astype(np.float32)
+        step = inv_f32[1] - inv_f32[0]
+        return inv_f32[self.idx] + offset * step
+
+
+def _plane_homographies(
+    intrinsics: np.ndarray, src_from_ref: np.ndarray, inv_depths: np.ndarray
+) -> np.ndarray:
+    """Ref-to-source pixel-index homographies ``(S, D, 3, 3)`` of fronto-parallel planes.
+
+    The plane ``z = 1/q`` of the reference camera maps by ``H = K (R + t n^T q) K^-1`` with
+    ``n = (0, 0, 1)``; the half-pixel shifts move between the pixel-centre convention of the
+    intrinsics (centres at integer + 0.5) and OpenCV's integer pixel indices.
+    """
+    k = intrinsics_matrix(intrinsics)  # (3, 3)
+    k_inv = np.linalg.inv(k)
+    rot = src_from_ref[:, None, :3, :3]  # (S, 1, 3, 3)
+    trans = src_from_ref[:, None, :3, 3]  # (S, 1, 3)
+    n_q = np.zeros((len(inv_depths), 3))  # (D, 3): n^T q
+    n_q[:, 2] = inv_depths
+    hom = k @ (rot + trans[..., :, None] * n_q[None, :, None, :]) @ k_inv  # (S, D, 3, 3)
+    to_centre = np.array([[1.0, 0.0, 0.5], [0.0, 1.0, 0.5], [0.0, 0.0, 1.0]])
+    to_index = np.array([[1.0, 0.0, -0.5], [0.0, 1.0, -0.5], [0.0, 0.0, 1.0]])
+    return to_index @ hom @ to_centre
+
+
+class _RefWindows:
+    """Window statistics of the reference image that every source's ZNCC needs."""
+
+    def __init__(self, ref: np.ndarray, window: int) -> None:
+        h, w = ref.shape
+        self.window = window
+        self.image = np.ascontiguousarray(ref, dtype=np.float32)  # (H, W)
+        self.count = _box_sum(np.ones((h, w), np.float32), window)  # (H, W) in-image pixels
+        inv_count = 1.0 / self.count
+        self.mean = _box_sum(self.image, window) * inv_count  # (H, W)
+        var = _box_sum(self.image * self.image, window) * inv_count - self.mean * self.mean
+        self.std = np.sqrt(np.maximum(var, 0.0)).astype(np.float32)  # (H, W)
+        self.eps = (self.count * 1e-6).astype(np.float32)  # (H, W) n * eps of the ZNCC
+
+
+def _box_sum(x: np.ndarray, window: int, out: np.ndarray | None = None) -> np.ndarray:
+    """Sum over a ``window x window`` box of ``x (H, W)`` float32, zero outside the image."""
+    return cv2.boxFilter(
+        x, -1, (window, window), dst=out, normalize=False, borderType=cv2.BORDER_CONSTANT
+    )
+
+
+def _top_k_mean(
+    scores: np.ndarray, k: int, top: np.ndarray, carry: np.ndarray, tmp: np.ndarray
+) -> np.ndarray:
+    """Mean of the ``k`` largest of ``scores (S, H, W)`` per pixel, as ``torch.topk(...).mean``.
+
+    Running insertion, largest first, into the scratch ``top (k, H, W)`` with the scratch
+    ``carry`` and ``tmp (H, W)``: about ``2 k S`` elementwise passes and no sort.
+    """
+    s = len(scores)
+    if k == 1:
+        return scores.max(0)
+    if k == s:
+        return scores.mean(0)
+    top.fill(-np.inf)
+    for j in range(s):
+        np.minimum(top[0], scores[j], out=carry)  # what drops out of place 0 moves down
+        np.maximum(top[0], scores[j], out=top[0])
+        for i in range(1, k):
+            if i < k - 1:
+                np.minimum(top[i], carry, out=tmp)
+            np.maximum(top[i], carry, out=top[i])
+            carry, tmp = tmp, carry
+    agg = top[0] + top[1]
+    for i in range(2, k):
+        agg += top[i]
+    return agg / np.float32(k)
+
+
+class _Source:
+    """One source frame of the OpenCV sweep: grey image with its hand mask burnt in.
+
+    Invalid (hand) pixels, and the border beyond the image, take a sentinel value far below the
+    image's range, so that any warped pixel whose bilinear footprint touches one of them comes out
+    below ``lowest``: the warp of the image also warps the mask. OpenCV's bilinear weights are
+    multiples of 1/1024, and ``sentinel`` is low enough that the smallest of them pulls a sample
+    below ``lowest``; box sums over windows free of sentinels keep their precision (OpenCV's box
+    filter sums in double).
+    """
+
+    def __init__(self, image: np.ndarray, valid: np.ndarray) -> None:
+        image = np.asarray(image, dtype=np.float32)  # (H, W) grey
+        invalid = (np.asarray(valid) <= 0.5).astype(np.uint8)  # (H, W) 1 = hand
+        values = image[invalid == 0]
+        lo, hi = (float(values.min()), float(values.max())) if values.size else (0.0, 1.0)
+        self.lowest = lo  # warped values below this touched an invalid pixel
+        self.sentinel = lo - 4096.0 * (hi - lo + 1.0)  # the smallest weight, 1/1024, still tells
+        self.image = np.where(invalid > 0, np.float32(self.sentinel), image)  # (H, W) float32
+        self.invalid_sum = cv2.integral(invalid)  # (H + 1, W + 1) int32
+        self.any_invalid = bool(invalid.any())
+
+    def sees_all(self, corners: np.ndarray) -> bool:
+        """Whether every pixel of a warped rectangle is valid, from its mapped ``corners (4, 3)``.
+
+        True when the corners are in front of the camera and their bounding box (which holds the
+        whole convex image of the rectangle, with the bilinear footprints) lies inside the image
+        and off the hand mask: then no pixel needs checking. False = look closer.
+        """
+        if corners[:, 2].min() <= 1e-6:
+            return False
+        x = corners[:, 0] / corners[:, 2]
+        y = corners[:, 1] / corners[:, 2]
+        h, w = self.image.shape
+        if x.min() < 0.0 or y.min() < 0.0 or x.max() > w - 1 or y.max() > h - 1:
+            return False
+        if not self.any_invalid:
+            return True
+        x0, y0 = int(np.floor(x.min())), int(np.floor(y.min()))
+        x1, y1 = int(np.ceil(x.max())) + 1, int(np.ceil(y.max())) + 1  # exclusive
+        total = self.invalid_sum
+        return int(total[y1, x1] - total[y0, x1] - total[y1, x0] + total[y0, x0]) == 0
+
+
+class _Band:
+    """Rows ``[y0, y1)`` of the reference image, swept over every plane and source.
+
+    Bands are independent (every state is per pixel), so they run on separate threads. Sources
+    are warped over the band plus a halo of ``window // 2`` rows on each side, so that window sums
+    inside the band cover the same pixels as over the whole image (their rounding differs).
+    """
+
+    def __init__(self, y0: int, y1: int, ref: _RefWindows, num_sources: int, top_k: int) -> None:
+        h, w = ref.image.shape
+        r = ref.window // 2
+        self.ref = ref
+        self.y0, self.y1 = y0, y1
+        self.a, self.b = max(0, y0 - r), min(h, y1 + r)  # rows warped: the band and its halo
+        rows, n = self.b - self.a, y1 - y0
+        self.inner = slice(y0 - self.a, y1 - self.a)  # the band's rows among the warped ones
+        # homographies take band row indices: warped row i is image row i + a
+        self.shift = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, self.a], [0.0, 0.0, 1.0]])
+        self.ref_rows = ref.image[self.a : self.b]  # (rows, W)
+        self.count, self.neg_mean = ref.count[y0:y1], -ref.mean[y0:y1]  # (n, W)
+        self.std, self.eps = ref.std[y0:y1], ref.eps[y0:y1]  # (n, W)
+        # x, x^2 and x * ref stacked with r zero rows between, for one box filter call
+        self.stack = np.zeros((3 * rows + 2 * r, w), np.float32)  # (3 rows + 2r, W)
+        self.sums = np.empty_like(self.stack)
+        starts = [i * (rows + r) for i in range(3)]
+        self.x, self.xx, self.xr = (self.stack[s : s + rows] for s in starts)  # (rows, W)
+        self.s1, self.s2, self.s3 = (self.sums[s : s + rows][self.inner] for s in starts)  # (n, W)
+        self.bad = np.empty((rows, w), np.uint8)  # warped invalid mask
+        self.bad_window = np.empty((rows, w), np.uint8)  # window touches an invalid pixel
+        self.den, self.var = np.empty((n, w), np.float32), np.empty((n, w), np.float32)
+        self.kernel = np.ones((ref.window, ref.window), np.uint8)
+        self.corners = np.array(
+            [[0.0, 0.0, 1.0], [w - 1, 0.0, 1.0], [0.0, rows - 1, 1.0], [w - 1, rows - 1, 1.0]]
+        )
+        self.k = max(1, min(top_k, num_sources))
+        self.scores = np.empty((2, num_sources, n, w), np.float32)  # by plane parity
+        self.top = np.empty((self.k, n, w), np.float32)
+        self.carry, self.spare = np.empty((n, w), np.float32), np.empty((n, w), np.float32)
+        self.per_src = [_RunningWinner((n, w)) for _ in range(num_sources)]
+        self.agg = _RunningWinner((n, w))
+        # each source's score at the aggregate winner's plane: -1 = does not see the pixel there
+        self.at_winner = np.zeros((num_sources, n, w), np.float32)
+        self.minus_one = np.full((n, w), -1.0, np.float32)
+        self.plane = np.zeros((n, w), np.int32)  # the current plane's index
+
+    def _score(self, src: _Source, hom: np.ndarray, out: np.ndarray) -> None:
+        """ZNCC ``out (n, W)`` of one source warped by the ref-to-source ``hom (3, 3)``.
+
+        -1 where the window is not seen: off the source image, on its hand, behind its camera.
+        """
+        w, rows = self.x.shape[1], self.x.shape[0]
+        hom = hom @ self.shift
+        inverse = cv2.WARP_INVERSE_MAP
+        cv2.warpPerspective(
+            src.image,
+            hom,
+            (w, rows),
+            dst=self.x,
+            flags=inverse | cv2.INTER_LINEAR,
+            borderValue=src.sentinel,
+        )
+        masked = not src.sees_all(self.corners @ hom.T)
+        if masked:
+            cv2.compare(self.x, src.lowest, cv2.CMP_LT, dst=self.bad)  # 255: blends in invalid
+            if (self.corners @ hom[2]).min() <= 1e-6:  # part of the plane is behind the camera
+                ys, xs = np.mgrid[0:rows, 0:w]
+                self.bad[hom[2, 0] * xs + hom[2, 1] * ys + hom[2, 2] <= 1e-6] = 255
+            # a window is unseen when one of its in-image pixels is (outside the image is not)
+            cv2.dilate(
+                self.bad,
+                self.kernel,
+                dst=self.bad_window,
+                borderType=cv2.BORDER_CONSTANT,
+                borderValue=0,
+            )
+        np.multiply(self.x, self.x, out=self.xx)
+        np.multiply(self.x, self.ref_rows, out=self.xr)
+        _box_sum(self.stack, self.ref.window, out=self.sums)
+        # window sums S1 = sum(x), S2 = sum(x^2), S3 = sum(x ref): n cov = S3 - S1 mean_ref and
+        # n^2 var = n S2 - S1^2, so zncc = cov / (std_ref sqrt(var) + eps)
+        #                                 = n cov / (std_ref sqrt(n^2 var) + n eps)
+        cv2.accumulateProduct(self.s1, self.neg_mean, self.s3)  # s3 := n cov
+        cv2.multiply(self.s1, self.s1, dst=self.var, scale=-1.0)
+        cv2.accumulateProduct(self.s2, self.count, self.var)  # n^2 var
+        np.maximum(self.var, 0.0, out=self.var)
+        cv2.sqrt(self.var, dst=self.den)
+        np.multiply(self.den, self.std, out=self.den)
+        np.add(self.den, self.eps, out=self.den)
+        np.divide(self.s3, self.den, out=out)
+        np.clip(out, -1.0, 1.0, out=out)
+        if masked:
+            cv2.copyTo(self.minus_one, self.bad_window[self.inner], out)
+
+    def run(self, sources: list[_Source], homs: np.ndarray) -> None:
+        """Sweep every plane of ``homs (S, D, 3, 3)`` over ``sources``, feeding the winners."""
+        for d in range(homs.shape[1]):
+            self.plane.fill(d)
+            scores = self.scores[d % 2]  # (S, n, W); the other parity holds plane d - 1
+            for j, src in enumerate(sources):
+                self._score(src, homs[j, d], scores[j])
+                self.per_src[j].update(scores[j], self.plane)
+            agg = _top_k_mean(scores, self.k, self.top, self.carry, self.spare)
+            better = self.agg.update(agg, self.plane)
+            for j in range(len(sources)):
+                cv2.copyTo(scores[j], better, self.at_winner[j])
+
+
+def _sweep_opencv(
+    ref_image: np.ndarray,
+    src_images: np.ndarray,
+    intrinsics: np.ndarray,
+    src_from_ref: np.ndarray,
+    inv_depths: np.ndarray,
+    src_valid: np.ndarray,
+    p: PlaneSweepParams,
+) -> _Winners:
+    """Winners of the sweep, one plane at a time with OpenCV warps and box filters.
+
+    Same arguments as :func:`_sweep_torch`. The image is cut into horizontal bands, swept on
+    ``p.threads`` worker threads; in a band, per plane, each source is warped into the reference
+    view, scored by ZNCC and fed to its own running winner, then the best ``top_k`` scores are
+    averaged and fed to the aggregate winner, which also records which sources see the pixel at
+    its plane.
+    """
+    s = len(src_images)
+    h = ref_image.shape[0]
+    ref = _RefWindows(ref_image, p.window)
+    sources = [_Source(src_images[j], src_valid[j]) for j in range(s)]
+    homs = _plane_homographies(intrinsics, src_from_ref, inv_depths)  # (S, D, 3, 3)
+    threads = p.threads if p.threads > 0 else torch.get_num_threads()
+    num_bands = max(1, min(threads, h // max(p.window, 8)))  # one band per thread
+    edges = [int(e) for e in np.linspace(0, h, num_bands + 1).round()]
+    bands = [_Band(y0, y1, ref, s, p.top_k) for y0, y1 in itertools.pairwise(edges)]
+
+    def run(band: _Band) -> None:
+        band.run(sources, homs)
+
+    if threads > 1 and len(bands) > 1:
+        with ThreadPoolExecutor(max_workers=threads) as pool:
+            list(pool.map(run, bands))
+    else:
+        for band in bands:
+            run(band)
+    return _Winners(
+        inv=np.concatenate([b.agg.refined(inv_depths) for b in bands]),
+        best=np.concatenate([b.agg.best for b in bands]),
+        arg=np.concatenate([b.agg.idx for b in bands]),
+        per_src_inv=np.concatenate(
+            [np.stack([win.refined(inv_depths) for win in b.per_src]) for b in bands], axis=1
+        ),
+        seen=np.concatenate([b.at_winner for b in bands], axis=1) > -1.0,
+        ref_std=ref.std,
+    )
+
+
 def plane_sweep(
     ref_image: np.ndarray,
     src_images: np.ndarray,
@@ -162,7 +629,8 @@ def plane_sweep(
 
     Poses are world-to-camera ``(4, 4)`` / ``(S, 4, 4)``; ``intrinsics`` at this resolution.
     ``ref_valid (H, W)`` / ``src_valid (S, H, W)`` are 1 where pixels may be used (0 = hand).
-    ``depth_range`` is ``(near, far)`` in the poses' scale. Raises :class:`PlaneSweepError`.
+    ``depth_range`` is ``(near, far)`` in the poses' scale. ``params.backend`` picks the OpenCV
+    or the torch implementation of the same algorithm. Raises :class:`PlaneSweepError`.
     """
     p = params if params is not None else PlaneSweepParams()
     ref_image = np.asarray(ref_image, dtype=np.float32)
@@ -178,55 +646,18 @@ def plane_sweep(
     if not (np.isfinite(near) and np.isfinite(far) and 0 < near < far):
         raise PlaneSweepError(f"depth range must satisfy 0 < near < far, got {depth_range}")
     h, w = ref_image.shape
-    dev = p.device
     if ref_valid is None:
         ref_valid = np.ones((h, w), np.float32)
     if src_valid is None:
         src_valid = np.ones((s, h, w), np.float32)
-    inv_depths = torch.linspace(1.0 / far, 1.0 / near, p.num_planes, device=dev)  # (D,)
-    ref = torch.as_tensor(ref_image, device=dev)[None, None]  # (1, 1, H, W)
-    ref_mean = _box(ref, p.window)
-    ref_std = (_box(ref * ref, p.window) - ref_mean * ref_mean).clamp_min(0.0).sqrt()
-    scores = []
-    for j in range(s):
-        src_from_ref = src_cam_from_world[j] @ np.linalg.inv(ref_cam_from_world)  # (4, 4)
-        grid = _grids(intrinsics, src_from_ref, inv_depths, h, w, dev)  # (D, H, W, 2)
-        src = torch.as_tensor(src_images[j], device=dev)[None, None]
-        valid = torch.as_tensor(np.asarray(src_valid[j], np.float32), device=dev)[None, None]
-        scores.append(_zncc_volume(ref, ref_mean, ref_std, src, valid, grid, p.window))
-        del grid
-    vol = torch.stack(scores)  # (S, D, H, W)
-    del scores
-    k = max(1, min(p.top_k, s))
-    agg = vol.topk(k, dim=0).values.mean(0)  # (D, H, W)
-    inv, best, arg = _winner(agg, inv_depths)
-    # a winner on the first or last plane is no peak: the surface may lie outside the range
-    interior = (arg > 0) & (arg < p.num_planes - 1)
+    # float32 like torch.linspace, so that both backends sweep the very same planes
+    inv_depths = torch.linspace(1.0 / far, 1.0 / near, p.num_planes).numpy()  # (D,)
+    ref_from_world = np.asarray(ref_cam_from_world, dtype=np.float64)
+    src_from_ref = np.asarray(src_cam_from_world, np.float64) @ np.linalg.inv(ref_from_world)
+    sweep = _sweep_opencv if p.resolved_backend() == "opencv" else _sweep_torch
+    won = sweep(ref_image, src_images, intrinsics, src_from_ref, inv_depths, src_valid, p)
     step = float(inv_depths[1] - inv_depths[0])
-    # Visibility-aware cross-check: every source that sees the pixel at the chosen depth (window
-    # inside its image and off its hands) votes with its own winner; sources that do not see it
-    # (out of view, or a hand covers the scene later in the clip) neither support nor veto.
-    at_final = vol.gather(1, arg[None, None].expand(s, 1, -1, -1))[:, 0]  # (S, H, W)
-    seen = at_final > -1.0  # (S, H, W)
-    per_src = torch.stack([_winner(vol[j], inv_depths)[0] for j in range(s)])  # (S, H, W)
-    agrees = seen & ((per_src - inv[None]).abs() <= p.agreement_planes * step)
-    support = agrees.sum(0)
-    visible = seen.sum(0)
-    agree = support >= p.min_support
-    del vol, agg, per_src, at_final
-    photometric = ((best - p.min_zncc) / (p.max_zncc - p.min_zncc)).clamp(0.0, 1.0)
-    textured = ref_std[0, 0] >= p.min_texture
-    ref_ok = torch.as_tensor(np.asarray(ref_valid, np.float32), device=dev) > 0.5
-    conf = photometric * agree * interior * textured * ref_ok * (best > -1.0)
-    depth = 1.0 / inv.clamp_min(1.0 / (far * 4.0))
-    return PlaneSweepResult(
-        depth=depth.cpu().numpy().astype(np.float32),
-        confidence=conf.cpu().numpy().astype(np.float32),
-        zncc=best.cpu().numpy().astype(np.float32),
-        agreement=agree.cpu().numpy(),
-        support=support.cpu().numpy(),
-        visible=visible.cpu().numpy(),
-    )
+    return _finish(won, ref_valid, step, far, p)
 
 
 def select_sources(
@@ -294,8 +725,7 @@ def select_sources(
 
 
 def _grey_at(frame: np.ndarray, size: tuple[int, int]) -> np.ndarray:
-    import cv2
-
+    """Grey float32 ``(h, w) = size`` of an RGB ``frame (H, W, 3)``, area-averaged."""
     grey = cv2.cvtColor(np.ascontiguousarray(frame), cv2.COLOR_RGB2GRAY)
     return cv2.resize(grey, (size[1], size[0]), interpolation=cv2.INTER_AREA).astype(np.float32)
 
@@ -318,8 +748,6 @@ def first_frame_depth(
     more than ``edge_rel`` within 3x3 pixels (upsampling there would blend two surfaces).
     ``usable (T, H, W)`` is True where pixels may be matched (not hand); None = everywhere.
     """
-    import cv2
-
     from egosim.pipeline.geometry import scale_intrinsics
 
     big_h, big_w = frames.shape[1:3]
