@@ -22,6 +22,7 @@ from egosim.model.train import (
     _trainable,
     latest_checkpoint,
     load_checkpoint,
+    read_checkpoint,
     setup_model,
 )
 
@@ -37,13 +38,15 @@ class LoadedModel:
 
 
 def resolve_checkpoint(path: str | Path) -> Path:
-    """A checkpoint file, or the latest ``checkpoints/step_*.pt`` of a run directory."""
+    """A checkpoint file, or the latest ``checkpoints/step_*.safetensors`` of a run directory."""
     path = Path(path)
     if path.is_file():
         return path
     found = latest_checkpoint(path) if path.is_dir() else None
     if found is None:
-        raise FileNotFoundError(f"no checkpoint at {path} (a .pt file or a run directory)")
+        raise FileNotFoundError(
+            f"no checkpoint at {path} (a .safetensors checkpoint or a run directory)"
+        )
     return found
 
 
@@ -71,7 +74,8 @@ def load_trained(
     """Build the checkpoint's model and load its weights (EMA weights when present and wanted).
 
     ``checkpoint`` None builds ``preset`` untrained (from ``weights_dir`` when given): useful for
-    smoke runs. ``preset``, when given, must be the checkpoint's preset.
+    smoke runs. ``preset``, when given, must be the checkpoint's preset. A pickled checkpoint
+    raises :class:`~egosim.model.checkpoint.UnsafeCheckpointError` without being unpickled.
     """
     dev = _resolve_device(device)
     if checkpoint is None:
@@ -80,9 +84,7 @@ def load_trained(
         bundle.vae.to(dev)
         return LoadedModel(bundle, None, 0, False)
     path = resolve_checkpoint(checkpoint)
-    payload = torch.load(path, map_location="cpu", weights_only=False)
-    if not isinstance(payload, dict) or "config" not in payload:
-        raise CheckpointMismatchError(f"{path} is not an egosim training checkpoint")
+    payload = read_checkpoint(path)  # safetensors only: a pickle is refused, never loaded
     config = config_from_dict(payload["config"])
     if preset is not None and preset != config.preset:
         raise CheckpointMismatchError(
@@ -93,7 +95,7 @@ def load_trained(
         overrides["weights_dir"] = weights_dir
     config = dataclasses.replace(config, **overrides)
     bundle = setup_model(config, dev)
-    payload = load_checkpoint(path, config, bundle)
+    payload = load_checkpoint(path, config, bundle, payload)
     ema = use_ema and payload.get("ema") is not None
     if ema:
         with torch.no_grad():

@@ -5,7 +5,8 @@ Run directory layout::
 
     run_dir/config.json           resolved TrainConfig + preset + library versions
     run_dir/metrics.jsonl         one line per optimizer step (loss, lr, grad_norm, speed, memory)
-    run_dir/checkpoints/step_XXXXXXXX.pt   trainable weights, optimizer, EMA, RNG, data position
+    run_dir/checkpoints/step_XXXXXXXX.safetensors   trainable weights, optimizer, EMA, RNG,
+                                  data position (safetensors, never a pickle: model/checkpoint.py)
     run_dir/previews/step_XXXXXXXX.png     rows: target, scene (masked), skeleton, generated
 
 Exact resume: every random draw of the loop (flow times, noise, condition dropout) comes from one
@@ -31,6 +32,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from egosim.model.checkpoint import CHECKPOINT_SUFFIX, UnsafeCheckpointError, load_tree, save_tree
 from egosim.model.conditioning import (
     GUIDANCE_TARGETS,
     TrainingSample,
@@ -46,7 +48,7 @@ from egosim.model.network import ModelBundle, build_model
 from egosim.model.presets import get_preset
 from egosim.model.sampler import sample
 
-CHECKPOINT_FORMAT = 1  # bump when the checkpoint dict layout changes
+CHECKPOINT_FORMAT = 2  # bump when the checkpoint dict layout changes (2: safetensors, no pickle)
 
 
 @dataclass(frozen=True)
@@ -198,7 +200,11 @@ def save_checkpoint(
     step: int,
     samples_seen: int,
 ) -> None:
-    """Write trainable weights, optimizer, EMA, RNG states and data position (atomically)."""
+    """Write trainable weights, optimizer, EMA, RNG states and data position (atomically).
+
+    One safetensors file (:func:`egosim.model.checkpoint.save_tree`): tensors as tensors, the
+    rest (step, config, optimizer hyper-parameters, Python RNG state) as JSON in its header.
+    """
     trainable = _trainable(bundle)
     payload = {
         "format": CHECKPOINT_FORMAT,
@@ -214,10 +220,15 @@ def save_checkpoint(
         "samples_seen": samples_seen,
         "config": dataclasses.asdict(config),
     }
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(".tmp")
-    torch.save(payload, tmp)
-    tmp.replace(path)
+    save_tree(path, payload, CHECKPOINT_FORMAT)
+
+
+def read_checkpoint(path: str | Path) -> dict:
+    """The payload dict of a checkpoint file (safetensors only; a pickle is refused)."""
+    payload, _ = load_tree(path)
+    if not isinstance(payload, dict) or "config" not in payload or "model" not in payload:
+        raise CheckpointMismatchError(f"{path} is not an egosim training checkpoint")
+    return payload
 
 
 def check_checkpoint(payload: dict, config: TrainConfig, bundle: ModelBundle) -> None:
@@ -246,9 +257,17 @@ def check_checkpoint(payload: dict, config: TrainConfig, bundle: ModelBundle) ->
             )
 
 
-def load_checkpoint(path: str | Path, config: TrainConfig, bundle: ModelBundle) -> dict:
-    """Read and check a checkpoint, load its trainable weights into ``bundle``; returns it."""
-    payload = torch.load(path, map_location="cpu", weights_only=False)
+def load_checkpoint(
+    path: str | Path, config: TrainConfig, bundle: ModelBundle, payload: dict | None = None
+) -> dict:
+    """Read and check a checkpoint, load its trainable weights into ``bundle``; returns it.
+
+    Raises :class:`UnsafeCheckpointError` for a pickle or an unreadable file (nothing is
+    unpickled) and :class:`CheckpointMismatchError` when it cannot continue this run.
+    ``payload``: the file's content when the caller has already read it.
+    """
+    if payload is None:
+        payload = read_checkpoint(path)
     check_checkpoint(payload, config, bundle)
     trainable = _trainable(bundle)
     with torch.no_grad():
@@ -258,9 +277,23 @@ def load_checkpoint(path: str | Path, config: TrainConfig, bundle: ModelBundle) 
 
 
 def latest_checkpoint(run_dir: str | Path) -> Path | None:
-    """Most recent ``checkpoints/step_*.pt`` of a run directory, or None."""
-    found = sorted((Path(run_dir) / "checkpoints").glob("step_*.pt"))
-    return found[-1] if found else None
+    """Most recent ``checkpoints/step_*.safetensors`` of a run directory, or None.
+
+    A run directory that holds only pickled checkpoints of an older egosim (``step_*.pt``) is
+    an :class:`UnsafeCheckpointError`: they are never loaded, and silently starting afresh
+    would hide that.
+    """
+    folder = Path(run_dir) / "checkpoints"
+    found = sorted(folder.glob(f"step_*{CHECKPOINT_SUFFIX}"))
+    if found:
+        return found[-1]
+    legacy = sorted(folder.glob("step_*.pt"))
+    if legacy:
+        raise UnsafeCheckpointError(
+            f"{legacy[-1]}: pickled checkpoint of an older egosim; egosim loads only "
+            f"safetensors checkpoints (step_*{CHECKPOINT_SUFFIX}). Train afresh (--fresh)."
+        )
+    return None
 
 
 def _write_preview(path: Path, sample_: TrainingSample, generated: np.ndarray) -> None:
@@ -409,9 +442,10 @@ def train(
             log.flush()
             last = step == stop
             if last or (config.checkpoint_every and step % config.checkpoint_every == 0):
-                path = run_dir / "checkpoints" / f"step_{step:08d}.pt"
+                path = run_dir / "checkpoints" / f"step_{step:08d}{CHECKPOINT_SUFFIX}"
                 save_checkpoint(path, config, bundle, optimizer, ema, generator, step, samples_seen)
-                for old in sorted(path.parent.glob("step_*.pt"))[: -config.keep_checkpoints]:
+                kept = sorted(path.parent.glob(f"step_*{CHECKPOINT_SUFFIX}"))
+                for old in kept[: -config.keep_checkpoints]:
                     old.unlink()
             due = last or (config.preview_every and step % config.preview_every == 0)
             if config.preview_steps and due:

@@ -1,30 +1,33 @@
-"""Validate shards: schema, version, row invariants, and decoded-content invariants.
+"""Validate shards: integrity, schema, version, row invariants, decoded content, unique ids.
 
-:func:`check_shard` never raises for a bad shard: it returns every violation it finds, each
-naming the file and the clip, so ``egosim check`` can list them all and exit non-zero.
+:func:`check_shard` never raises, whatever the file holds: it returns every violation it finds,
+each naming the file (and the clip where there is one), so ``egosim check`` can list them all
+and exit non-zero. A damaged row group is reported and the check goes on with the next one.
+:func:`check_paths` checks many files and, across the shards of one folder (one step of a run),
+that no clip id appears twice.
 """
 
 from __future__ import annotations
 
+from collections import defaultdict
 from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from egosim.pipeline.clip_io import clip_from_row
-from egosim.pipeline.media import MediaError
-from egosim.pipeline.records import ClipValueError
-from egosim.pipeline.shards import CorruptShardError, ShardReader
-from egosim.schemas import SCHEMAS, SchemaCompatibilityError, schema_identity
+from egosim.pipeline.shards import TMP_MARKER, CorruptShardError, ShardReader
+from egosim.schemas import SCHEMAS, SchemaError, schema_identity
 
 
 def _clip_content_problems(row: Mapping[str, Any]) -> list[str]:
     """Decode a clips row and check what only the decoded arrays show."""
     try:
         clip = clip_from_row(row)
-    except (MediaError, ClipValueError, ValueError) as exc:
-        return [str(exc)]
+    except Exception as exc:  # any decoder failure on damaged bytes is a violation
+        return [f"cannot decode: {type(exc).__name__}: {exc}"]
     problems = []
     t = row["num_frames"]
     for name in ("frames", "depth", "static_frames", "static_depth", "hand_mask", "object_mask"):
@@ -45,42 +48,107 @@ CONTENT_CHECKS: dict[str, Callable[[Mapping[str, Any]], list[str]]] = {
 }
 
 
+@dataclass
+class ShardReport:
+    """What checking one shard found."""
+
+    path: Path  # the shard file
+    problems: list[str] = field(default_factory=list)  # every violation, readable
+    schema: str | None = None  # schema name, when the file could be opened
+    clip_ids: list[str] = field(default_factory=list)  # clip ids of the rows that could be read
+
+
 def check_shard(path: Path, allow_empty: bool = False) -> list[str]:
     """Every violation in one shard file, as ``"<file> [clip <id>]: <problem>"`` strings."""
-    path = Path(path)
+    return inspect_shard(path, allow_empty).problems
+
+
+def inspect_shard(path: Path, allow_empty: bool = False) -> ShardReport:
+    """Check one shard; never raises (an unexpected error is reported as a violation)."""
+    report = ShardReport(Path(path))
     try:
-        reader = ShardReader(path)
-    except (CorruptShardError, SchemaCompatibilityError) as exc:
-        return [str(exc)]
+        _inspect(report, allow_empty)
+    except Exception as exc:  # the promise: no traceback, whatever the input
+        report.problems.append(f"{path}: cannot be checked ({type(exc).__name__}: {exc})")
+    return report
+
+
+def _inspect(report: ShardReport, allow_empty: bool) -> None:
+    path, problems = report.path, report.problems
+    try:
+        reader = ShardReader(path, verify=True)
+    except (CorruptShardError, SchemaError) as exc:
+        problems.append(str(exc))
+        return
     with reader:
         name, version = schema_identity(reader.arrow_schema)
         schema = SCHEMAS.get(name or "")
         if schema is None:
-            return [f"{path}: unknown schema {name!r}"]
+            problems.append(f"{path}: unknown schema {name!r}")
+            return
         if version != schema.version:
-            return [
+            problems.append(
                 f"{path}: schema {name!r} version {version}, this egosim reads version "
                 f"{schema.version}"
-            ]
-        problems: list[str] = []
+            )
+            return
+        report.schema = schema.name
+        missing = [c for c in schema.column_names if c not in reader.arrow_schema.names]
+        if missing:
+            problems.append(f"{path}: shard lacks columns {missing}")
+            return
+        if not reader.hashed:
+            problems.append(f"{path}: no content hashes (written before they existed; re-run)")
         if reader.num_rows == 0 and not allow_empty and schema.name != "rejects":
             problems.append(f"{path}: shard holds no rows")
         seen: set[str] = set()
         content = CONTENT_CHECKS.get(schema.name)
-        try:
-            for row in reader.iter_rows():
+        for group in range(reader.num_row_groups):
+            try:
+                rows = reader.read_row_group(group)
+            except CorruptShardError as exc:
+                problems.append(str(exc))
+                continue
+            for row in rows:
                 where = f"{path} clip {row.get('clip_id')!r}"
                 if "clip_id" in row and schema.name != "rejects":
                     if row["clip_id"] in seen:
                         problems.append(f"{where}: duplicate clip id")
                     seen.add(row["clip_id"])
+                    report.clip_ids.append(row["clip_id"])
                 row_problems = schema.row_problems(row)
                 if not row_problems and content is not None:
                     row_problems = content(row)
                 problems += [f"{where}: {p}" for p in row_problems]
-        except CorruptShardError as exc:
-            problems.append(str(exc))
-    return problems
+
+
+def check_paths(paths: list[Path], allow_empty: bool = False) -> tuple[int, list[str]]:
+    """Check every shard under ``paths``: ``(shards checked, every violation)``. Never raises.
+
+    Besides each file's own problems: a clip id in two shards of the same folder and schema
+    (two shards of one step of a run) is a violation, since joins by clip id would keep one.
+    """
+    try:
+        shards = find_shards(paths)
+    except OSError as exc:
+        return 0, [f"cannot list shards under {[str(p) for p in paths]}: {exc}"]
+    problems: list[str] = []
+    owners: dict[tuple[Path, str], dict[str, Path]] = defaultdict(dict)
+    for shard in shards:
+        report = inspect_shard(shard, allow_empty)
+        problems += report.problems
+        if report.schema is None or report.schema == "rejects":
+            continue
+        seen = owners[(shard.parent, report.schema)]
+        for clip_id in dict.fromkeys(report.clip_ids):
+            if clip_id in seen:
+                problems.append(
+                    f"{shard} clip {clip_id!r}: clip id also in {seen[clip_id].name} "
+                    "(clip ids must be unique across the shards of a step)"
+                )
+            else:
+                seen[clip_id] = shard
+    return len(shards), problems
 
 
 def find_shards(paths: list[Path]) -> list[Path]:
@@ -88,7 +156,7 @@ def find_shards(paths: list[Path]) -> list[Path]:
     found: list[Path] = []
     for path in paths:
         if Path(path).is_dir():
-            found += sorted(p for p in Path(path).rglob("*.parquet") if ".tmp-" not in p.name)
+            found += sorted(p for p in Path(path).rglob("*.parquet") if TMP_MARKER not in p.name)
         else:
             found.append(Path(path))
     return found

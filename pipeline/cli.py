@@ -21,7 +21,7 @@ from typing import Annotated
 
 import typer
 
-from egosim.pipeline.check import check_shard, find_shards
+from egosim.pipeline.check import check_paths
 from egosim.pipeline.execute import ShardTask, run_shard_task, task_fingerprint
 from egosim.pipeline.media import MediaError
 from egosim.pipeline.records import ClipValueError
@@ -36,6 +36,7 @@ from egosim.pipeline.summary import (
 )
 from egosim.pipeline.workflow import load_workflow
 from egosim.schemas import SchemaError
+from egosim.schemas.ids import path_under, validate_id
 
 app = typer.Typer(
     help="egosim: egocentric hand-object videos to world-simulator training data.",
@@ -200,16 +201,17 @@ def check(
     paths: Annotated[list[Path], typer.Argument(help="Shard files or folders of shards.")],
     allow_empty: Annotated[bool, typer.Option(help="Accept shards with no rows.")] = False,
 ) -> None:
-    """Validate shards; lists every violation and exits non-zero if there is any."""
-    shards = find_shards(paths)
-    if not shards:
+    """Validate shards; lists every violation and exits non-zero if there is any.
+
+    Checks page checksums and each row's content hash, the schema and its invariants, decoded
+    content, and that clip ids are unique across the shards of each folder (a step of a run).
+    """
+    count, problems = check_paths(paths, allow_empty=allow_empty)
+    if not count:
         raise _fail(FileNotFoundError(f"no shards found under {[str(p) for p in paths]}"))
-    problems: list[str] = []
-    for shard in shards:
-        problems += check_shard(shard, allow_empty=allow_empty)
     for problem in problems:
         typer.echo(problem)
-    typer.echo(f"checked {len(shards)} shard(s): {len(problems)} violation(s)")
+    typer.echo(f"checked {count} shard(s): {len(problems)} violation(s)")
     if problems:
         raise typer.Exit(code=1)
 
@@ -383,7 +385,10 @@ def simulate(
     ],
     out: Annotated[Path, typer.Option("--out", help="Folder for simulation shards and videos.")],
     checkpoint: Annotated[
-        str, typer.Option("--checkpoint", help="Run directory or checkpoint .pt ('' = untrained).")
+        str,
+        typer.Option(
+            "--checkpoint", help="Run directory or .safetensors checkpoint ('' = untrained)."
+        ),
     ] = "",
     param: Annotated[
         list[str] | None, typer.Option("--param", help="simulate parameter key=value (steps=50).")
@@ -394,6 +399,12 @@ def simulate(
     from egosim.stages.pack.dataset import find_pack_shards
 
     try:
+        if checkpoint:
+            from egosim.model.checkpoint import refuse_pickle
+            from egosim.model.inference import resolve_checkpoint
+
+            # Refuse a pickle before any task runs (inside a task it would reject every clip).
+            refuse_pickle(resolve_checkpoint(checkpoint))
         params = {"checkpoint": checkpoint, **_params(param or [], "--param")}
         shards = find_pack_shards(data)
         for i, shard in enumerate(shards):
@@ -402,7 +413,8 @@ def simulate(
             with ShardReader(task.output) as reader:
                 for row in reader.iter_rows():
                     video = decode_rgb_video(row["video"], row["height"], row["width"])
-                    path = out / "videos" / f"{row['clip_id']}.mp4"
+                    clip_id = validate_id(row["clip_id"])
+                    path = path_under(out, "videos", f"{clip_id}.mp4")
                     path.parent.mkdir(parents=True, exist_ok=True)
                     write_video_file(path, video, fps=row["fps"])
             typer.echo(f"{task.output}: {result.rows} clips, {result.rejected} rejected")

@@ -198,34 +198,58 @@ class VideoFileInfo:
     path: Path  # the file
     fps: float  # average frame rate the container declares
     num_frames: int  # frame count the container declares (0 if unknown)
-    width: int  # frame width in pixels
-    height: int  # frame height in pixels
+    width: int  # displayed frame width in pixels (after the display rotation)
+    height: int  # displayed frame height in pixels (after the display rotation)
+    rotation: int = 0  # display rotation, degrees counterclockwise (0, 90, 180 or -90)
+
+
+def _quarter_turns(rotation: float) -> int:
+    """``rotation`` degrees (counterclockwise, from the display matrix) as quarter turns."""
+    return round(rotation / 90.0) % 4
 
 
 def probe_video_file(path: Path) -> VideoFileInfo:
-    """Read a video file's frame rate, size and declared frame count without decoding."""
+    """Read a video file's frame rate, displayed size, rotation and declared frame count.
+
+    Decodes the first frame only (the display rotation travels with decoded frames). Raises
+    :class:`MediaError` naming the real reason: no video stream (and what streams there are),
+    no frame rate, no decodable frame, or an unreadable file.
+    """
     try:
         with av.open(str(path), mode="r") as container:
+            if not container.streams.video:
+                kinds = sorted({s.type for s in container.streams}) or ["none"]
+                raise MediaError(f"{path}: no video stream (streams: {', '.join(kinds)})")
             stream = container.streams.video[0]
             rate = stream.average_rate or stream.guessed_rate
             if not rate:
                 raise MediaError(f"{path}: video declares no frame rate")
+            first = next(iter(container.decode(stream)), None)
+            if first is None:
+                raise MediaError(f"{path}: video stream holds no decodable frame")
+            turns = _quarter_turns(getattr(first, "rotation", 0) or 0)
+            width, height = first.width, first.height
+            if turns % 2:
+                width, height = height, width
             return VideoFileInfo(
                 path=Path(path),
                 fps=float(rate),
                 num_frames=int(stream.frames or 0),
-                width=stream.codec_context.width,
-                height=stream.codec_context.height,
+                width=width,
+                height=height,
+                rotation=[0, 90, 180, -90][turns],
             )
-    except (av.error.FFmpegError, IndexError, OSError) as exc:
+    except (av.error.FFmpegError, OSError) as exc:
         raise MediaError(f"cannot read video file {path}: {exc}") from exc
 
 
 def iter_video_file(path: Path) -> Iterator[tuple[float, np.ndarray]]:
     """Stream ``(time in seconds, (H, W, 3) uint8 RGB)`` from a video file, one frame at a time.
 
-    Frames without a usable timestamp get ``index / fps``. Raises :class:`MediaError` naming the
-    file when it cannot be opened or decoding fails part way (frames already yielded stand).
+    Frames without a usable timestamp get ``index / fps``. The display rotation of the file
+    (its display matrix) is applied, so frames come out upright. Raises :class:`MediaError`
+    naming the file when it cannot be opened or decoding fails part way (frames already yielded
+    stand).
     """
     info = probe_video_file(path)
     last = -np.inf
@@ -238,7 +262,11 @@ def iter_video_file(path: Path) -> Iterator[tuple[float, np.ndarray]]:
                 if not time > last:  # broken or repeated timestamps: fall back to the rate
                     time = last + 1.0 / info.fps
                 last = time
-                yield time, frame.to_ndarray(format="rgb24")
+                image = frame.to_ndarray(format="rgb24")
+                turns = _quarter_turns(getattr(frame, "rotation", 0) or 0)
+                if turns:  # np.rot90 turns counterclockwise, like the display matrix angle
+                    image = np.ascontiguousarray(np.rot90(image, k=turns))
+                yield time, image
     except (av.error.FFmpegError, OSError) as exc:
         raise MediaError(f"cannot decode video file {path}: {exc}") from exc
 

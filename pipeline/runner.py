@@ -12,17 +12,25 @@
   ``OUT/summary.json`` (per step: clips in, out, rejected, top reasons; see
   :mod:`egosim.pipeline.summary`) and ``OUT/workflow.resolved.yaml``. The JSON and YAML files
   are written to a temporary file and renamed into place, like shards.
+- One run at a time per output folder: a run holds an exclusive ``flock`` on ``OUT/.lock``
+  (which names its pid) and a second run on the same folder fails at once with
+  :class:`RunLockedError`. Holding the lock, a run removes the temporary files (``*.tmp-*``)
+  that killed or failed runs left behind.
+- Before a task is skipped as done, its output is read and verified (page checksums, content
+  hashes); a damaged output is removed and recomputed.
 """
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import json
 import logging
 import math
 import os
 import uuid
 import warnings
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -30,11 +38,19 @@ from typing import Any
 import yaml
 
 from egosim.pipeline.execute import ShardResult, ShardTask, run_shard_task, task_fingerprint
-from egosim.pipeline.shards import TMP_MARKER, ShardReader, ShardWriter
+from egosim.pipeline.shards import (
+    TMP_MARKER,
+    CorruptShardError,
+    ShardReader,
+    ShardWriter,
+    read_shard_meta,
+    verify_shard,
+)
 from egosim.pipeline.stage import SourceStage, StageError, get_stage
 from egosim.pipeline.summary import RunReport, summarize_tasks
 from egosim.pipeline.workflow import Workflow
-from egosim.schemas import REJECTS
+from egosim.schemas import REJECTS, SchemaError
+from egosim.schemas.ids import path_under, validate_id
 
 log = logging.getLogger(__name__)
 
@@ -45,6 +61,73 @@ class RunError(StageError):
     def __init__(self, message: str, report: RunReport | None = None) -> None:
         super().__init__(message)
         self.report = report  # what the tasks that finished produced (None before any ran)
+
+
+class RunLockedError(RunError):
+    """Another run holds the output folder's lock; the message names the folder and its pid."""
+
+
+LOCK_NAME = ".lock"  # lock file of a run folder
+
+
+@contextlib.contextmanager
+def run_lock(out: Path) -> Iterator[Path]:
+    """Hold an exclusive lock on ``out/.lock`` for the ``with`` block, or raise at once.
+
+    ``fcntl.flock`` is released by the kernel when the process dies, so a killed run never
+    leaves a stale lock. (On network filesystems without flock support, two runs from different
+    machines are not kept apart.)
+    """
+    path = Path(out) / LOCK_NAME
+    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = os.pread(fd, 64, 0).decode(errors="replace").strip() or "unknown"
+            raise RunLockedError(
+                f"another egosim run is writing {out} (pid {holder}, lock {path}); wait for it "
+                "to finish or use another --out"
+            ) from None
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+        yield path
+    finally:
+        os.close(fd)  # releases the lock
+
+
+def remove_stale_temporaries(out: Path) -> list[Path]:
+    """Delete the ``*.tmp-*`` files under ``out`` (call only while holding :func:`run_lock`)."""
+    removed = []
+    for path in sorted(Path(out).rglob(f"*{TMP_MARKER}*")):
+        if path.is_file() and not path.is_symlink():
+            path.unlink(missing_ok=True)
+            removed.append(path)
+    if removed:
+        log.info("removed %d stale temporary file(s) under %s", len(removed), out)
+    return removed
+
+
+def discard_if_damaged(task: ShardTask) -> bool:
+    """Remove ``task.output`` if it claims to be done (same fingerprint) but fails verification.
+
+    Returns True when it was removed (the task then recomputes it). Outputs with another
+    fingerprint are recomputed anyway and are not read here.
+    """
+    if not task.output.is_file():
+        return False
+    try:
+        if read_shard_meta(task.output).fingerprint != task.fingerprint:
+            return False
+    except (CorruptShardError, SchemaError):
+        return False  # unreadable provenance: the executor recomputes it anyway
+    try:
+        verify_shard(task.output)
+    except CorruptShardError as exc:
+        log.warning("recomputing %s: %s", task.output, exc)
+        task.output.unlink(missing_ok=True)
+        return True
+    return False
 
 
 @dataclass(frozen=True)
@@ -63,13 +146,17 @@ class RunSummary:
 
 
 def shard_path(out: Path, step: str, index: int) -> Path:
-    """Where shard ``index`` of ``step`` lives under the run folder."""
-    return Path(out) / step / f"shard-{index:05d}.parquet"
+    """Where shard ``index`` of ``step`` lives under the run folder.
+
+    ``step`` must be a valid identifier and the path must stay under ``out``
+    (:class:`~egosim.schemas.ids.InvalidIdError`, :class:`~egosim.schemas.ids.PathEscapeError`).
+    """
+    return path_under(out, validate_id(step, "step name"), f"shard-{index:05d}.parquet")
 
 
 def rejects_path(out: Path, step: str, index: int) -> Path:
-    """Where the rejects of shard ``index`` of ``step`` live."""
-    return Path(out) / step / f"rejects-{index:05d}.parquet"
+    """Where the rejects of shard ``index`` of ``step`` live (checked like :func:`shard_path`)."""
+    return path_under(out, validate_id(step, "step name"), f"rejects-{index:05d}.parquet")
 
 
 def plan_tasks(workflow: Workflow, source: str | None, out: Path) -> list[ShardTask]:
@@ -130,6 +217,7 @@ def _run_and_name_worker(task: ShardTask, *deps: Any) -> tuple[ShardResult, str]
         torch.set_num_threads(1)
     except ImportError:  # pragma: no cover - torch is a hard dependency
         pass
+    discard_if_damaged(task)
     return run_shard_task(task), get_worker().name
 
 
@@ -168,11 +256,29 @@ def run_workflow(
     gpu_workers: int | None = None,
     progress: Callable[[ShardResult, int, int], None] | None = None,
 ) -> RunSummary:
-    """Run every (step, shard) task of ``workflow`` on a Dask cluster; see the module doc."""
-    from distributed import Client, as_completed
+    """Run every (step, shard) task of ``workflow`` on a Dask cluster; see the module doc.
 
+    Raises :class:`RunLockedError` at once when another run holds ``out``.
+    """
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
+    with run_lock(out):
+        remove_stale_temporaries(out)
+        return _run_locked(workflow, out, source, scheduler, n_workers, gpu_workers, progress)
+
+
+def _run_locked(
+    workflow: Workflow,
+    out: Path,
+    source: str | None,
+    scheduler: str | None,
+    n_workers: int | None,
+    gpu_workers: int | None,
+    progress: Callable[[ShardResult, int, int], None] | None,
+) -> RunSummary:
+    """:func:`run_workflow` once the run holds its folder's lock."""
+    from distributed import Client, as_completed
+
     write_text_atomic(
         out / "workflow.resolved.yaml",
         yaml.safe_dump({**workflow.to_dict(), "input": source}, sort_keys=False),

@@ -8,15 +8,21 @@ Layout of one shard file (see docs/design.md):
   object with the producing stage, its parameters, the fingerprints of its inputs, the output
   fingerprint and the package version;
 - written to a temporary file in the same folder and renamed into place on success, so a killed
-  write never leaves a partial shard under the final name.
+  write never leaves a partial shard under the final name;
+- integrity (docs/design.md, "Integrity"): Parquet page checksums (CRC32) are written and
+  verified on every read; the file footer's ``egosim.content`` key holds a SHA-256 per row of
+  everything the row holds (all columns, encoded media included; :func:`row_content_hash`) and
+  of the provenance JSON. A reader verifies each row it reads in full and raises
+  :class:`CorruptShardError` on a mismatch.
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import uuid
-from collections.abc import Iterator, Mapping
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import asdict, dataclass, field
 from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
@@ -30,6 +36,8 @@ from egosim.schemas import SchemaCompatibilityError, ShardSchema, schema_identit
 from egosim.schemas.base import check_compatible
 
 SHARD_META_KEY = b"egosim.shard"
+CONTENT_KEY = b"egosim.content"  # footer key: per-row content hashes (see module doc)
+CONTENT_FORMAT = 1  # layout of the CONTENT_KEY JSON
 TMP_MARKER = ".tmp-"
 
 
@@ -39,6 +47,31 @@ class ShardError(Exception):
 
 class CorruptShardError(ShardError):
     """A shard file is missing, truncated or not Parquet; the message names the file."""
+
+
+class ContentMismatchError(CorruptShardError):
+    """A shard's decoded content differs from the content hashes stored when it was written."""
+
+
+def row_content_hash(row: Mapping[str, Any], names: Sequence[str]) -> str:
+    """SHA-256 (hex) of a row's values for columns ``names``, in that order.
+
+    Canonical form per column: its name, then either its bytes (binary columns: encoded media)
+    or its compact JSON (numbers, strings, lists; floats exactly, by ``repr``), each
+    length-prefixed. Rows are hashed as Arrow returns them (``to_pylist``), so the writer and the
+    reader see the same values.
+    """
+    h = hashlib.sha256()
+    for name in names:
+        value = row.get(name)
+        h.update(name.encode() + b"\0")
+        if isinstance(value, bytes | bytearray | memoryview):
+            data, tag = bytes(value), b"b"
+        else:
+            data = json.dumps(value, separators=(",", ":"), sort_keys=True, default=str).encode()
+            tag = b"j"
+        h.update(tag + len(data).to_bytes(8, "little") + data)
+    return h.hexdigest()
 
 
 def package_version() -> str:
@@ -97,10 +130,13 @@ class ShardWriter:
             }
         )
         self._writer: pq.ParquetWriter | None = None
+        self._hashes: list[str] = []  # content hash of each row written, in order
 
     def __enter__(self) -> ShardWriter:
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._writer = pq.ParquetWriter(self._tmp, self._arrow, compression="zstd")
+        self._writer = pq.ParquetWriter(
+            self._tmp, self._arrow, compression="zstd", write_page_checksum=True
+        )
         return self
 
     def write_row(self, row: Mapping[str, Any]) -> None:
@@ -109,6 +145,7 @@ class ShardWriter:
             raise ShardError("ShardWriter.write_row called outside its with-block")
         self.schema.validate_row(row, where=f"{self.path.name} row {row.get('clip_id', '?')}")
         table = pa.Table.from_pylist([dict(row)], schema=self._arrow)
+        self._hashes.append(row_content_hash(table.to_pylist()[0], self._arrow.names))
         self._writer.write_table(table)
         self.rows_written += 1
 
@@ -119,6 +156,14 @@ class ShardWriter:
         tb: TracebackType | None,
     ) -> None:
         assert self._writer is not None  # set in __enter__
+        if exc_type is None:
+            content = {
+                "format": CONTENT_FORMAT,
+                "algorithm": "sha256",
+                "meta_sha256": hashlib.sha256(self._arrow.metadata[SHARD_META_KEY]).hexdigest(),
+                "rows": self._hashes,
+            }
+            self._writer.add_key_value_metadata({CONTENT_KEY: json.dumps(content)})
         self._writer.close()
         if exc_type is None:
             os.replace(self._tmp, self.path)
@@ -127,33 +172,94 @@ class ShardWriter:
 
 
 class ShardReader:
-    """Read a shard written by :class:`ShardWriter`, checking its schema name and version."""
+    """Read a shard written by :class:`ShardWriter`, checking its schema name and version.
 
-    def __init__(self, path: Path, schema: ShardSchema | None = None) -> None:
+    Page checksums are verified on every read. With ``verify`` (the default) every row read with
+    all its columns is hashed and compared with the hash stored at write time
+    (:class:`ContentMismatchError` on a difference); shards written before content hashes
+    existed have none to compare (``hashed`` is False) and are read as they are.
+    """
+
+    def __init__(self, path: Path, schema: ShardSchema | None = None, verify: bool = True) -> None:
         self.path = Path(path)
         if not self.path.is_file():
             raise CorruptShardError(f"{self.path}: shard file does not exist")
         try:
-            self._file = pq.ParquetFile(self.path)
-        except (pa.ArrowInvalid, OSError) as exc:
+            self._file = pq.ParquetFile(self.path, page_checksum_verification=True)
+            arrow = self._file.schema_arrow
+            footer = self._file.metadata.metadata or {}
+        except Exception as exc:  # pyarrow raises many types for a damaged footer
             raise CorruptShardError(f"{self.path}: not a readable Parquet shard ({exc})") from exc
-        arrow = self._file.schema_arrow
+        try:
+            identity = schema_identity(arrow)
+        except (ValueError, UnicodeDecodeError) as exc:
+            raise CorruptShardError(f"{self.path}: unreadable schema metadata ({exc})") from exc
         if schema is not None:
             check_compatible(arrow, schema, str(self.path))
         raw = (arrow.metadata or {}).get(SHARD_META_KEY)
         if raw is None:
-            name, ver = schema_identity(arrow)
+            name, ver = identity
             raise SchemaCompatibilityError(
                 f"{self.path}: not an egosim shard (no {SHARD_META_KEY.decode()} metadata; "
                 f"schema {name!r} version {ver})"
             )
-        self.meta = ShardMeta(**json.loads(raw))
+        try:
+            self.meta = ShardMeta(**json.loads(raw))
+        except (ValueError, TypeError) as exc:  # JSON, UTF-8 or field errors
+            raise CorruptShardError(f"{self.path}: unreadable provenance metadata ({exc})") from exc
         self.schema = schema
+        self.verify = verify  # verify each fully read row against its stored hash
+        self.row_hashes = self._read_content(footer.get(CONTENT_KEY), raw)
+        # First row index of each row group (rows are hashed in file order).
+        self._starts = [0]
+        for i in range(self._file.num_row_groups):
+            self._starts.append(self._starts[-1] + self._file.metadata.row_group(i).num_rows)
+
+    def _read_content(self, content: bytes | None, raw_meta: bytes) -> list[str] | None:
+        """The stored per-row hashes (None for a shard written without them), checked."""
+        if content is None:
+            return None
+        try:
+            data = json.loads(content)
+            rows = [str(h) for h in data["rows"]]
+            meta_hash = data["meta_sha256"]
+        except (ValueError, TypeError, KeyError) as exc:
+            raise CorruptShardError(f"{self.path}: unreadable content hashes ({exc})") from exc
+        if hashlib.sha256(raw_meta).hexdigest() != meta_hash:
+            raise ContentMismatchError(f"{self.path}: provenance metadata differs from its hash")
+        if len(rows) != self._file.metadata.num_rows:
+            raise ContentMismatchError(
+                f"{self.path}: {len(rows)} content hashes for {self._file.metadata.num_rows} rows"
+            )
+        return rows
+
+    @property
+    def hashed(self) -> bool:
+        """True when the shard stores content hashes (every shard written by this egosim)."""
+        return self.row_hashes is not None
+
+    def _checked(self, rows: list[dict[str, Any]], group: int) -> list[dict[str, Any]]:
+        """``rows`` of row group ``group``, verified against their stored hashes."""
+        if self.verify and self.row_hashes is not None:
+            names = self._file.schema_arrow.names
+            for k, row in enumerate(rows):
+                index = self._starts[group] + k
+                if row_content_hash(row, names) != self.row_hashes[index]:
+                    raise ContentMismatchError(
+                        f"{self.path}: row {index} (clip {row.get('clip_id')!r}) differs from "
+                        "the content hash stored when it was written"
+                    )
+        return rows
 
     @property
     def arrow_schema(self) -> pa.Schema:
         """The Arrow schema stored in the file (with its metadata)."""
         return self._file.schema_arrow
+
+    @property
+    def num_row_groups(self) -> int:
+        """Number of row groups (one per row for shards written by :class:`ShardWriter`)."""
+        return int(self._file.num_row_groups)
 
     @property
     def num_rows(self) -> int:
@@ -163,27 +269,34 @@ class ShardReader:
     def iter_rows(self, columns: list[str] | None = None) -> Iterator[dict[str, Any]]:
         """Yield rows as dicts, one row group at a time."""
         for i in range(self._file.num_row_groups):
-            try:
-                table = self._file.read_row_group(i, columns=columns)
-            except (pa.ArrowInvalid, OSError) as exc:
-                raise CorruptShardError(f"{self.path}: row group {i} unreadable ({exc})") from exc
-            yield from table.to_pylist()
+            rows = self._read_group(i, columns)
+            yield from rows if columns is not None else self._checked(rows, i)
+
+    def _read_group(self, i: int, columns: list[str] | None = None) -> list[dict[str, Any]]:
+        """Rows of row group ``i`` (page checksums verified), or :class:`CorruptShardError`."""
+        try:
+            return self._file.read_row_group(i, columns=columns).to_pylist()
+        except Exception as exc:  # damaged pages raise OSError, ArrowInvalid, and others
+            raise CorruptShardError(f"{self.path}: row group {i} unreadable ({exc})") from exc
 
     def read_column(self, name: str) -> list[Any]:
         """Read one whole column (use for small columns such as ``clip_id``)."""
-        return self._file.read(columns=[name]).column(name).to_pylist()
+        try:
+            return self._file.read(columns=[name]).column(name).to_pylist()
+        except Exception as exc:
+            raise CorruptShardError(f"{self.path}: column {name!r} unreadable ({exc})") from exc
 
     def row_group_of(self) -> dict[str, int]:
         """Map ``clip_id`` to its row group, for joins by clip id without loading the shard."""
         index: dict[str, int] = {}
         for i in range(self._file.num_row_groups):
-            for cid in self._file.read_row_group(i, columns=["clip_id"]).column(0).to_pylist():
-                index[cid] = i
+            for row in self._read_group(i, ["clip_id"]):
+                index[row["clip_id"]] = i
         return index
 
     def read_row_group(self, i: int) -> list[dict[str, Any]]:
-        """Read the rows of row group ``i``."""
-        return self._file.read_row_group(i).to_pylist()
+        """Read the rows of row group ``i`` (verified against their content hashes)."""
+        return self._checked(self._read_group(i), i)
 
     def __enter__(self) -> ShardReader:
         return self
@@ -195,6 +308,19 @@ class ShardReader:
 def open_shard(path: Path, schema: ShardSchema | None = None) -> ShardReader:
     """Open a shard for reading; checks ``schema`` name and version when given."""
     return ShardReader(path, schema)
+
+
+def verify_shard(path: Path) -> None:
+    """Read every row of a shard and verify it; raises :class:`CorruptShardError` on damage.
+
+    A shard without content hashes (written before they existed) raises too: its content
+    cannot be verified.
+    """
+    with ShardReader(path) as reader:
+        if not reader.hashed:
+            raise ContentMismatchError(f"{path}: shard has no content hashes (re-run to add them)")
+        for _ in reader.iter_rows():
+            pass
 
 
 def read_shard_meta(path: Path) -> ShardMeta:

@@ -13,8 +13,13 @@ Format::
         resources: {GPU: 1}        # Dask worker resources this step needs
 
 Every problem (unknown keys, unknown stages or parameters, missing or unknown input roles,
-schema mismatches between connected steps, cycles) is collected into one
-:class:`WorkflowError`.
+schema mismatches between connected steps, cycles, step names that break the identifier rule of
+:mod:`egosim.schemas.ids`) is collected into one :class:`WorkflowError`.
+
+Resource bounds: a workflow file is at most :data:`MAX_WORKFLOW_BYTES`; once loaded, its data
+counted with every YAML alias expanded (as anything that walks it would see it) is at most
+:data:`MAX_WORKFLOW_VALUES` values and :data:`MAX_WORKFLOW_CHARS` characters of strings, so
+nested aliases ("billion laughs") are refused in milliseconds instead of exhausting memory.
 """
 
 from __future__ import annotations
@@ -27,6 +32,11 @@ from typing import Any
 import yaml
 
 from egosim.pipeline.stage import ConfigError, SourceStage, StageError, build_config, get_stage
+from egosim.schemas.ids import id_problems
+
+MAX_WORKFLOW_BYTES = 1 << 20  # largest workflow file read (1 MiB)
+MAX_WORKFLOW_VALUES = 100_000  # most values (keys included) once aliases are expanded
+MAX_WORKFLOW_CHARS = 10_000_000  # most string characters once aliases are expanded
 
 WORKFLOW_KEYS = {"name", "description", "steps"}
 STEP_KEYS = {"stage", "params", "inputs", "resources"}
@@ -78,10 +88,46 @@ def load_workflow(path: Path, overrides: Sequence[str] = ()) -> Workflow:
     """Read, override (``step.param=value``) and check a workflow file."""
     path = Path(path)
     try:
-        data = yaml.safe_load(path.read_text())
-    except (OSError, yaml.YAMLError) as exc:
+        with path.open("rb") as f:
+            raw = f.read(MAX_WORKFLOW_BYTES + 1)
+        if len(raw) > MAX_WORKFLOW_BYTES:
+            raise WorkflowError(f"{path}: workflow file is larger than {MAX_WORKFLOW_BYTES} bytes")
+        data = yaml.safe_load(raw.decode("utf-8"))
+    except (OSError, UnicodeDecodeError, yaml.YAMLError) as exc:
         raise WorkflowError(f"{path}: cannot read workflow ({exc})") from exc
+    check_expanded_size(data, str(path))
     return parse_workflow(data, overrides, where=str(path))
+
+
+def check_expanded_size(
+    data: Any,
+    where: str,
+    max_values: int = MAX_WORKFLOW_VALUES,
+    max_chars: int = MAX_WORKFLOW_CHARS,
+) -> None:
+    """Raise :class:`WorkflowError` if ``data`` with aliases expanded exceeds the bounds.
+
+    YAML aliases make shared (even self-referencing) objects; this walk visits a shared object
+    once per reference, as printing or hashing it would, and stops at the first bound crossed,
+    so its cost is bounded by ``max_values`` whatever the input.
+    """
+    values, chars = 0, 0
+    stack = [data]
+    while stack:
+        item = stack.pop()
+        values += 1
+        if isinstance(item, str | bytes):
+            chars += len(item)
+        elif isinstance(item, Mapping):
+            stack.extend(item.keys())
+            stack.extend(item.values())
+        elif isinstance(item, list | tuple | set):
+            stack.extend(item)
+        if values > max_values or chars > max_chars:
+            raise WorkflowError(
+                f"{where}: workflow expands to more than {max_values} values or {max_chars} "
+                "characters (nested YAML aliases?)"
+            )
 
 
 def parse_workflow(data: Any, overrides: Sequence[str] = (), where: str = "workflow") -> Workflow:
@@ -92,6 +138,8 @@ def parse_workflow(data: Any, overrides: Sequence[str] = (), where: str = "workf
     problems += [f"unknown workflow key {k!r}" for k in data if k not in WORKFLOW_KEYS]
     raw_steps: dict[str, dict[str, Any]] = {}
     for name, body in data["steps"].items():
+        # Step names become folder names under --out: the identifier rule applies.
+        problems += [f"step {name!r}: {p}" for p in id_problems(name, "step name")]
         if not isinstance(body, Mapping):
             problems.append(f"step {name!r}: expected a mapping, got {body!r}")
             continue

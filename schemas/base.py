@@ -51,6 +51,10 @@ class ShardSchema:
     doc: str  # one paragraph on what a shard of this kind holds
     columns: tuple[Column, ...]  # ordered columns
     validators: tuple[RowValidator, ...] = field(default=())  # invariant checks on one row
+    # Columns whose values are identifiers that may become paths (checked by schemas.ids);
+    # None: ``clip_id`` when the schema has it, except in the rejects table, whose clip_id may
+    # name an input file.
+    id_columns: tuple[str, ...] | None = None
 
     @property
     def arrow(self) -> pa.Schema:
@@ -61,6 +65,15 @@ class ShardSchema:
         ]
         metadata = {SCHEMA_NAME_KEY: self.name.encode(), SCHEMA_VERSION_KEY: str(self.version)}
         return pa.schema(fields, metadata=metadata)
+
+    @property
+    def identifier_columns(self) -> tuple[str, ...]:
+        """The columns validated as identifiers (see ``id_columns``)."""
+        if self.id_columns is not None:
+            return self.id_columns
+        if self.name == "rejects" or "clip_id" not in self.column_names:
+            return ()
+        return ("clip_id",)
 
     @property
     def column_names(self) -> tuple[str, ...]:
@@ -75,6 +88,11 @@ class ShardSchema:
                 problems.append(f"missing column {column.name!r}")
             elif row[column.name] is None and not column.nullable:
                 problems.append(f"column {column.name!r} is null but required")
+        from egosim.schemas.ids import id_problems  # ids imports this module
+
+        for name in self.identifier_columns:  # reported even when other columns are bad
+            if row.get(name) is not None:
+                problems.extend(id_problems(row[name], name.replace("_", " ")))
         if problems:
             return problems
         for validator in self.validators:

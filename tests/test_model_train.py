@@ -89,7 +89,7 @@ def test_run_directory(tmp_path: Path) -> None:
     assert {"loss", "lr", "grad_norm", "samples_per_second", "peak_memory_mb"} <= set(lines[0])
     assert lines[0]["lr"] == pytest.approx(CFG.lr / 2)  # warmup
     assert (tmp_path / "previews" / "step_00000002.png").stat().st_size > 0
-    assert latest_checkpoint(tmp_path).name == "step_00000002.pt"
+    assert latest_checkpoint(tmp_path).name == "step_00000002.safetensors"
     assert np.isfinite(result.losses).all()
 
 

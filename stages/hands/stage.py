@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Mapping
-from pathlib import Path
 from typing import Any, ClassVar, Literal
 
 import numpy as np
@@ -49,6 +48,7 @@ class HandsConfig(StageConfig):
     mediapipe_video_mode: bool = True  # backend mediapipe: tracking mode (False: per image)
     iou_threshold: float = 0.5  # boxes overlapping more than this are the same hand
     max_speed: float = 2.5  # m/s in camera space; above it both ways = temporal outlier
+    max_angular_speed: float = 720.0  # deg/s palm turn in camera space; above both ways = outlier
     despike: bool = True  # run the temporal outlier test
 
     def __post_init__(self) -> None:
@@ -57,6 +57,8 @@ class HandsConfig(StageConfig):
             problems.append(f"iou_threshold must be in (0, 1), got {self.iou_threshold}")
         if not (np.isfinite(self.max_speed) and self.max_speed > 0):
             problems.append(f"max_speed must be > 0 m/s, got {self.max_speed}")
+        if not self.max_angular_speed > 0:  # inf allowed: position test only
+            problems.append(f"max_angular_speed must be > 0 deg/s, got {self.max_angular_speed}")
         if self.backend == "hamer" and not self.hamer_dir:
             problems.append("backend 'hamer' needs hamer_dir (a folder of <clip_id>.npz files)")
         if problems:
@@ -83,7 +85,9 @@ def _detections(
     clip = dataclasses.replace(clip_from_row(row), world_from_cam=poses, intrinsics=intrinsics)
     if backend == "mediapipe":
         return mediapipe_detections(clip, MediaPipeParams(video_mode=config.mediapipe_video_mode))
-    return hamer_detections(clip, Path(config.hamer_dir) / f"{clip.clip_id}.npz")
+    from egosim.schemas.ids import path_under, validate_id  # clip ids name files: check them
+
+    return hamer_detections(clip, path_under(config.hamer_dir, f"{validate_id(clip.clip_id)}.npz"))
 
 
 def clean_hands(
@@ -112,7 +116,9 @@ def clean_hands(
         joints, valid, conf = to_hands(det)
         outliers = 0
         if config.despike:
-            spikes = temporal_outliers(joints, valid, poses, float(row["fps"]), config.max_speed)
+            spikes = temporal_outliers(
+                joints, valid, poses, float(row["fps"]), config.max_speed, config.max_angular_speed
+            )
             valid &= ~spikes
             joints[spikes] = np.nan
             conf[spikes] = 0.0
@@ -126,6 +132,9 @@ class HandsStage(ClipStage):
     """3D hand joints per frame, de-duplicated and with temporal outliers removed."""
 
     name = "hands"
+    # 2: mediapipe lifts by palm PnP (not translation only), drops overlapping detections,
+    # links tracks across gaps less far; the spike filter also tests the palm's orientation.
+    version = 2
     description = "3D hand joints per frame from the clip's labels, de-duplicated and de-spiked"
     config_class = HandsConfig
     inputs: ClassVar[Mapping[str, ShardSchema]] = {"clips": CLIPS}

@@ -23,6 +23,7 @@ is the clip policy of :mod:`egosim.stages.ingest.standardise`.
 from __future__ import annotations
 
 import dataclasses
+from collections import Counter
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any, Literal
@@ -32,6 +33,7 @@ from egosim.pipeline.execute import fingerprint
 from egosim.pipeline.records import Clip
 from egosim.pipeline.stage import ClipRejected, ConfigError, SourceStage, StageConfig
 from egosim.schemas import CLIPS
+from egosim.schemas.ids import sanitize_id, short_hash
 from egosim.stages.ingest import frames_source, synthetic_source, video_source
 from egosim.stages.ingest.egodex import read_egodex_clip
 from egosim.stages.ingest.mcap_source import read_mcap_clip
@@ -119,11 +121,22 @@ class IngestStage(SourceStage):
     config_class = IngestConfig
     output = CLIPS
     backends = ("video", "frames", "egodex", "mcap", "synthetic")
-    version = 2  # 2: clip policy (short and tail clips, source rate kept), clips v2 columns
+    # 2: clip policy (short and tail clips, source rate kept), clips v2 columns;
+    # 3: clip ids sanitised to the identifier rule and unique across a run (schemas.ids).
+    version = 3
     config: IngestConfig
 
     def list_units(self, source: str | None) -> list[str]:
-        """Units as ``kind:path`` (or ``synthetic:mode:seed``) strings."""
+        """Units as ``kind:path`` (or ``synthetic:mode:seed``) strings.
+
+        Clip ids come from file or folder names. When two units of this listing would give the
+        same name (``a/x.mp4`` and ``b/x.mp4``, or names equal once sanitised or up to case),
+        each of them becomes ``kind#HASH:path``, HASH a short hash of its path, and its clip ids
+        end in ``-HASH``: clip ids are unique across the run (see :func:`disambiguate_units`).
+        """
+        return disambiguate_units(self._list_units(source))
+
+    def _list_units(self, source: str | None) -> list[str]:
         cfg = self.config
         if cfg.source == "synthetic" or (cfg.source == "auto" and not source):
             return synthetic_source.list_units(cfg)
@@ -149,6 +162,7 @@ class IngestStage(SourceStage):
     def unit_fingerprint(self, unit: str) -> str:
         """Path, size and modification time for files; the spec for synthetic units."""
         kind, _, rest = unit.partition(":")
+        kind = kind.partition("#")[0]
         if kind == "synthetic":
             return unit
         path = Path(rest)
@@ -157,12 +171,18 @@ class IngestStage(SourceStage):
         return f"{unit}|{fingerprint({'files': stats})}"
 
     def process_unit(self, unit: str) -> Iterator[dict[str, Any]]:
-        """Read one unit and yield its clips as rows."""
-        for clip in self._clips(unit):
+        """Read one unit and yield its clips as rows, with valid (sanitised) clip ids."""
+        head, _, rest = unit.partition(":")
+        kind, _, tag = head.partition("#")
+        suffix = f"-{tag}" if tag else ""
+        for clip in self._clips(kind, rest):
+            clip_id = sanitize_id(clip.clip_id, suffix)
+            if clip_id != clip.clip_id:
+                clip = dataclasses.replace(clip, clip_id=clip_id)
             yield row_from_clip(clip, crf=self.config.crf)
 
-    def _clips(self, unit: str) -> Iterator[Clip]:
-        kind, _, rest = unit.partition(":")
+    def _clips(self, kind: str, rest: str) -> Iterator[Clip]:
+        unit = f"{kind}:{rest}"
         cfg = self.config
         if kind == "video":
             yield from video_source.read_video_clips(Path(rest), cfg)
@@ -176,6 +196,35 @@ class IngestStage(SourceStage):
             yield synthetic_source.render_unit(rest, cfg)
         else:
             raise ClipRejected(f"unknown ingest unit {unit!r}")
+
+
+def unit_name(unit: str) -> str:
+    """The name a unit's clip ids start with, sanitised (as the sources build them)."""
+    kind, _, rest = unit.partition(":")
+    path = Path(rest)
+    if kind == "synthetic":
+        return unit
+    if kind == "egodex":  # egodex.read_egodex_clip: <task folder>_<stem>
+        return sanitize_id(f"{path.parent.name}_{path.stem}")
+    if kind == "frames":  # frames_source: the folder's name
+        return sanitize_id(path.name)
+    return sanitize_id(path.stem)  # video files and MCAP recordings: the file's stem
+
+
+def disambiguate_units(units: list[str]) -> list[str]:
+    """Tag units whose clip-id names collide (up to case) with a short hash of their path.
+
+    ``kind:path`` becomes ``kind#HASH:path``; :meth:`IngestStage.process_unit` appends
+    ``-HASH`` to the clip ids of such a unit. Units with a unique name are left as they are.
+    """
+    names = Counter(unit_name(u).lower() for u in units)
+    out = []
+    for unit in units:
+        kind, _, rest = unit.partition(":")
+        if kind != "synthetic" and names[unit_name(unit).lower()] > 1:
+            unit = f"{kind}#{short_hash(rest)}:{rest}"
+        out.append(unit)
+    return out
 
 
 def _egodex_video(video: Path) -> bool:

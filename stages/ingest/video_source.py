@@ -21,6 +21,10 @@ from egosim.pipeline.stage import ClipRejected
 from egosim.stages.ingest.standardise import WindowPolicy, plan_resize, resample_windows
 
 VIDEO_SUFFIXES = frozenset({".mp4", ".mov", ".mkv", ".avi", ".webm", ".m4v"})
+MIN_SOURCE_SIDE = 32  # smallest source width or height accepted, pixels (smaller: rejected)
+# A video decoding to fewer frames than its container declares, by more than this fraction
+# (and more than 2 frames), is truncated: its unit gets a reject naming the counts.
+TRUNCATION_TOLERANCE = 0.02
 
 
 class ClipFormat(Protocol):
@@ -63,14 +67,32 @@ def read_video_clips(path: Path, cfg: ClipFormat) -> Iterator[Clip]:
     """Cut one video file into standardised clips (streaming: one clip in memory at a time).
 
     ``source_num_frames`` is the container's declared frame count (None when it declares none).
+    Frames are turned upright by the file's display rotation. A source smaller than
+    :data:`MIN_SOURCE_SIDE` is rejected; a file that decodes to fewer frames than it declares
+    (truncated) is rejected after the clips its decoded part gave, naming both counts, so the
+    loss shows in the rejects table.
     """
     try:
         info = probe_video_file(path)
     except MediaError as exc:
         raise ClipRejected(str(exc)) from exc
+    if min(info.width, info.height) < MIN_SOURCE_SIDE:
+        raise ClipRejected(
+            f"video file {path} is {info.width}x{info.height}, smaller than the minimum "
+            f"{MIN_SOURCE_SIDE} pixels a side"
+        )
     plan = plan_resize(info.width, info.height, cfg.width, cfg.height)
     intrinsics = plan.intrinsics(source_intrinsics(cfg, info.width, info.height))
-    frames = ((t, plan.apply(f)) for t, f in iter_video_file(path))
+    decoded, exhausted = 0, False  # frames decoded; True once the decoder reached the end
+
+    def counted() -> Iterator[tuple[float, np.ndarray]]:
+        nonlocal decoded, exhausted
+        for t, f in iter_video_file(path):
+            decoded += 1
+            yield t, plan.apply(f)
+        exhausted = True
+
+    frames = counted()
     policy = window_policy(cfg)
     count = 0
     try:
@@ -91,6 +113,13 @@ def read_video_clips(path: Path, cfg: ClipFormat) -> Iterator[Clip]:
             ).check()
     except MediaError as exc:
         raise ClipRejected(f"{exc} (after {count} complete clip(s))") from exc
+    missing = info.num_frames - decoded
+    # Only a file read to its end can show truncation (max_clips_per_source stops early).
+    if exhausted and info.num_frames and missing > max(2, TRUNCATION_TOLERANCE * info.num_frames):
+        raise ClipRejected(
+            f"video file {path} is truncated: decoded {decoded} of the {info.num_frames} frames "
+            f"its container declares (kept the {count} clip(s) of the decoded part)"
+        )
 
 
 def standardise_clip(clip: Clip, cfg: ClipFormat) -> Iterator[Clip]:

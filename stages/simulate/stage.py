@@ -7,7 +7,8 @@ clip. Any other state and action works through :func:`generate` with a
 writes each generated clip as an MP4.
 
 The model is loaded once per stage instance (lazily, on the first clip) from ``checkpoint`` (a
-run directory or a ``.pt`` file); a ``preset`` that differs from the checkpoint's is an error.
+run directory or a ``.safetensors`` checkpoint; a pickle is refused, never loaded); a ``preset``
+that differs from the checkpoint's is an error.
 """
 
 from __future__ import annotations
@@ -34,7 +35,7 @@ if TYPE_CHECKING:  # the model (torch + diffusers) is imported when a clip is ge
 class SimulateConfig(StageConfig):
     """Parameters of ``simulate``."""
 
-    checkpoint: str = ""  # run directory or checkpoint .pt; "" = untrained preset (smoke runs)
+    checkpoint: str = ""  # run dir or .safetensors checkpoint; "" = untrained preset (smoke runs)
     preset: str = ""  # expected preset; "" = the checkpoint's ("tiny" without a checkpoint)
     steps: int = 50  # Euler steps of the flow sampler (EgoSim: 50)
     guidance_scale: float = 1.0  # classifier-free guidance scale (EgoSim: 1.0)
