@@ -136,7 +136,7 @@ def _check_simulation(row: Mapping[str, Any]) -> list[str]:
 
 SIMULATION = ShardSchema(
     name="simulation",
-    version=1,
+    version=2,  # 2: no wall-clock seconds column (shards are byte-reproducible; see the manifest)
     doc="A generated clip per row: the observation model's video for a state and action.",
     columns=(
         Column("clip_id", pa.string(), "Id of the packed sample (state and action) it came from."),
@@ -151,7 +151,6 @@ SIMULATION = ShardSchema(
         Column("sampling_steps", pa.int32(), "Euler steps of the flow sampler."),
         Column("guidance_scale", pa.float64(), "Classifier-free guidance scale."),
         Column("seed", pa.int64(), "Noise seed."),
-        Column("seconds", pa.float64(), "Wall-clock seconds spent generating."),
     ),
     validators=(_check_simulation,),
 )

@@ -113,6 +113,12 @@ def write_cameras(
         "backend": "given",
         **dict.fromkeys(("reprojection_error_px", "num_points3d", "confident_fraction")),
         **dict.fromkeys(("depth_source_frames", "seconds")),
+        "camera_model": "static" if static else "given",
+        "posed_by": [4] * t,
+        "focal_prior_px": None,
+        "metric_scale": 1.0,
+        "scale_source": "source",
+        "scale_spread": 0.0,
     }
     with ShardWriter(path, DEPTH_CAMERA, stage="test") as writer:
         writer.write_row(row)

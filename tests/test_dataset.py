@@ -9,7 +9,7 @@ from typer.testing import CliRunner
 
 from egosim.pipeline.check import check_shard
 from egosim.pipeline.cli import EXIT_STEP_REJECTED_ALL, app
-from egosim.pipeline.clip_io import read_clips
+from egosim.pipeline.clip_io import clip_from_row, read_clips
 from egosim.pipeline.runner import run_workflow
 from egosim.pipeline.shards import ShardReader
 from egosim.pipeline.workflow import load_workflow
@@ -54,7 +54,8 @@ def test_egodex_files_ingest_back_to_the_ground_truth(tmp_path: Path) -> None:
     stage = IngestStage(IngestConfig(height=64, width=112, num_frames=8, fps=8.0))
     (unit,) = stage.list_units(str(tmp_path / "egodex"))
     assert unit.startswith("egodex:")
-    (clip,) = list(stage._clips(unit))
+    (row,) = list(stage.process_unit(unit))
+    clip = clip_from_row(row)
     assert clip.source == "egodex"
     np.testing.assert_allclose(clip.world_from_cam, truth.world_from_cam, atol=1e-5)
     valid = truth.hand_valid

@@ -102,7 +102,14 @@ def test_schema_is_registered_and_validates_static_rows() -> None:
         "confident_fraction": None,
         "depth_source_frames": None,
         "seconds": 1.0,
+        "camera_model": "static",
+        "posed_by": [2, 2],
+        "focal_prior_px": 20.0,
+        "metric_scale": None,
+        "scale_source": "none",
+        "scale_spread": None,
     }
+    assert DEPTH_CAMERA.version == 2
     assert DEPTH_CAMERA.row_problems(row) == []
     bad = dict(row, world_from_cam=[np.eye(4).ravel().tolist(), (2 * np.eye(4)).ravel().tolist()])
     bad["registered"] = [True]
@@ -110,6 +117,24 @@ def test_schema_is_registered_and_validates_static_rows() -> None:
     assert any("registered has 1 entries" in p for p in problems)
     assert any("equal to the first" in p for p in problems)
     assert any("world_from_cam" in p for p in problems)
+    # v2 columns: model names, posed_by codes agreeing with registered, scale figures
+    bad = dict(row, camera_model="slam", posed_by=[3, 7], metric_scale=-1.0, scale_source="x")
+    problems = DEPTH_CAMERA.row_problems(bad)
+    for text in (
+        "camera_model must be one of",
+        "posed_by codes",
+        "registered must be False",
+        "metric_scale must be",
+        "scale_source must be",
+    ):
+        assert any(text in p for p in problems), (text, problems)
+    # a rotation-only clip may have no depth; an sfm one may not
+    rotating = dict(row, static_camera=False, camera_model="rotation")
+    rotating["world_from_cam"] = [np.eye(4).ravel().tolist()] * 2
+    assert DEPTH_CAMERA.row_problems(rotating) == []
+    assert any(
+        "depth0 is null" in p for p in DEPTH_CAMERA.row_problems(dict(rotating, camera_model="sfm"))
+    )
 
 
 def test_config_reports_every_bad_value() -> None:
@@ -139,6 +164,8 @@ def test_given_backend_passes_poses_and_depth_through() -> None:
     np.testing.assert_allclose(depth, clip.static_depth[0], atol=2 * row["depth_unit_m"])
     assert out["backend"] == "given" and not out["static_camera"]
     assert out["confident_fraction"] == 1.0
+    assert out["camera_model"] == "given" and out["posed_by"] == [4] * 5
+    assert (out["metric_scale"], out["scale_source"], out["scale_spread"]) == (1.0, "source", 0.0)
 
 
 def test_auto_backend_uses_given_poses_when_the_clip_has_them() -> None:
@@ -237,6 +264,8 @@ def test_sfm_backend_on_a_small_synthetic_clip(small_wild_clip: Any) -> None:
     out = DepthCameraStage(config).process({"clips": row})
     DEPTH_CAMERA.validate_row(out)
     assert out["backend"] == "sfm" and not out["static_camera"]
+    assert out["camera_model"] == "sfm" and out["scale_source"] == "none"
+    assert out["focal_prior_px"] == pytest.approx(small_wild_clip.intrinsics[0])
     figures = _evaluate(small_wild_clip, out)
     # small frames: looser than the full-size targets checked by the slow test below
     assert figures["registered"] >= 0.95, figures
@@ -297,6 +326,7 @@ def test_static_camera_gets_the_first_pose_everywhere() -> None:
     out = DepthCameraStage().process({"clips": row})
     DEPTH_CAMERA.validate_row(out)
     assert out["static_camera"] and out["depth0"] is None
+    assert out["camera_model"] == "static" and out["posed_by"] == [2] * 12
 
 
 def test_textureless_clip_is_rejected_with_reason() -> None:
@@ -308,7 +338,8 @@ def test_textureless_clip_is_rejected_with_reason() -> None:
 
 
 def test_worker_abort_becomes_a_reject() -> None:
-    frames = _textured_frames(6, 3.0)
+    # Unrelated views: no homography links them, so the rotation model cannot take over.
+    frames = np.stack([_textured_frames(1, 0.0, seed=k)[0] for k in range(6)])
     abort = [sys.executable, "-c", "import os; os.abort()"]
     with pytest.raises(ClipRejected, match=r"clip moving: SfM worker was killed by signal 6"):
         estimate_sfm(

@@ -236,7 +236,6 @@ def _simulation_row(pack: dict, video: bytes, num_frames: int) -> dict:
         "sampling_steps": 1,
         "guidance_scale": 1.0,
         "seed": 0,
-        "seconds": 0.0,
     }
 
 

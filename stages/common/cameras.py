@@ -59,6 +59,19 @@ def resolve_cameras(rows: Mapping[str, Mapping[str, Any]]) -> Cameras:
     return Cameras(intrinsics, None, "none")
 
 
+def depth_is_unknown_by_model(rows: Mapping[str, Mapping[str, Any]]) -> bool:
+    """True when the ``cameras`` row says depth cannot exist: a static or rotation-only camera.
+
+    Such a camera sees no parallax, so any depth gives the same picture from its poses; stages
+    stand frame 0 in on a fronto-parallel plane (DWM's fixed-camera recipe) instead of
+    rejecting the clip.
+    """
+    cams = rows.get("cameras")
+    if cams is None or cams.get("depth0") is not None:
+        return False
+    return bool(cams.get("static_camera")) or cams.get("camera_model") in ("static", "rotation")
+
+
 def first_frame_depth(rows: Mapping[str, Mapping[str, Any]]) -> np.ndarray | None:
     """Frame-0 z-depth ``(H, W)`` float32 (0 = unknown): ``cameras`` depth0, else the clip's.
 

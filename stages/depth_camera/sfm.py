@@ -46,6 +46,9 @@ class SfmOptions:
     num_threads: int = 2  # threads of extraction, matching and mapping
     mask_dilate_px: int = 8  # hand mask growth before excluding features
     timeout_s: float = 600.0  # the worker is killed after this long
+    prior_focal: float = 0.0  # focal prior in pixels (clip intrinsics), tried first; 0 = none
+    plausible_fov_deg: tuple[float, float] = (40.0, 100.0)  # horizontal FOV a model should have
+    try_global: bool = False  # also run pycolmap's global mapper when incremental is not good
 
 
 @dataclass(frozen=True)
@@ -62,6 +65,12 @@ class SfmResult:
     focal_prior: float  # the prior focal (pixels) of the model that was kept
     seconds_features: float  # extraction + matching time in the worker
     seconds_mapping: float  # mapping time in the worker
+    all_points3d: np.ndarray  # (Q, 3) every point of the model (world)
+    all_point_ids: np.ndarray  # (Q,) int64 their ids
+    obs_frame: np.ndarray  # (N,) int64 frame of each observation of a model point
+    obs_uv: np.ndarray  # (N, 2) its pixel in that frame
+    obs_point_id: np.ndarray  # (N,) int64 the observed point's id
+    mapper: str  # which mapper built the model: incremental, global, incremental-fixed-focal
 
 
 def write_inputs(
@@ -85,6 +94,7 @@ def write_inputs(
     opts = dataclasses.asdict(options)
     opts["width"] = int(frames.shape[2])
     opts["focal_factors"] = list(options.focal_factors)
+    opts["plausible_fov_deg"] = list(options.plausible_fov_deg)
     (work / "options.json").write_text(json.dumps(opts))
 
 
@@ -119,7 +129,8 @@ def fill_unregistered(cam_from_world: np.ndarray, registered: np.ndarray) -> np.
     """Give unregistered frames a pose interpolated (SLERP + linear centre) from registered ones.
 
     ``cam_from_world (T, 4, 4)`` with arbitrary values where ``registered (T,)`` is False; frames
-    before the first or after the last registered one copy the nearest registered pose.
+    before the first or after the last registered one copy the nearest registered pose (the
+    caller flags them: ``posed_by`` = interpolated).
     """
     t = len(registered)
     known = np.flatnonzero(registered)
@@ -157,6 +168,12 @@ def read_result(path: Path, num_frames: int, height: int) -> SfmResult:
             focal_prior=float(data["focal_prior"]),
             seconds_features=float(timings[0]),
             seconds_mapping=float(timings[1]),
+            all_points3d=data["all_points3d"],
+            all_point_ids=data["all_point_ids"],
+            obs_frame=data["obs_frame"],
+            obs_uv=data["obs_uv"],
+            obs_point_id=data["obs_point_id"],
+            mapper=str(data["mapper"]),
         )
 
 
@@ -175,3 +192,31 @@ def run_sfm(
         write_inputs(work, frames, hand_mask, options)
         run_worker(work, options.timeout_s, command)
         return read_result(work / "result.npz", len(frames), frames.shape[1])
+
+
+def keyframe_indices(num_frames: int, stride: int) -> np.ndarray:
+    """``(K,)`` frames SfM runs on: every ``stride``-th from frame 0, plus the last frame."""
+    index = np.arange(0, num_frames, max(stride, 1))
+    if index[-1] != num_frames - 1:
+        index = np.append(index, num_frames - 1)
+    return index
+
+
+def spread_to_frames(result: SfmResult, index: np.ndarray, num_frames: int) -> SfmResult:
+    """An SfM result on keyframes ``index (K,)`` as one over all ``num_frames`` frames.
+
+    Frames between keyframes are unregistered (poses interpolated until tracking poses them);
+    observations keep their points and move to the frames' own indices.
+    """
+    registered = np.zeros(num_frames, dtype=bool)
+    registered[index] = result.registered
+    poses = np.tile(np.eye(4), (num_frames, 1, 1))  # (T, 4, 4)
+    poses[index] = result.cam_from_world
+    if registered.any():
+        poses = fill_unregistered(poses, registered)
+    return dataclasses.replace(
+        result,
+        cam_from_world=poses,
+        registered=registered,
+        obs_frame=index[result.obs_frame] if len(result.obs_frame) else result.obs_frame,
+    )

@@ -14,7 +14,18 @@ Result arrays:
 - ``camera_params (3,)`` SIMPLE_PINHOLE ``f, cx, cy`` (single shared camera);
 - ``points3d (P, 3)`` and ``points_frame0_uv (P, 2)``: the model's points seen in frame 0 and
   where frame 0 observes them (empty when frame 0 is not registered);
-- ``reprojection_error_px ()``, ``num_points3d ()``, ``focal_prior ()``, ``timings (3,)``.
+- ``reprojection_error_px ()``, ``num_points3d ()``, ``focal_prior ()``, ``timings (3,)``;
+- ``all_points3d (Q, 3)`` every point of the model and ``all_point_ids (Q,)`` their ids;
+- ``obs_frame (N,)``, ``obs_uv (N, 2)``, ``obs_point_id (N,)``: every observation of a model
+  point by a registered image (frame index, pixel, point id), for PnP tracking of the frames the
+  mapper missed (:mod:`egosim.stages.depth_camera.tracking`);
+- ``mapper ()``: which mapper built the kept model (``incremental`` or ``global``).
+
+Model choice: among the models built (one per focal prior, plus the global mapper's when
+``try_global``), a model whose focal gives a horizontal field of view inside
+``plausible_fov_deg`` beats one outside it; then more registered images; then lower mean
+reprojection error. When no model is plausible and ``prior_focal`` is set, one more model is
+built with the focal fixed at the prior.
 """
 
 # numpy before pycolmap: pycolmap bundles a zlib that breaks later deflate calls if it loads first.
@@ -81,14 +92,14 @@ def _set_focal(db_path: Path, focal: float) -> None:
         db.close()
 
 
-def _map(work: Path, db: Path, opts: dict[str, Any], out: Path) -> Any:
+def _map(work: Path, db: Path, opts: dict[str, Any], out: Path, refine_focal: bool = True) -> Any:
     pipeline = pycolmap.IncrementalPipelineOptions()
     pipeline.num_threads = int(opts["num_threads"])
     pipeline.extract_colors = False
     pipeline.multiple_models = True
     pipeline.min_model_size = 3
     pipeline.ba_refine_principal_point = False
-    pipeline.ba_refine_focal_length = True
+    pipeline.ba_refine_focal_length = refine_focal
     pipeline.max_runtime_seconds = int(opts["max_mapping_seconds"])
     pipeline.random_seed = 0
     pipeline.mapper.init_min_tri_angle = float(opts["init_min_tri_angle"])
@@ -103,13 +114,61 @@ def _map(work: Path, db: Path, opts: dict[str, Any], out: Path) -> Any:
     return max(models.values(), key=lambda r: r.num_reg_images())
 
 
-def _score(rec: Any) -> tuple[int, float]:
-    """Sort key: more registered images first, then lower reprojection error."""
-    return (rec.num_reg_images(), -rec.compute_mean_reprojection_error())
+def _map_global(work: Path, db: Path, opts: dict[str, Any], out: Path) -> Any:
+    """pycolmap's global mapper (GLOMAP) on the same database; None when it builds nothing."""
+    options = pycolmap.GlobalPipelineOptions()
+    options.num_threads = int(opts["num_threads"])
+    options.random_seed = 0
+    options.min_model_size = 3
+    options.mapper.num_threads = int(opts["num_threads"])
+    options.mapper.random_seed = 0
+    options.mapper.bundle_adjustment.refine_principal_point = False
+    options.mapper.global_positioning.use_gpu = False
+    options.mapper.bundle_adjustment.ceres.use_gpu = False
+    if out.exists():
+        shutil.rmtree(out)
+    out.mkdir(parents=True)
+    models = pycolmap.global_mapping(db, work / "images", out, options=options)
+    if not models:
+        return None
+    return max(models.values(), key=lambda r: r.num_reg_images())
 
 
-def _export(rec: Any, out_path: Path, focal_prior: float, timings: list[float]) -> None:
+def _plausible(rec: Any, opts: dict[str, Any]) -> bool:
+    """True when the model's focal gives a horizontal FOV inside ``plausible_fov_deg``."""
+    focal = float(next(iter(rec.cameras.values())).params[0])
+    fov = 2.0 * np.degrees(np.arctan(0.5 * float(opts["width"]) / focal))
+    low, high = opts["plausible_fov_deg"]
+    return bool(low <= fov <= high)
+
+
+def _describe(rec: Any, num_images: int) -> str:
+    """One log line about a model: registered images, focal, reprojection error."""
+    if rec is None:
+        return f"no model (0/{num_images})"
+    focal = float(next(iter(rec.cameras.values())).params[0])
+    return (
+        f"{rec.num_reg_images()}/{num_images} registered, f {focal:.1f}, "
+        f"{rec.compute_mean_reprojection_error():.2f} px"
+    )
+
+
+def _score(rec: Any, opts: dict[str, Any]) -> tuple[bool, int, float]:
+    """Sort key: plausible focal first, then more registered images, then lower error."""
+    return (
+        _plausible(rec, opts),
+        rec.num_reg_images(),
+        -rec.compute_mean_reprojection_error(),
+    )
+
+
+def _export(
+    rec: Any, out_path: Path, focal_prior: float, timings: list[float], mapper: str
+) -> None:
     index, cam_from_world = [], []
+    obs_frame: list[int] = []
+    obs_uv: list[Any] = []
+    obs_point: list[int] = []
     frame0 = None
     for image_id in rec.reg_image_ids():
         image = rec.image(image_id)
@@ -118,6 +177,13 @@ def _export(rec: Any, out_path: Path, focal_prior: float, timings: list[float]) 
         cam_from_world.append(np.vstack([image.cam_from_world().matrix(), [0, 0, 0, 1]]))
         if k == 0:
             frame0 = image
+        for p2d in image.points2D:
+            if p2d.has_point3D():
+                obs_frame.append(k)
+                obs_uv.append(p2d.xy)
+                obs_point.append(int(p2d.point3D_id))
+    point_ids = np.asarray(sorted(rec.point3D_ids()), dtype=np.int64)
+    all_xyz = np.asarray([rec.point3D(int(i)).xyz for i in point_ids], dtype=np.float64)
     cameras = list(rec.cameras.values())
     points, uvs = [], []
     if frame0 is not None:
@@ -136,6 +202,12 @@ def _export(rec: Any, out_path: Path, focal_prior: float, timings: list[float]) 
         num_points3d=np.int64(rec.num_points3D()),
         focal_prior=np.float64(focal_prior),
         timings=np.asarray(timings, dtype=np.float64),
+        all_points3d=all_xyz.reshape(-1, 3),
+        all_point_ids=point_ids,
+        obs_frame=np.asarray(obs_frame, dtype=np.int64),
+        obs_uv=np.asarray(obs_uv, dtype=np.float64).reshape(-1, 2),
+        obs_point_id=np.asarray(obs_point, dtype=np.int64),
+        mapper=np.asarray(mapper),
     )
 
 
@@ -152,27 +224,63 @@ def main(argv: list[str]) -> int:
     _extract_and_match(work, opts, opts["focal_factors"][0], db)
     t1 = time.perf_counter()
     sys.stderr.write(f"sfm_worker: features and matches in {t1 - t0:.1f} s\n")
-    best, best_prior = None, 0.0
-    for factor in opts["focal_factors"]:
-        _set_focal(db, factor * width)
-        rec = _map(work, db, opts, work / f"sparse_{factor:g}")
-        sys.stderr.write(
-            f"sfm_worker: focal factor {factor:g}: "
-            f"{0 if rec is None else rec.num_reg_images()}/{num_images} registered\n"
-        )
-        if rec is not None and (best is None or _score(rec) > _score(best)):
-            best, best_prior = rec, factor * width
-        if (
+    best, best_prior, best_mapper = None, 0.0, "incremental"
+    priors = [factor * width for factor in opts["focal_factors"]]
+    if opts.get("prior_focal"):
+        priors = [float(opts["prior_focal"]), *priors]
+
+    def consider(rec: Any, prior: float, mapper: str) -> None:
+        nonlocal best, best_prior, best_mapper
+        if rec is not None and (best is None or _score(rec, opts) > _score(best, opts)):
+            best, best_prior, best_mapper = rec, prior, mapper
+
+    def good_enough() -> bool:
+        return (
             best is not None
+            and _plausible(best, opts)
             and best.num_reg_images() >= opts["good_enough_fraction"] * num_images
             and best.compute_mean_reprojection_error() <= opts["good_max_reprojection_px"]
-        ):
+        )
+
+    fixed_done = False
+
+    def map_fixed() -> None:
+        """The model with the focal fixed at the clip's prior (self-calibration implausible)."""
+        nonlocal fixed_done
+        fixed_done = True
+        _set_focal(db, float(opts["prior_focal"]))
+        rec = _map(work, db, opts, work / "sparse_fixed", refine_focal=False)
+        sys.stderr.write(f"sfm_worker: fixed prior focal: {_describe(rec, num_images)}\n")
+        consider(rec, float(opts["prior_focal"]), "incremental-fixed-focal")
+
+    for prior in priors:
+        _set_focal(db, prior)
+        rec = _map(work, db, opts, work / f"sparse_{prior:.0f}")
+        sys.stderr.write(f"sfm_worker: focal prior {prior:.1f}: {_describe(rec, num_images)}\n")
+        consider(rec, prior, "incremental")
+        if good_enough():
             break  # a wrong focal can register every frame too, but with a larger error
+        drifted = rec is not None and not _plausible(rec, opts)  # focal left the range
+        if opts.get("prior_focal") and not fixed_done and drifted:
+            map_fixed()
+            if good_enough():
+                break
+    if opts.get("try_global") and not good_enough():
+        _set_focal(db, priors[0])
+        t_global = time.perf_counter()
+        rec = _map_global(work, db, opts, work / "sparse_global")
+        sys.stderr.write(
+            f"sfm_worker: global mapper: {_describe(rec, num_images)} in "
+            f"{time.perf_counter() - t_global:.1f} s\n"
+        )
+        consider(rec, priors[0], "global")
+    if opts.get("prior_focal") and not fixed_done and (best is None or not _plausible(best, opts)):
+        map_fixed()
     t2 = time.perf_counter()
     if best is None:
         sys.stderr.write("SfM built no model (too little texture, overlap or parallax)\n")
         return EXIT_NO_MODEL
-    _export(best, work / "result.npz", best_prior, [t1 - t0, t2 - t1, 0.0])
+    _export(best, work / "result.npz", best_prior, [t1 - t0, t2 - t1, 0.0], best_mapper)
     return 0
 
 

@@ -2,16 +2,39 @@
 
 Backends (``backend`` parameter):
 
-- ``sfm`` (default): a texture and motion pre-check (:mod:`.static_camera`), then pycolmap
-  incremental SfM on the clip's frames with hand pixels excluded from features (run in a
-  subprocess, :mod:`.sfm`), then a plane sweep (:mod:`.plane_sweep`) for frame 0's depth against
-  neighbouring frames chosen by parallax, in the SfM model's frame and scale.
+- ``sfm`` (default): a texture and background-motion pre-check (:mod:`.static_camera`), then
+  pycolmap SfM on the clip's frames with hand pixels excluded from features (run in a
+  subprocess, :mod:`.sfm`): incremental mapping from the clip's focal prior first (then
+  ``sfm_focal_factors`` x width; the focal fixed at the prior when self-calibration leaves
+  ``sfm_plausible_fov_deg``), and pycolmap's global mapper when no incremental model registers
+  ``sfm_good_enough_fraction`` of the frames (``sfm_try_global``). The kept model: plausible
+  focal first, then more registered frames, then lower mean reprojection error. Then PnP on
+  the model's points tracked by KLT into the frames the mapper missed (:mod:`.tracking`), then
+  a plane sweep (:mod:`.plane_sweep`) for frame 0's depth against neighbouring frames chosen
+  by parallax, in the SfM model's frame and scale. Where SfM poses too few frames (or not
+  frame 0), a rotation-only model (:mod:`.rotation_model`) is tried.
 - ``given``: the source's own poses and intrinsics; depth from the source or by plane sweep.
 - ``da3``: Depth Anything 3 from local weights (:mod:`.da3`).
 
-A static camera (no feature motion) gets every pose equal to the first, ``static_camera`` true
-and no depth (DWM section 3.3: ``scene_render`` repeats the inpainted first frame). A textureless
-clip, a failed or aborted SfM run, or too few registered frames are rejects that name the reason.
+Model choice (``camera_model``), in order:
+
+1. ``static``: the background (the dominant homography-consistent set of corners tracked from
+   frame 0) moves less than ``static_motion_px`` (median) in every checked frame. Every pose
+   equals the first, ``static_camera`` true, no depth (DWM section 3.3: ``scene_render`` repeats
+   the inpainted first frame).
+2. ``sfm``: SfM + PnP tracking poses frame 0 and at least ``min_registered_fraction`` of the
+   frames, and frame 0 gets depth.
+3. ``rotation``: otherwise, when a pure rotation explains the frame-to-frame motion: per pair the
+   RANSAC homography's inliers are at least ``rotation_min_h_inlier_ratio`` of the fundamental
+   matrix's inliers and its median transfer residual on them is at most
+   ``rotation_max_residual_px`` (parallax would leave more), for enough pairs that at least
+   ``min_registered_fraction`` of the frames are posed. Poses are pure rotations (zero
+   translation), depth is unknown (null); ``scene_cloud`` puts frame 0 on a plane.
+
+Frames no model could pose are interpolated (SE(3)) and flagged (``posed_by`` 3,
+``registered`` False); a clip with more than ``1 - min_registered_fraction`` of its frames
+flagged is rejected. A textureless clip, or one neither SfM nor the rotation model explains, is a
+reject that names the figures.
 """
 
 from __future__ import annotations
@@ -29,15 +52,36 @@ from egosim.pipeline.geometry import invert_se3
 from egosim.pipeline.stage import ClipRejected, ClipStage, ConfigError, StageConfig
 from egosim.schemas.base import ShardSchema
 from egosim.schemas.clips import CLIPS
-from egosim.schemas.depth_camera import BACKENDS, DEPTH_CAMERA
+from egosim.schemas.depth_camera import (
+    BACKENDS,
+    DEPTH_CAMERA,
+    POSED_BY_INTERPOLATION,
+    POSED_BY_MAPPER,
+    POSED_BY_MOTION_MODEL,
+    POSED_BY_SOURCE,
+)
 from egosim.stages.depth_camera import da3, given
 from egosim.stages.depth_camera.plane_sweep import (
     PlaneSweepParams,
     first_frame_depth,
     select_sources,
 )
-from egosim.stages.depth_camera.sfm import SfmError, SfmOptions, run_sfm
+from egosim.stages.depth_camera.rotation_model import (
+    RotationEstimate,
+    RotationParams,
+    estimate_rotations,
+)
+from egosim.stages.depth_camera.sfm import (
+    SfmError,
+    SfmOptions,
+    SfmResult,
+    fill_unregistered,
+    keyframe_indices,
+    run_sfm,
+    spread_to_frames,
+)
 from egosim.stages.depth_camera.static_camera import check_motion
+from egosim.stages.depth_camera.tracking import NOT_POSED, TrackingParams, register_missing_frames
 
 Backend = Literal["sfm", "given", "da3", "auto"]
 
@@ -51,16 +95,26 @@ class DepthCameraConfig(StageConfig):
     )
     hand_dilate_px: int = 8  # hand mask grows by this many pixels before excluding features
     min_corners: int = 50  # fewer Shi-Tomasi corners in frame 0 than this = textureless reject
-    static_motion_px: float = 1.0  # median corner motion never above this = static camera
+    static_motion_px: float = 1.0  # background's median motion never above this = static camera
     sfm_max_image_size: int = 640  # SIFT runs on frames downscaled to this longest side
     sfm_max_features: int = 1024  # SIFT features per frame
     sfm_overlap: int = 6  # sequential matching: neighbours per frame (plus 2^k jumps)
-    sfm_focal_factors: tuple[float, ...] = (0.7, 1.0, 0.5)  # focal priors x width, tried in order
+    sfm_focal_factors: tuple[float, ...] = (0.5,)  # focal priors x width, after the clip's focal
     sfm_init_min_tri_angle: float = 4.0  # degrees; COLMAP's 16 fails on small head motion
     sfm_max_mapping_seconds: int = 60  # mapping time cap per focal prior
     sfm_timeout_s: float = 600.0  # the SfM subprocess is killed after this many seconds
     sfm_threads: int = 1  # threads of the SfM subprocess; 1 is reproducible (more was not)
-    min_registered_fraction: float = 0.8  # fewer registered frames than this = reject
+    sfm_keyframe_stride: int = 1  # SfM on every k-th frame (and the last); PnP tracking the rest
+    sfm_good_enough_fraction: float = 0.95  # stop trying focal priors once this many keyframes ...
+    sfm_good_max_reprojection_px: float = 1.0  # ... register with at most this error (plausible f)
+    sfm_plausible_fov_deg: tuple[float, ...] = (40.0, 110.0)  # horizontal FOV of a believable model
+    sfm_try_global: bool = True  # also try pycolmap's global mapper when incremental is not good
+    min_registered_fraction: float = 0.8  # fewer frames posed by estimation than this = reject
+    track_ransac_px: float = 3.0  # PnP tracking: RANSAC inlier threshold, pixels
+    track_min_inliers: int = 20  # PnP tracking: fewer inliers = the frame stays unposed
+    rotation_max_residual_px: float = 1.0  # rotation model: median H residual on F inliers
+    rotation_min_h_inlier_ratio: float = 0.6  # rotation model: H inliers / F inliers at least
+    rotation_self_calibrate: bool = True  # rotation model: refine the focal from homographies
     depth_scale: float = 0.5  # plane sweep resolution as a fraction of the frame size
     depth_planes: int = 64  # inverse-depth planes of the sweep
     depth_sources: int = 8  # source frames matched against frame 0
@@ -87,6 +141,8 @@ class DepthCameraConfig(StageConfig):
             "sfm_overlap",
             "sfm_max_mapping_seconds",
             "sfm_threads",
+            "sfm_keyframe_stride",
+            "track_min_inliers",
             "depth_sources",
             "depth_top_k",
             "depth_min_support",
@@ -106,7 +162,25 @@ class DepthCameraConfig(StageConfig):
             not (np.isfinite(f) and 0.1 <= f <= 10.0) for f in self.sfm_focal_factors
         ):
             problems.append(f"sfm_focal_factors must be in [0.1, 10], got {self.sfm_focal_factors}")
-        for name in ("static_motion_px", "sfm_init_min_tri_angle", "sfm_timeout_s"):
+        fov = self.sfm_plausible_fov_deg
+        if len(fov) != 2 or not (0 < fov[0] < fov[1] < 180):
+            problems.append(f"sfm_plausible_fov_deg must be (low, high) in (0, 180), got {fov}")
+        if not 0.0 < self.sfm_good_enough_fraction <= 1.0:
+            problems.append(
+                f"sfm_good_enough_fraction must be in (0, 1], got {self.sfm_good_enough_fraction}"
+            )
+        if not 0.0 < self.rotation_min_h_inlier_ratio <= 1.0:
+            problems.append(
+                "rotation_min_h_inlier_ratio must be in (0, 1], got "
+                f"{self.rotation_min_h_inlier_ratio}"
+            )
+        for name in (
+            "static_motion_px",
+            "sfm_init_min_tri_angle",
+            "sfm_timeout_s",
+            "track_ransac_px",
+            "rotation_max_residual_px",
+        ):
             value = getattr(self, name)
             if not (np.isfinite(value) and value > 0):
                 problems.append(f"{name} must be > 0, got {value}")
@@ -144,9 +218,25 @@ class DepthCameraConfig(StageConfig):
             device=self.device,
         )
 
-    def sfm_options(self) -> SfmOptions:
-        """The SfM worker settings of this config."""
+    def tracking_params(self) -> TrackingParams:
+        """The PnP tracking knobs of this config."""
+        return TrackingParams(ransac_px=self.track_ransac_px, min_inliers=self.track_min_inliers)
+
+    def rotation_params(self) -> RotationParams:
+        """The rotation-model knobs of this config."""
+        return RotationParams(
+            max_h_residual_px=self.rotation_max_residual_px,
+            min_h_inlier_ratio=self.rotation_min_h_inlier_ratio,
+        )
+
+    def sfm_options(self, prior_focal: float = 0.0) -> SfmOptions:
+        """The SfM worker settings of this config; ``prior_focal`` pixels is tried first."""
         return SfmOptions(
+            prior_focal=prior_focal,
+            plausible_fov_deg=(self.sfm_plausible_fov_deg[0], self.sfm_plausible_fov_deg[1]),
+            try_global=self.sfm_try_global,
+            good_enough_fraction=self.sfm_good_enough_fraction,
+            good_max_reprojection_px=self.sfm_good_max_reprojection_px,
             max_image_size=self.sfm_max_image_size,
             max_num_features=self.sfm_max_features,
             sequential_overlap=self.sfm_overlap,
@@ -165,7 +255,7 @@ class CameraEstimate:
 
     intrinsics: np.ndarray  # (4,) fx, fy, cx, cy
     world_from_cam: np.ndarray  # (T, 4, 4)
-    registered: np.ndarray  # (T,) bool
+    registered: np.ndarray  # (T,) bool, posed by estimation (not interpolated)
     static: bool  # static camera: every pose equals the first, no depth
     depth0: np.ndarray | None  # (H, W) float32 in the poses' scale
     confidence0: np.ndarray | None  # (H, W) float32 in [0, 1]
@@ -173,6 +263,38 @@ class CameraEstimate:
     reprojection_error_px: float | None = None  # SfM only
     num_points3d: int | None = None  # SfM only
     sources: tuple[int, ...] = ()  # plane-sweep source frames
+    camera_model: str = "sfm"  # sfm, rotation, static, given or da3
+    posed_by: np.ndarray | None = None  # (T,) int8 schema codes; None: 0 / 3 from registered
+    focal_prior_px: float | None = None  # focal prior the estimate was checked against
+    metric_scale: float | None = None  # metres per unit, already applied; None = unknown
+    scale_source: str | None = None  # source, hand_size or none
+    scale_spread: float | None = None  # relative spread of the scale estimate
+
+    def posed_by_codes(self) -> np.ndarray:
+        """``(T,)`` int8 ``posed_by`` (mapper where registered, interpolated elsewhere if unset)."""
+        if self.posed_by is not None:
+            return np.asarray(self.posed_by, dtype=np.int8)
+        reg = np.asarray(self.registered, dtype=bool)
+        return np.where(reg, POSED_BY_MAPPER, POSED_BY_INTERPOLATION).astype(np.int8)
+
+    def with_scale(self, scale: float, source: str, spread: float | None) -> CameraEstimate:
+        """A copy in metres: translations and depth0 multiplied by ``scale`` (metres per unit).
+
+        For an estimate whose scale is not applied yet; records ``scale``, ``source``, ``spread``.
+        """
+        if not (np.isfinite(scale) and scale > 0):
+            raise ValueError(f"scale must be finite and > 0, got {scale}")
+        poses = np.array(self.world_from_cam, dtype=np.float64)  # (T, 4, 4)
+        poses[:, :3, 3] *= scale
+        depth0 = None if self.depth0 is None else (self.depth0 * scale).astype(np.float32)
+        return dataclasses.replace(
+            self,
+            world_from_cam=poses,
+            depth0=depth0,
+            metric_scale=float(scale),
+            scale_source=source,
+            scale_spread=spread,
+        )
 
 
 def usable_pixels(hand_mask: np.ndarray | None, dilate_px: int) -> np.ndarray | None:
@@ -186,8 +308,11 @@ def usable_pixels(hand_mask: np.ndarray | None, dilate_px: int) -> np.ndarray | 
     return np.stack([cv2.dilate(m.astype(np.uint8), kernel) == 0 for m in hand_mask])
 
 
-def static_estimate(intrinsics: np.ndarray, num_frames: int, backend: str) -> CameraEstimate:
+def static_estimate(
+    intrinsics: np.ndarray, num_frames: int, backend: str, focal_prior_px: float | None = None
+) -> CameraEstimate:
     """A static camera: identity poses (every pose = the first), no depth."""
+    metric = backend == "given"  # a static source camera keeps the source's (metric) frame
     return CameraEstimate(
         intrinsics=np.asarray(intrinsics, dtype=np.float64),
         world_from_cam=np.tile(np.eye(4), (num_frames, 1, 1)),
@@ -196,6 +321,136 @@ def static_estimate(intrinsics: np.ndarray, num_frames: int, backend: str) -> Ca
         depth0=None,
         confidence0=None,
         backend=backend,
+        camera_model="static",
+        posed_by=np.full(num_frames, POSED_BY_SOURCE if metric else POSED_BY_MOTION_MODEL, np.int8),
+        focal_prior_px=focal_prior_px,
+        metric_scale=1.0 if metric else None,
+        scale_source="source" if metric else "none",
+        scale_spread=0.0 if metric else None,
+    )
+
+
+def _plausible_focal(focal: float, width: int, fov_range: tuple[float, ...]) -> bool:
+    """True when ``focal`` (pixels) gives a horizontal FOV inside ``fov_range`` degrees."""
+    fov = 2.0 * np.degrees(np.arctan(0.5 * width / focal))
+    return bool(fov_range[0] <= fov <= fov_range[1])
+
+
+def sfm_camera(
+    frames: np.ndarray,
+    usable: np.ndarray | None,
+    sfm: SfmResult,
+    config: DepthCameraConfig,
+    focal_prior_px: float,
+) -> tuple[CameraEstimate | None, str]:
+    """SfM + PnP tracking + frame-0 depth, or ``(None, why not)`` when the model falls short."""
+    t, h, w = frames.shape[:3]
+    reg = np.asarray(sfm.registered, dtype=bool)
+    posed_by = np.where(reg, POSED_BY_MAPPER, NOT_POSED).astype(np.int8)
+    cam_from_world = sfm.cam_from_world
+    points0 = sfm.points3d  # (P, 3) model points seen in frame 0
+    if not reg.all() and len(sfm.all_points3d):
+        tracked = register_missing_frames(
+            frames,
+            usable,
+            sfm.intrinsics,
+            sfm.cam_from_world,
+            reg,
+            sfm.all_points3d,
+            sfm.all_point_ids,
+            sfm.obs_frame,
+            sfm.obs_uv,
+            sfm.obs_point_id,
+            config.tracking_params(),
+        )
+        posed_by, cam_from_world = tracked.posed_by.copy(), tracked.cam_from_world
+        if not reg[0] and 0 in tracked.frame_points:
+            points0 = tracked.frame_points[0]
+    posed = posed_by != NOT_POSED
+    frac = float(posed.mean())
+    what = (
+        f"SfM ({sfm.mapper} mapper, f {sfm.intrinsics[0]:.0f} px) posed {int(posed.sum())}/{t} "
+        f"frames ({int(reg.sum())} mapper, {int(posed.sum() - reg.sum())} PnP)"
+    )
+    if frac < config.min_registered_fraction:
+        return None, f"{what}: {frac:.0%}, need {config.min_registered_fraction:.0%}"
+    if not posed[0]:
+        return None, f"{what}, not frame 0, so it has no depth"
+    if len(points0) < 20:
+        return None, f"{what}; only {len(points0)} model points seen in frame 0, need 20"
+    cam_from_world = fill_unregistered(cam_from_world, posed)  # (T, 4, 4)
+    posed_by[~posed] = POSED_BY_INTERPOLATION
+    pts_cam0 = points0 @ cam_from_world[0, :3, :3].T + cam_from_world[0, :3, 3]
+    z = pts_cam0[:, 2][pts_cam0[:, 2] > 0]  # (P,)
+    if len(z) < 20:
+        return None, f"{what}; only {len(z)} model points in front of frame 0, need 20"
+    near = float(np.percentile(z, 1)) * (1.0 - config.depth_margin)
+    far = float(np.percentile(z, 99)) * (1.0 + config.depth_margin)
+    sources = select_sources(
+        cam_from_world,
+        posed,
+        points0,
+        sfm.intrinsics,
+        (h, w),
+        config.depth_sources,
+        target_angle_deg=config.depth_target_angle_deg,
+        usable=usable,
+    )
+    if len(sources) < 2:
+        return None, (
+            f"{what}; only {len(sources)} posed frames overlap frame 0 with parallax: need 2 "
+            "for depth"
+        )
+    depth0, conf0 = first_frame_depth(
+        frames,
+        usable,
+        sfm.intrinsics,
+        cam_from_world,
+        sources,
+        (near, far),
+        config.depth_scale,
+        config.sweep_params(),
+        edge_rel=config.depth_edge_rel,
+    )
+    return CameraEstimate(
+        intrinsics=sfm.intrinsics,
+        world_from_cam=invert_se3(cam_from_world),
+        registered=posed,
+        static=False,
+        depth0=depth0,
+        confidence0=conf0,
+        backend="sfm",
+        reprojection_error_px=sfm.reprojection_error_px,
+        num_points3d=sfm.num_points3d,
+        sources=tuple(sources),
+        camera_model="sfm",
+        posed_by=posed_by,
+        focal_prior_px=focal_prior_px,
+        scale_source="none",
+    ), what
+
+
+def rotation_camera(rot: RotationEstimate, focal_prior_px: float) -> CameraEstimate:
+    """A rotation-only estimate: pure rotations about frame 0's centre, no depth."""
+    posed = rot.posed
+    cam_from_world = np.tile(np.eye(4), (len(posed), 1, 1))  # (T, 4, 4), world = camera 0
+    cam_from_world[:, :3, :3] = rot.cam_from_cam0
+    cam_from_world = fill_unregistered(cam_from_world, posed)
+    posed_by = np.where(posed, POSED_BY_MOTION_MODEL, POSED_BY_INTERPOLATION).astype(np.int8)
+    world_from_cam = invert_se3(cam_from_world)
+    world_from_cam[:, :3, 3] = 0.0  # interpolation between zero centres keeps zero: make it exact
+    return CameraEstimate(
+        intrinsics=rot.intrinsics,
+        world_from_cam=world_from_cam,
+        registered=posed,
+        static=False,
+        depth0=None,
+        confidence0=None,
+        backend="sfm",
+        camera_model="rotation",
+        posed_by=posed_by,
+        focal_prior_px=focal_prior_px,
+        scale_source="none",
     )
 
 
@@ -209,9 +464,12 @@ def estimate_sfm(
 ) -> CameraEstimate:
     """The ``sfm`` backend on decoded ``frames (T, H, W, 3)``; raises :class:`ClipRejected`.
 
-    ``intrinsics`` (the source's) are only used for a static camera, where SfM cannot run.
+    ``intrinsics`` (the clip's, from metadata or a field-of-view guess) are the focal prior and
+    the camera of a static or rotation-only clip. See the module docstring for the model choice.
     """
-    t, h, w = frames.shape[:3]
+    t, w = frames.shape[0], frames.shape[2]
+    intrinsics = np.asarray(intrinsics, dtype=np.float64)
+    prior = float(intrinsics[0])
     check = check_motion(frames, hand_mask, config.min_corners, config.static_motion_px)
     if check.textureless:
         raise ClipRejected(
@@ -219,65 +477,38 @@ def estimate_sfm(
             f"in frame 0, need {config.min_corners} for SfM"
         )
     if check.static:
-        return static_estimate(intrinsics, t, "sfm")
-    try:
-        sfm = run_sfm(frames, hand_mask, config.sfm_options(), worker_command)
-    except SfmError as exc:
-        raise ClipRejected(f"clip {clip_id}: {exc}") from exc
-    frac = float(sfm.registered.mean())
-    if frac < config.min_registered_fraction:
-        raise ClipRejected(
-            f"clip {clip_id}: SfM registered {int(sfm.registered.sum())}/{t} frames "
-            f"({frac:.0%}), need {config.min_registered_fraction:.0%}"
-        )
-    if not sfm.registered[0]:
-        raise ClipRejected(f"clip {clip_id}: SfM did not register frame 0, so it has no depth")
-    if len(sfm.points3d) < 20:
-        raise ClipRejected(
-            f"clip {clip_id}: only {len(sfm.points3d)} SfM points seen in frame 0, need 20"
-        )
-    pts_cam0 = sfm.points3d @ sfm.cam_from_world[0, :3, :3].T + sfm.cam_from_world[0, :3, 3]
-    z = pts_cam0[:, 2][pts_cam0[:, 2] > 0]  # (P,)
-    near = float(np.percentile(z, 1)) * (1.0 - config.depth_margin)
-    far = float(np.percentile(z, 99)) * (1.0 + config.depth_margin)
+        return static_estimate(intrinsics, t, "sfm", prior)
     usable = usable_pixels(hand_mask, config.hand_dilate_px)
-    sources = select_sources(
-        sfm.cam_from_world,
-        sfm.registered,
-        sfm.points3d,
-        sfm.intrinsics,
-        (h, w),
-        config.depth_sources,
-        target_angle_deg=config.depth_target_angle_deg,
-        usable=usable,
-    )
-    if len(sources) < 2:
-        raise ClipRejected(
-            f"clip {clip_id}: only {len(sources)} registered frames overlap frame 0 with "
-            "parallax: need 2 for depth"
+    rot_intrinsics = intrinsics
+    key = keyframe_indices(t, config.sfm_keyframe_stride)  # (K,)
+    try:
+        sfm = run_sfm(
+            frames[key],
+            None if hand_mask is None else hand_mask[key],
+            config.sfm_options(prior),
+            worker_command,
         )
-    depth0, conf0 = first_frame_depth(
-        frames,
-        usable,
-        sfm.intrinsics,
-        sfm.cam_from_world,
-        sources,
-        (near, far),
-        config.depth_scale,
-        config.sweep_params(),
-        edge_rel=config.depth_edge_rel,
+        sfm = spread_to_frames(sfm, key, t)
+    except SfmError as exc:
+        sfm_why = str(exc)
+    else:
+        est, sfm_why = sfm_camera(frames, usable, sfm, config, prior)
+        if est is not None:
+            return est
+        if _plausible_focal(float(sfm.intrinsics[0]), w, config.sfm_plausible_fov_deg):
+            rot_intrinsics = sfm.intrinsics
+    rot = estimate_rotations(
+        frames, usable, rot_intrinsics, config.rotation_params(), config.rotation_self_calibrate
     )
-    return CameraEstimate(
-        intrinsics=sfm.intrinsics,
-        world_from_cam=invert_se3(sfm.cam_from_world),
-        registered=sfm.registered,
-        static=False,
-        depth0=depth0,
-        confidence0=conf0,
-        backend="sfm",
-        reprojection_error_px=sfm.reprojection_error_px,
-        num_points3d=sfm.num_points3d,
-        sources=tuple(sources),
+    frac = float(rot.posed.mean())
+    if frac >= config.min_registered_fraction:
+        return rotation_camera(rot, prior)
+    residuals = [p.h_residual_px for p in rot.pairs if np.isfinite(p.h_residual_px)]
+    raise ClipRejected(
+        f"clip {clip_id}: {sfm_why}; rotation-only model: a homography explains "
+        f"{rot.explained_fraction:.0%} of frame pairs (median residual "
+        f"{np.median(residuals) if residuals else float('nan'):.2f} px), posing "
+        f"{int(rot.posed.sum())}/{t} frames, need {config.min_registered_fraction:.0%}"
     )
 
 
@@ -324,6 +555,11 @@ def estimate_given(
         confidence0=res.confidence0,
         backend="given",
         sources=tuple(res.sources),
+        camera_model="given",
+        posed_by=np.full(t, POSED_BY_SOURCE, np.int8),
+        metric_scale=1.0,
+        scale_source="source",
+        scale_spread=0.0,
     )
 
 
@@ -341,6 +577,9 @@ def estimate_da3(clip_id: str, frames: np.ndarray, config: DepthCameraConfig) ->
         depth0=res.depth0,
         confidence0=res.confidence0,
         backend="da3",
+        camera_model="da3",
+        posed_by=np.full(len(frames), POSED_BY_SOURCE, np.int8),
+        scale_source="none",
     )
 
 
@@ -375,6 +614,12 @@ def row_from_estimate(
         "confident_fraction": frac,
         "depth_source_frames": list(est.sources) if est.sources else None,
         "seconds": seconds,
+        "camera_model": est.camera_model,
+        "posed_by": est.posed_by_codes().tolist(),
+        "focal_prior_px": est.focal_prior_px,
+        "metric_scale": est.metric_scale,
+        "scale_source": est.scale_source,
+        "scale_spread": est.scale_spread,
     }
 
 
@@ -383,7 +628,9 @@ class DepthCameraStage(ClipStage):
 
     name = "depth_camera"
     description = "intrinsics, poses and first-frame depth: pycolmap SfM + plane sweep, or given"
-    version = 3  # 3: one SfM thread (reproducible); 2: visibility-aware depth confidence
+    # 4: schema v2, background-motion static test, PnP tracking, rotation model, focal prior
+    # 3: one SfM thread (reproducible); 2: visibility-aware depth confidence
+    version = 4
     config_class = DepthCameraConfig
     inputs: ClassVar[Mapping[str, ShardSchema]] = {"clips": CLIPS}
     output = DEPTH_CAMERA

@@ -1,10 +1,14 @@
 """Pre-flight checks before SfM: is there texture, and did the camera move at all?
 
-Corners (Shi-Tomasi) outside the hand mask of the first frame are tracked by pyramidal
-Lucas-Kanade into later frames. Too few corners means a textureless scene (SfM would fail or
-abort); a median corner displacement that never exceeds ``static_motion_px`` means a static camera
-(SfM cannot triangulate without parallax: DWM section 3.3's fixed-camera recipe applies instead).
-Moving hands and objects are a minority of corners, so the median ignores them.
+Corners (Shi-Tomasi, spread over a grid so a plain wall or table still gets its share) outside
+the hand mask of the first frame are tracked by pyramidal Lucas-Kanade into every ``stride``-th
+frame (forward-backward checked). The background is the dominant consistent set: the inliers of
+a RANSAC homography from frame 0 to frame k. Hands and moved objects are outliers to it as long
+as they cover less of the tracked corners than the background. The camera is static when, in
+every checked frame, the dominant set's median displacement stays below ``static_motion_px``
+(and their 95th percentile below ``3 x static_motion_px``: no roll or zoom about the centre
+hiding under the median). Too few
+corners means a textureless scene (SfM would fail or abort).
 """
 
 from __future__ import annotations
@@ -14,19 +18,36 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from egosim.stages.depth_camera.rotation_model import RotationParams, detect_corners
+from egosim.stages.depth_camera.tracking import TrackingParams, grey_frames, track_points
+
+TAIL_MOTION_FACTOR = 3.0  # the background's 95th percentile displacement may be this x the median's
+
 
 @dataclass(frozen=True)
 class MotionCheck:
     """What the pre-flight check found on one clip."""
 
     num_corners: int  # corners found outside the hand mask of frame 0
-    max_median_motion_px: float  # largest over frames of the median corner displacement
+    max_median_motion_px: float  # largest over frames of the background's median displacement
+    max_tail_motion_px: float  # largest over frames of the background's 95th pct displacement
+    min_background_fraction: float  # smallest over frames of the dominant set's share of tracks
     textureless: bool  # fewer corners than required
     static: bool  # the camera did not move (and the scene has texture)
 
 
-def _grey(frame: np.ndarray) -> np.ndarray:
-    return cv2.cvtColor(np.ascontiguousarray(frame), cv2.COLOR_RGB2GRAY)
+def background_motion(a: np.ndarray, b: np.ndarray, ransac_px: float) -> tuple[float, float, float]:
+    """Motion of the dominant consistent set between matched pixels ``a, b (N, 2)``.
+
+    Returns ``(median and 95th percentile displacement of the homography inliers, inlier
+    fraction)``.
+    """
+    h_mat, inl = cv2.findHomography(a, b, cv2.RANSAC, ransac_px, maxIters=2000, confidence=0.999)
+    if h_mat is None:
+        return float("inf"), float("inf"), 0.0
+    inl = inl[:, 0].astype(bool)
+    shift = np.linalg.norm(b[inl] - a[inl], axis=1)  # (I,)
+    return float(np.median(shift)), float(np.percentile(shift, 95)), float(inl.mean())
 
 
 def check_motion(
@@ -36,31 +57,34 @@ def check_motion(
     static_motion_px: float = 1.0,
     stride: int = 5,
 ) -> MotionCheck:
-    """Find corners in ``frames[0]`` and track them into every ``stride``-th frame.
+    """Find corners in ``frames[0]`` and measure the background's motion into later frames.
 
     ``frames (T, H, W, 3)`` uint8 RGB; ``hand_mask (T, H, W)`` 1 = hand, or None. Displacements
     are in pixels of the given frames.
     """
-    first = _grey(frames[0])
-    keep = None
+    grey = grey_frames(frames)
+    usable = None
     if hand_mask is not None:
-        keep = cv2.dilate(hand_mask[0].astype(np.uint8), np.ones((15, 15), np.uint8)) == 0
-        keep = keep.astype(np.uint8) * 255
-    corners = cv2.goodFeaturesToTrack(
-        first, maxCorners=400, qualityLevel=0.01, minDistance=8, mask=keep
-    )
-    n = 0 if corners is None else len(corners)
+        usable = cv2.dilate(hand_mask[0].astype(np.uint8), np.ones((15, 15), np.uint8)) == 0
+    corners = detect_corners(grey[0], usable, RotationParams(max_corners=400))
+    n = len(corners)
     if n < min_corners:
-        return MotionCheck(n, 0.0, textureless=True, static=False)
-    motion = 0.0
-    for k in range(stride, len(frames), stride):
-        moved, status, _ = cv2.calcOpticalFlowPyrLK(
-            first, _grey(frames[k]), corners, None, winSize=(21, 21), maxLevel=3
-        )
-        ok = status[:, 0] == 1
+        return MotionCheck(n, 0.0, 0.0, 0.0, textureless=True, static=False)
+    params = TrackingParams(levels=3)
+    motion = tail_motion = 0.0
+    fraction = 1.0
+    ransac_px = max(static_motion_px, 0.5)
+    checked = list(range(stride, len(frames), stride))
+    if len(frames) > 1 and (not checked or checked[-1] != len(frames) - 1):
+        checked.append(len(frames) - 1)
+    for k in checked:
+        moved, ok = track_points(grey[0], grey[k], corners, params)
         if ok.sum() < min_corners // 2:  # lost most corners: the view changed a lot
-            motion = max(motion, float("inf"))
+            motion = tail_motion = float("inf")
+            fraction = 0.0
             break
-        shift = np.linalg.norm((moved - corners)[ok, 0], axis=1)  # (N,)
-        motion = max(motion, float(np.median(shift)))
-    return MotionCheck(n, motion, textureless=False, static=motion < static_motion_px)
+        med, tail, frac = background_motion(corners[ok], moved[ok], ransac_px)
+        motion, tail_motion = max(motion, med), max(tail_motion, tail)
+        fraction = min(fraction, frac)
+    static = motion < static_motion_px and tail_motion < TAIL_MOTION_FACTOR * static_motion_px
+    return MotionCheck(n, motion, tail_motion, fraction, textureless=False, static=static)

@@ -11,10 +11,12 @@ and the intrinsics come from :func:`egosim.stages.common.cameras.resolve_cameras
 - else the clip's ``first_frame_clean`` when the depth is its ``static_depth``;
 - else ``video[0]`` with the ``hand_mask[0]`` pixels removed.
 
-A static camera (a ``cameras`` row with ``static_camera`` and no depth0) and a clip without
-depth: without parallax there is no depth, so frame 0 is placed on a fronto-parallel plane at
-``STATIC_PLANE_DEPTH``; rendered from the one pose, that repeats the (inpainted) first frame in
-every frame, the fixed-camera recipe of DWM. Pixels with unknown depth (0) are skipped;
+A static camera (a ``cameras`` row with ``static_camera`` and no depth0) or a rotation-only
+camera (``camera_model`` ``rotation``, no depth0): without parallax there is no depth, so frame 0
+is placed on a fronto-parallel plane at ``STATIC_PLANE_DEPTH``; rendered from the one pose, that
+repeats the (inpainted) first frame in every frame, the fixed-camera recipe of DWM; rendered from
+pure rotations about frame 0's centre, it is the homography warp of frame 0, exact whatever the
+true depth. Pixels with unknown depth (0) are skipped;
 negative or non-finite depth rejects the clip. Flying pixels (depth interpolated across an
 occlusion edge by estimators and codecs) are removed where inverse depth breaks planarity: the
 second difference of ``1/z`` along a row, a column or a diagonal, relative to ``1/z``, exceeds
@@ -37,9 +39,14 @@ from egosim.pipeline.stage import ClipRejected, ClipStage, ConfigError, StageCon
 from egosim.schemas import CLIPS, ShardSchema
 from egosim.schemas.inpaint import INPAINT
 from egosim.schemas.scene import SCENE_CLOUD
-from egosim.stages.common.cameras import CAMERA_ROLES, first_frame_depth, resolve_cameras
+from egosim.stages.common.cameras import (
+    CAMERA_ROLES,
+    depth_is_unknown_by_model,
+    first_frame_depth,
+    resolve_cameras,
+)
 
-STATIC_PLANE_DEPTH = 1.0  # depth of the plane that stands in for a static camera's scene
+STATIC_PLANE_DEPTH = 1.0  # depth of the plane standing in for a static / rotating camera's scene
 
 
 class SceneCloudError(ValueError):
@@ -186,7 +193,8 @@ class SceneCloudStage(ClipStage):
     backends = ("first_frame",)
     # 2: static_depth beats depth for frames+hand_mask; image_source names the depth
     # 3: a static camera gets a plane at STATIC_PLANE_DEPTH instead of a reject
-    version = 3
+    # 4: so does a rotation-only camera (depth_camera camera_model "rotation")
+    version = 4
     config: SceneCloudConfig
 
     def process(self, rows: Mapping[str, Mapping[str, Any]]) -> dict[str, Any]:
@@ -237,15 +245,16 @@ def _first_frame(
     rows: Mapping[str, Mapping[str, Any]],
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, str]:
     """``(image (H, W, 3), depth (H, W), exclude (H, W) or None, source name)`` of frame 0."""
-    row, cams, inpaint = rows["clips"], rows.get("cameras"), rows.get("inpaint")
+    row, inpaint = rows["clips"], rows.get("inpaint")
     cid, h, w = row["clip_id"], row["height"], row["width"]
     depth = first_frame_depth(rows)  # (H, W)
     depth_name = _depth_name(rows)
     if depth is None:
-        if cams is None or not cams["static_camera"]:
+        if not depth_is_unknown_by_model(rows):
             raise ClipRejected(f"clip {cid!r}: no depth (needs depth0, static_depth or depth)")
-        # A static camera has no parallax, hence no depth (DWM's fixed-camera recipe): a
-        # fronto-parallel plane seen from the one pose makes scene_render repeat frame 0.
+        # A static or rotating camera has no parallax, hence no depth (DWM's fixed-camera
+        # recipe): a fronto-parallel plane seen from pure rotations about frame 0's centre makes
+        # scene_render warp frame 0 by the rotation's homography (repeat it when static).
         depth = np.full((h, w), STATIC_PLANE_DEPTH, np.float32)
         depth_name = "static_plane"
     hand_free = depth_name in ("static_depth", "static_plane")

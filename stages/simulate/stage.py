@@ -14,7 +14,6 @@ that differs from the checkpoint's is an error.
 from __future__ import annotations
 
 import dataclasses
-import time
 from collections.abc import Mapping
 from typing import TYPE_CHECKING, Any, ClassVar
 
@@ -77,6 +76,7 @@ class SimulateStage(ClipStage):
 
     name = "simulate"
     description = "generate a clip from a state and an action sequence (packed conditions)"
+    version = 2  # 2: no wall-clock seconds in the shard (byte-reproducible; see the manifest)
     config_class = SimulateConfig
     inputs: ClassVar[Mapping[str, ShardSchema]] = {"pack": PACK}
     output = SIMULATION
@@ -108,7 +108,6 @@ class SimulateStage(ClipStage):
         """Generate one clip from its pack row."""
         cfg = self.config
         row = rows["pack"]
-        start = time.perf_counter()
         conditions = sample_from_pack_row(row).conditions()
         model = self.model
         video = generate(model, conditions, cfg.steps, cfg.guidance_scale, cfg.seed)
@@ -126,5 +125,4 @@ class SimulateStage(ClipStage):
             "sampling_steps": cfg.steps,
             "guidance_scale": cfg.guidance_scale,
             "seed": cfg.seed,
-            "seconds": time.perf_counter() - start,
         }
