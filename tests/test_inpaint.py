@@ -16,7 +16,6 @@ from egosim.pipeline.clip_io import read_clips, row_from_clip, write_clips
 from egosim.pipeline.execute import ShardTask, run_shard_task
 from egosim.pipeline.records import Clip
 from egosim.pipeline.shards import ShardReader, ShardWriter
-from egosim.pipeline.stage import ClipRejected
 from egosim.schemas.hand_mask import HAND_MASK
 from egosim.schemas.inpaint import INPAINT
 from egosim.stages.inpaint.diffusers_backend import (
@@ -76,11 +75,34 @@ def _mask_row(clip: Clip, masks: np.ndarray) -> dict:
     return {"clip_id": clip.clip_id, "hand_mask": media.encode_mask_video(masks)}
 
 
-def test_clip_without_depth_is_rejected() -> None:
+def test_static_camera_without_depth_fills_by_temporal_median() -> None:
+    """No depth, still camera: the default backend fills from the other frames, no ghosts."""
+    rng = np.random.default_rng(0)
+    scene = rng.integers(0, 255, (48, 64, 3), dtype=np.uint8)  # (H, W, 3)
+    frames = np.repeat(scene[None], 6, axis=0)  # (T, H, W, 3)
+    masks = np.zeros((6, 48, 64), np.uint8)
+    for t in range(6):  # a skin-coloured hand sliding right, covering different pixels
+        frames[t, 10:30, 5 + 8 * t : 20 + 8 * t] = (220, 170, 140)
+        masks[t, 10:30, 5 + 8 * t : 20 + 8 * t] = 1
+    frames[3, 35:40, 30:40] = (220, 170, 140)  # a hand part that frame 3's mask missed
+    result = InpaintStage().fill(frames, masks, None, np.zeros(4), None, static_camera=True)
+    hole = masks[0] > 0
+    np.testing.assert_array_equal(result.image[hole], scene[hole])  # exact: the median of truth
+    assert np.all(result.fill_source[hole] == 1)
+    assert not np.any(np.all(result.image == (220, 170, 140), axis=2))  # no ghost
+
+
+def test_clip_without_depth_is_filled_not_rejected() -> None:
     clip = world_clip(0)
     row = row_from_clip(Clip(**{**clip.__dict__, "depth": None, "static_depth": None}))
-    with pytest.raises(ClipRejected, match=f"{clip.clip_id}.*no depth"):
-        InpaintStage().process({"clips": row, "hand_mask": _mask_row(clip, clip.hand_mask)})
+    out = InpaintStage().process({"clips": row, "hand_mask": _mask_row(clip, clip.hand_mask)})
+    image = media.decode_png(out["first_frame"])
+    gt = clip.hand_mask[0] > 0
+    ours = psnr(image, clip.first_frame_clean, gt)
+    telea = psnr(
+        opencv_fill(clip.frames[0], dilate(clip.hand_mask[0], 2)), clip.first_frame_clean, gt
+    )
+    assert out["reprojected_fraction"] > 0.3 and ours > telea, f"{ours:.2f} vs Telea {telea:.2f}"
 
 
 def test_stage_chain_through_shard_tasks(tmp_path: Path) -> None:
@@ -171,7 +193,7 @@ def test_stage_takes_depth_and_cameras_from_connected_roles(tmp_path: Path) -> N
         result = run_shard_task(task)
         return result.rows, result.rejected
 
-    assert run({"clips": clips, "hand_mask": hand_mask}, "own") == (0, 1)  # no depth
+    assert run({"clips": clips, "hand_mask": hand_mask}, "own") == (1, 0)  # image-aligned fill
     assert run({"clips": clips, "hand_mask": hand_mask, "cameras": cameras}, "cams") == (1, 0)
     with ShardReader(tmp_path / "cams.parquet", INPAINT) as reader:
         row = next(reader.iter_rows())
@@ -179,6 +201,8 @@ def test_stage_takes_depth_and_cameras_from_connected_roles(tmp_path: Path) -> N
         cam_row = next(reader.iter_rows())
     depth0 = media.decode_depth_video(cam_row["depth0"], cam_row["depth_unit_m"])[0]
     decoded = next(read_clips(clips))
-    expected = reproject_fill(decoded.frames, gt.hand_mask, depth0, moved, gt.intrinsics)
+    expected = reproject_fill(
+        decoded.frames, gt.hand_mask, depth0, moved, gt.intrinsics, candidates=3
+    )
     np.testing.assert_array_equal(media.decode_png(row["first_frame"]), expected.image)
     assert row["reprojected_fraction"] > 0.3

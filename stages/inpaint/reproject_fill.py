@@ -12,8 +12,10 @@ Method (backward warping, needs depth of frame 0 only):
    the predicted depth within ``depth_tolerance`` (relative): a moved object or an occluder is
    rejected.
 3. Frames are tried by increasing time gap (closest first: least object motion and lighting
-   change); a pixel takes its colour (bilinear) from the first frame that may fill it.
-4. What no frame saw is filled by OpenCV inpainting (Telea) from the result.
+   change); a pixel takes the per-channel median of the colours (bilinear) of the first
+   ``candidates`` frames that may fill it (1 = the closest frame alone). The median leaves no
+   ghost of a hand or arm that one frame's mask missed.
+4. What no frame saw is filled by :func:`unseen_fill` (OpenCV Telea or Navier-Stokes).
 
 The result records, per pixel, the fill source (0 original, 1 reprojected, 2 OpenCV) and the
 frame index its colour came from.
@@ -66,6 +68,22 @@ def opencv_fill(image: np.ndarray, mask: np.ndarray, radius: float = 5.0) -> np.
     return cv2.cvtColor(out, cv2.COLOR_BGR2RGB)
 
 
+UNSEEN_METHODS = {"telea": cv2.INPAINT_TELEA, "ns": cv2.INPAINT_NS}  # OpenCV inpainting flags
+
+
+def unseen_fill(
+    image: np.ndarray, mask: np.ndarray, radius: float = 5.0, method: str = "telea"
+) -> np.ndarray:
+    """OpenCV inpainting (``method`` "telea" or "ns") of ``image (H, W, 3)`` RGB where ``mask``."""
+    if method not in UNSEEN_METHODS:
+        raise InpaintInputError(
+            f"unseen method must be one of {sorted(UNSEEN_METHODS)}, got {method!r}"
+        )
+    bgr = cv2.cvtColor(image, cv2.COLOR_RGB2BGR)
+    out = cv2.inpaint(bgr, mask.astype(np.uint8), radius, UNSEEN_METHODS[method])
+    return cv2.cvtColor(out, cv2.COLOR_BGR2RGB)
+
+
 def reproject_fill(
     frames: np.ndarray,
     hand_mask: np.ndarray,
@@ -76,6 +94,8 @@ def reproject_fill(
     dilate_px: int = 2,
     depth_tolerance: float = 0.05,
     inpaint_radius: float = 5.0,
+    candidates: int = 1,
+    unseen_method: str = "telea",
 ) -> FillResult:
     """Remove the hand from ``frames[0]``; see the module docstring.
 
@@ -110,9 +130,11 @@ def reproject_fill(
     ys, xs = np.nonzero(target)  # (M,)
     points_cam0 = unproject_depth(d0, intrinsics)[ys, xs]  # (M, 3)
     points_world = transform_points(world_from_cam[0], points_cam0)  # (M, 3)
-    todo = np.ones(len(ys), bool)  # (M,) still unfilled
-    colours = np.zeros((len(ys), 3), np.float64)
+    candidates = max(1, int(candidates))
+    samples = np.zeros((candidates, len(ys), 3), np.float32)  # colours per candidate slot
+    count = np.zeros(len(ys), np.int32)  # (M,) slots each pixel filled
     for k in range(1, t):  # 3. closest frames first
+        todo = count < candidates
         if not todo.any():
             break
         idx = np.nonzero(todo)[0]
@@ -132,17 +154,25 @@ def reproject_fill(
         map_x = x[ok].astype(np.float32).reshape(-1, 1)
         map_y = y[ok].astype(np.float32).reshape(-1, 1)
         sampled = cv2.remap(frames[k], map_x, map_y, cv2.INTER_LINEAR, cv2.BORDER_REPLICATE)
-        colours[idx[ok]] = sampled.reshape(-1, 3)
-        source_frame[ys[idx[ok]], xs[idx[ok]]] = k
-        todo[idx[ok]] = False
-    done = ~todo
+        got = idx[ok]
+        samples[count[got], got] = sampled.reshape(-1, 3)
+        first = got[count[got] == 0]
+        source_frame[ys[first], xs[first]] = k
+        count[got] += 1
+    done = count > 0
+    colours = np.zeros((len(ys), 3), np.float32)
+    for n in range(1, candidates + 1):  # median over the slots each pixel filled
+        sel = count == n
+        if sel.any():
+            colours[sel] = np.median(samples[:n, sel], axis=0)
+    todo = ~done
     image[ys[done], xs[done]] = np.clip(np.round(colours[done]), 0, 255).astype(np.uint8)
     fill_source[ys[done], xs[done]] = FILL_REPROJECTED
     # 4. OpenCV for what no frame saw.
     unseen = np.zeros((h, w), np.uint8)
     unseen[ys[todo], xs[todo]] = 1
     if unseen.any():
-        image = opencv_fill(image, unseen, inpaint_radius)
+        image = unseen_fill(image, unseen, inpaint_radius, unseen_method)
         fill_source[unseen > 0] = FILL_OPENCV
     fill_source[~target] = FILL_ORIGINAL
     return FillResult(image, fill_source, source_frame, target)

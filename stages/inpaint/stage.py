@@ -5,14 +5,17 @@ poses come from :func:`egosim.stages.common.cameras.resolve_cameras` and frame 0
 :func:`egosim.stages.common.cameras.first_frame_depth`: the optional ``poses`` / ``cameras``
 inputs when a workflow connects them, else the clip's own. Backends:
 
-- ``reproject`` (default): fill from later frames reprojected through depth and pose, then
-  OpenCV inpainting for what no frame saw (see ``reproject_fill``);
+- ``reproject`` (default): fill from later frames reprojected through depth and pose (median of
+  the first ``candidates`` frames that see a pixel), then OpenCV inpainting for what no frame saw
+  (see ``reproject_fill``). Without frame-0 depth or poses (a static camera has no depth) the
+  later frames are aligned in the image instead: the identity for a static camera (the
+  ``cameras`` row's ``static_camera``, or poses that do not move), which makes the fill a plain
+  temporal median, else homographies fitted to features (see ``aligned_fill``);
 - ``opencv``: OpenCV (Telea) inpainting only (the baseline);
 - ``diffusers``: a diffusers inpainting pipeline from ``model_path`` (see
   ``diffusers_backend``).
 
-A clip without depth or poses is rejected by the ``reproject`` backend ("run depth_camera
-first"). Only the first frame's depth is required (frame-0 pixels are lifted with it and projected
+Only the first frame's depth is required (frame-0 pixels are lifted with it and projected
 into the later frames), so a clip without a depth column works when ``cameras`` is connected.
 With ``depth_tolerance > 0`` the other frames' depth rejects fills that disagree with it; only
 the clip has per-frame depth, so that test runs only when ``cameras`` is not connected (its
@@ -39,14 +42,19 @@ from egosim.schemas.inpaint import (
     INPAINT,
 )
 from egosim.stages.common.cameras import CAMERA_ROLES, first_frame_depth, resolve_cameras
+from egosim.stages.inpaint.aligned_fill import aligned_fill
 from egosim.stages.inpaint.diffusers_backend import DiffusersInpainter
 from egosim.stages.inpaint.reproject_fill import (
+    UNSEEN_METHODS,
     FillResult,
     InpaintInputError,
     dilate,
     opencv_fill,
     reproject_fill,
 )
+
+STILL_TRANSLATION_M = 1e-4  # poses closer than this (and STILL_ROTATION_RAD) are a still camera
+STILL_ROTATION_RAD = 1e-4
 
 _UNUSED_COLUMNS = (
     "static_video",
@@ -69,6 +77,8 @@ class InpaintConfig(StageConfig):
     # (off by default: the depth behind the hand is an inpainted guess, and a 5-30% test
     # rejected most good fills on the synthetic world, costing 2-4 dB)
     inpaint_radius: float = 5.0  # OpenCV inpainting neighbourhood radius, pixels
+    candidates: int = 3  # later frames whose colours are medianed per pixel (1: closest only)
+    unseen_method: str = "telea"  # OpenCV method for pixels no frame sees: "telea" or "ns"
     model_path: str = ""  # local folder of a diffusers inpainting pipeline (backend diffusers)
     device: str = "cpu"  # torch device of the diffusers pipeline
     prompt: str = "empty table, no hands"  # text prompt of the diffusers pipeline
@@ -84,6 +94,12 @@ class InpaintConfig(StageConfig):
             problems.append(f"depth_tolerance must be in [0, 1], got {self.depth_tolerance}")
         if not 0.0 < self.inpaint_radius <= 100.0:
             problems.append(f"inpaint_radius must be in (0, 100], got {self.inpaint_radius}")
+        if not 1 <= self.candidates <= 32:
+            problems.append(f"candidates must be in [1, 32], got {self.candidates}")
+        if self.unseen_method not in UNSEEN_METHODS:
+            problems.append(
+                f"unseen_method must be one of {sorted(UNSEEN_METHODS)}, got {self.unseen_method!r}"
+            )
         if self.steps < 1:
             problems.append(f"steps must be >= 1, got {self.steps}")
         if self.backend == "diffusers" and not self.model_path:
@@ -96,7 +112,7 @@ class InpaintStage(ClipStage):
     """Remove hands from the first frame: reprojected later frames, then OpenCV inpainting."""
 
     name = "inpaint"
-    version = 2  # 2: depth behind the hand by Navier-Stokes (Telea gave noise on float32)
+    version = 3  # 3: median of several frames; clips without depth aligned in the image
     description = "remove hands from the first frame (reprojected frames + OpenCV inpainting)"
     config_class = InpaintConfig
     inputs: ClassVar[Mapping[str, ShardSchema]] = {"clips": CLIPS, "hand_mask": HAND_MASK}
@@ -117,11 +133,13 @@ class InpaintStage(ClipStage):
         depth0: np.ndarray | None,
         clip_id: str = "",
         depth: np.ndarray | None = None,
+        static_camera: bool = False,
     ) -> FillResult:
         """Hand-free first frame of ``frames (T, H, W, 3)`` given ``hand_mask (T, H, W)``.
 
         ``world_from_cam (T, 4, 4)``, ``intrinsics (4,)``, ``depth0 (H, W)`` metres (frame 0);
-        ``depth (T, H, W)`` feeds the agreement test when ``depth_tolerance > 0``.
+        ``depth (T, H, W)`` feeds the agreement test when ``depth_tolerance > 0``. Without
+        ``depth0`` or poses the image-aligned fill runs (identity when ``static_camera``).
         """
         cfg: InpaintConfig = self.config  # type: ignore[assignment]
         h, w = frames.shape[1:3]
@@ -138,10 +156,17 @@ class InpaintStage(ClipStage):
             image = self._diffusers.inpaint(frames[0], target)
             source = (target * FILL_GENERATED).astype(np.uint8)
             return FillResult(image, source, zeros16, target > 0)
-        if depth0 is None:
-            raise ClipRejected(f"clip {clip_id!r}: no depth: run depth_camera first")
-        if world_from_cam is None:
-            raise ClipRejected(f"clip {clip_id!r}: no camera poses: run depth_camera first")
+        if depth0 is None or world_from_cam is None:
+            still = static_camera or (world_from_cam is not None and _still(world_from_cam))
+            return aligned_fill(
+                frames,
+                hand_mask,
+                static_camera=still,
+                dilate_px=cfg.dilate_px,
+                candidates=cfg.candidates,
+                inpaint_radius=cfg.inpaint_radius,
+                unseen_method=cfg.unseen_method,
+            )
         try:
             return reproject_fill(
                 frames,
@@ -153,6 +178,8 @@ class InpaintStage(ClipStage):
                 dilate_px=cfg.dilate_px,
                 depth_tolerance=cfg.depth_tolerance,
                 inpaint_radius=cfg.inpaint_radius,
+                candidates=cfg.candidates,
+                unseen_method=cfg.unseen_method,
             )
         except InpaintInputError as exc:
             raise ClipRejected(f"clip {clip_id!r}: {exc}") from exc
@@ -163,8 +190,8 @@ class InpaintStage(ClipStage):
         row = rows["clips"]
         clip_id = row["clip_id"]
         depth0 = first_frame_depth(rows) if cfg.backend == "reproject" else None  # (H, W)
-        if cfg.backend == "reproject" and depth0 is None:
-            raise ClipRejected(f"clip {clip_id!r}: no depth: run depth_camera first")
+        cam_row = rows.get("cameras")
+        static = bool(cam_row is not None and cam_row.get("static_camera"))
         cams = resolve_cameras(rows)
         # Per-frame depth (agreement test) only from the clip, and only when no other role
         # supplies the cameras' depth (see the module docstring).
@@ -178,7 +205,14 @@ class InpaintStage(ClipStage):
                 f"{(clip.num_frames, clip.height, clip.width)}"
             )
         result = self.fill(
-            clip.frames, masks, cams.world_from_cam, cams.intrinsics, depth0, clip_id, clip.depth
+            clip.frames,
+            masks,
+            cams.world_from_cam,
+            cams.intrinsics,
+            depth0,
+            clip_id,
+            clip.depth,
+            static,
         )
         n = int(result.filled.sum())
         counts = np.bincount(result.fill_source[result.filled], minlength=4)  # (4,)
@@ -196,3 +230,13 @@ class InpaintStage(ClipStage):
             "generated_fraction": float(frac[FILL_GENERATED]),
             "backend": cfg.backend,
         }
+
+
+def _still(world_from_cam: np.ndarray) -> bool:
+    """Whether every pose of ``world_from_cam (T, 4, 4)`` equals the first (a still camera)."""
+    rel = np.linalg.inv(world_from_cam[0]) @ world_from_cam  # (T, 4, 4)
+    angle = np.arccos(np.clip((np.trace(rel[:, :3, :3], axis1=1, axis2=2) - 1) / 2, -1, 1))
+    return bool(
+        np.all(np.linalg.norm(rel[:, :3, 3], axis=1) < STILL_TRANSLATION_M)
+        and np.all(angle < STILL_ROTATION_RAD)
+    )

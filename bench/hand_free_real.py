@@ -1,0 +1,225 @@
+"""Hand-free first frames (issue 9): arm masks and first-frame inpainting, measured.
+
+``python -m bench.hand_free_real [--data ../shared/data] [--out runs/hand_free]
+[--world tabletop:2,wild:5] [--size 240x416] [--frames 25]`` prints two tables, writes
+``OUT/hand_free_real.json`` and contact sheets ``OUT/*.png`` (real | mask | inpainted | truth).
+
+Synthetic world (``egosim.stages.world``; the settings given by ``--world``; the defaults were not
+used for tuning: masks and inpaint defaults were tuned on tabletop seeds 0-1):
+
+- ``iou_true``: mean per-frame hand+arm mask IoU against the world's mask, masks from the true
+  joints (the ``hand_mask`` stage on the clip); ``iou_mp``: from MediaPipe's 2D landmarks;
+- ``psnr``: frame-0 inpainting (the ``inpaint`` stage's default fill given the predicted masks
+  from true joints, the clip's depth and poses) in the true hand+arm region of frame 0, against
+  ``first_frame_clean``; ``telea``: OpenCV Telea given the true mask (dilated 2 px).
+
+Real DWM clips (``dwm_realworld/realworld_dynamic``; no cameras or depth: masks from MediaPipe 2D
+landmarks, fill by the image-aligned path). Hand truth: ``videos_hands`` pixels brighter than 30.
+
+- ``recall``: the fraction of hand-truth pixels (all frames) inside the mask;
+- ``far_px``: mask pixels per frame farther than 50 px from the allowed region: hand truth
+  dilated by 50 px plus, for each hand blob, the corridor from it straight down to the bottom
+  border (where an egocentric arm comes from), also dilated by 50 px;
+- frame 0 of both clips shows no hand, so the inpainting is measured on the sub-clip that starts
+  at the first frame with a visible hand (``start``; what a clip cut there would get as its
+  frame 0): ``psnr_hand`` in the hand truth dilated by 15 px and ``psnr_frame`` over the frame,
+  against ``videos_static`` at that frame, beside ``telea_*``: OpenCV Telea with the same mask.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from egosim.pipeline import media
+from egosim.stages.hand_mask.stage import HandMaskConfig, HandMaskStage, masks_from_keypoints
+from egosim.stages.inpaint.reproject_fill import dilate, opencv_fill
+from egosim.stages.inpaint.stage import InpaintStage
+from egosim.stages.world import WorldConfig, render_clip
+
+ROOT = Path(__file__).resolve().parents[1]
+DEFAULT_DATA = ROOT.parent / "shared" / "data"
+DWM = "dwm_realworld/realworld_dynamic"
+HAND_THRESHOLD = 30  # a videos_hands pixel brighter than this (any channel) is hand
+FAR_PX = 50  # mask farther than this from a hand or its arm corridor is a false positive
+HAND_DILATE_PX = 15  # hand region of the PSNR figure: the hand truth grown by this
+MIN_HAND_FRACTION = 0.003  # a frame "shows a hand" when this fraction of it is hand truth
+
+
+def psnr(a: np.ndarray, b: np.ndarray, mask: np.ndarray) -> float:
+    """PSNR in dB of ``a`` against ``b`` over ``mask (H, W)`` (NaN for an empty mask)."""
+    if not mask.any():
+        return float("nan")
+    diff = a.astype(np.float64)[mask] - b.astype(np.float64)[mask]
+    return float(10 * np.log10(255.0**2 / max(float(np.mean(diff**2)), 1e-12)))
+
+
+def iou(a: np.ndarray, b: np.ndarray) -> float:
+    """Intersection over union of boolean masks (1.0 when both are empty)."""
+    union = np.logical_or(a, b).sum()
+    return 1.0 if union == 0 else float(np.logical_and(a, b).sum() / union)
+
+
+def mediapipe_keypoints(frames: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """MediaPipe 2D landmarks ``(T, 2, 21, 2)`` pixels and presence ``(T, 2)`` of ``frames``."""
+    from egosim.stages.hands.mediapipe_backend import detect_landmarks
+
+    raw = detect_landmarks(frames)
+    return raw.uv, raw.present
+
+
+def contact_sheet(path: Path, panels: list[np.ndarray], height: int = 240) -> None:
+    """One row of RGB or mask ``panels`` scaled to ``height``, written as PNG."""
+    row = []
+    for p in panels:
+        img = np.repeat(p[..., None] * 255, 3, axis=2).astype(np.uint8) if p.ndim == 2 else p
+        scale = height / img.shape[0]
+        row.append(cv2.resize(img, (round(img.shape[1] * scale), height)))
+    cv2.imwrite(str(path), cv2.cvtColor(np.concatenate(row, axis=1), cv2.COLOR_RGB2BGR))
+
+
+def world_case(mode: str, seed: int, size: tuple[int, int], frames: int, out: Path) -> dict:
+    """Figures of one synthetic clip (see the module docstring)."""
+    clip = render_clip(WorldConfig(seed=seed, mode=mode, height=size[0], width=size[1],
+                                   num_frames=frames))  # fmt: skip
+    truth = clip.hand_mask > 0  # (T, H, W)
+    start = time.perf_counter()
+    masks = HandMaskStage().masks_for_clip(clip)  # (T, H, W)
+    mask_s = time.perf_counter() - start
+    uv, present = mediapipe_keypoints(clip.frames)
+    mp_masks = masks_from_keypoints(clip.frames, uv, present, HandMaskConfig())
+    start = time.perf_counter()
+    result = InpaintStage().fill(
+        clip.frames, masks, clip.world_from_cam, clip.intrinsics, clip.depth[0]
+    )
+    fill_s = time.perf_counter() - start
+    telea = opencv_fill(clip.frames[0], dilate(clip.hand_mask[0], 2))
+    region = truth[0]
+    contact_sheet(
+        out / f"world_{mode}_{seed}.png",
+        [clip.frames[0], masks[0], result.image, clip.first_frame_clean, telea],
+    )
+    return {
+        "case": f"{mode}:{seed}",
+        "iou_true": float(np.mean([iou(m > 0, g) for m, g in zip(masks, truth, strict=True)])),
+        "iou_mp": float(np.mean([iou(m > 0, g) for m, g in zip(mp_masks, truth, strict=True)])),
+        "iou_true_f0": iou(masks[0] > 0, truth[0]),
+        "psnr": psnr(result.image, clip.first_frame_clean, region),
+        "telea": psnr(telea, clip.first_frame_clean, region),
+        "mask_s": mask_s,
+        "fill_s": fill_s,
+    }
+
+
+def allowed_region(hands: np.ndarray) -> np.ndarray:
+    """Pixels ``(H, W)`` where a mask may be: hand truth and its corridor to the bottom border."""
+    h = hands.shape[0]
+    allowed = hands.astype(np.uint8).copy()
+    count, comp = cv2.connectedComponents(allowed)
+    for k in range(1, count):
+        ys, xs = np.nonzero(comp == k)
+        if len(ys) < 20:
+            continue
+        hull = cv2.convexHull(
+            np.concatenate([np.stack([xs, ys], 1), np.stack([xs, np.full_like(ys, h - 1)], 1)])
+        )
+        cv2.fillConvexPoly(allowed, hull.astype(np.int32), 1)
+    return dilate(allowed, FAR_PX) > 0
+
+
+def dwm_case(cid: str, data: Path, out: Path) -> dict:
+    """Figures of one real DWM clip (see the module docstring)."""
+    folder = data / DWM
+    video, _ = media.read_video_file(folder / "videos" / f"{cid}.mp4")
+    static, _ = media.read_video_file(folder / "videos_static" / f"{cid}.mp4")
+    hands_video, _ = media.read_video_file(folder / "videos_hands" / f"{cid}.mp4")
+    hands = hands_video.max(axis=3) > HAND_THRESHOLD  # (T, H, W)
+    start = time.perf_counter()
+    uv, present = mediapipe_keypoints(video)
+    masks = masks_from_keypoints(video, uv, present, HandMaskConfig()) > 0  # (T, H, W)
+    mask_s = time.perf_counter() - start
+    recall = float(masks[hands].mean()) if hands.any() else float("nan")
+    far = [float((m & ~allowed_region(g)).sum()) for m, g in zip(masks, hands, strict=True)]  # (T,)
+    shown = np.nonzero(hands.reshape(len(hands), -1).mean(axis=1) >= MIN_HAND_FRACTION)[0]
+    s = int(shown[0]) if len(shown) else 0
+    start = time.perf_counter()
+    result = InpaintStage().fill(video[s:], masks[s:].astype(np.uint8), None, np.zeros(4), None)
+    fill_s = time.perf_counter() - start
+    telea = opencv_fill(video[s], result.filled.astype(np.uint8))
+    region = dilate(hands[s], HAND_DILATE_PX) > 0
+    whole = np.ones(region.shape, bool)
+    contact_sheet(
+        out / f"dwm_{cid}.png", [video[s], masks[s].astype(np.uint8), result.image, static[s]]
+    )
+    worst = int(np.argmax(far))
+    contact_sheet(
+        out / f"dwm_{cid}_worst_far.png",
+        [
+            video[worst],
+            masks[worst].astype(np.uint8),
+            allowed_region(hands[worst]).astype(np.uint8),
+        ],
+    )
+    return {
+        "case": cid,
+        "recall": recall,
+        "far_px_mean": float(np.mean(far)),
+        "far_px_max": float(np.max(far)),
+        "far_px_frame": worst,
+        "start": s,
+        "psnr_hand": psnr(result.image, static[s], region),
+        "telea_hand": psnr(telea, static[s], region),
+        "psnr_frame": psnr(result.image, static[s], whole),
+        "telea_frame": psnr(telea, static[s], whole),
+        "mask_s": mask_s,
+        "fill_s": fill_s,
+    }
+
+
+def main() -> int:
+    """Run the synthetic and (when present) the real cases; print and write the figures."""
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--data", type=Path, default=DEFAULT_DATA, help="the shared data folder")
+    parser.add_argument("--out", type=Path, default=ROOT / "runs" / "hand_free", help="output")
+    parser.add_argument("--world", default="tabletop:2,wild:5", help="mode:seed,... (held out)")
+    parser.add_argument("--size", default="240x416", help="synthetic HxW")
+    parser.add_argument("--frames", type=int, default=25, help="synthetic frames")
+    parser.add_argument("--skip-real", action="store_true", help="synthetic cases only")
+    args = parser.parse_args()
+    args.out.mkdir(parents=True, exist_ok=True)
+    size = tuple(int(v) for v in args.size.split("x"))
+    rows: dict[str, list[dict[str, Any]]] = {"world": [], "dwm": []}
+    for item in args.world.split(","):
+        mode, seed = item.split(":")
+        rows["world"].append(world_case(mode, int(seed), size, args.frames, args.out))  # type: ignore[arg-type]
+        r = rows["world"][-1]
+        print(
+            f"world {r['case']:<12} IoU true {r['iou_true']:.3f} (f0 {r['iou_true_f0']:.3f}) "
+            f"MediaPipe {r['iou_mp']:.3f} | f0 PSNR {r['psnr']:.2f} dB vs Telea(true mask) "
+            f"{r['telea']:.2f} | {r['mask_s']:.1f}+{r['fill_s']:.1f} s",
+            flush=True,
+        )
+    if not args.skip_real and (args.data / DWM).is_dir():
+        for cid in ("00013", "00017"):
+            r = dwm_case(cid, args.data, args.out)
+            rows["dwm"].append(r)
+            print(
+                f"dwm {cid} recall {r['recall']:.3f} far px/frame {r['far_px_mean']:.0f} "
+                f"(max {r['far_px_max']:.0f} at t={r['far_px_frame']}) | start {r['start']}: "
+                f"hand {r['psnr_hand']:.2f} vs Telea {r['telea_hand']:.2f} dB, frame "
+                f"{r['psnr_frame']:.2f} vs {r['telea_frame']:.2f} | "
+                f"{r['mask_s']:.1f}+{r['fill_s']:.1f} s",
+                flush=True,
+            )
+    (args.out / "hand_free_real.json").write_text(json.dumps(rows, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

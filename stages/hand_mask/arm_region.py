@@ -1,0 +1,293 @@
+"""Hand-and-arm masks in image space: keypoint capsules, an arm seed, GrabCut, connectivity.
+
+Nothing here knows the world frame: the forearm's direction comes from the image alone. For each
+hand with 2D keypoints (MANO order, pixels, pixel centres at integer + 0.5):
+
+- the hand is drawn as capsules (see ``capsules``); its thin skeleton is certainly hand;
+- the hand's own direction ``d`` is the wrist minus the middle knuckle (mean of the knuckles when
+  that one is unknown), i.e. where the forearm continues in the image;
+- a thin strip beyond the wrist along ``d`` (``seed_start``..``seed_end`` hand lengths) is
+  certainly arm: it seeds the colour model with the sleeve's or skin's colour;
+- a tapered band along ``d`` from the wrist to the image border is probably arm;
+- a fan of ``fan_half_angle_deg`` either side of ``d`` is probably background (the forearm may bend
+  at the wrist; the colour model moves those pixels to the arm when they look like it);
+- everything else is background.
+
+GrabCut (OpenCV) learns the colour models from these labels and relabels the two "probably"
+regions; only the pixels connected to a certain seed are kept, so a patch of skin-coloured table
+away from the arm stays background.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from egosim.stages.hand_mask.capsules import (
+    FOREARM_RADIUS_M,
+    KNUCKLES,
+    WRIST,
+    CapsuleParams,
+    draw_hand,
+    hand_scale_px,
+)
+
+MIDDLE_KNUCKLE = 9  # MANO index of the middle finger's MCP joint
+_SHIFT = 4  # sub-pixel bits for OpenCV drawing
+_ONE = 1 << _SHIFT
+
+
+@dataclass(frozen=True)
+class ArmParams:
+    """Where the arm is looked for, relative to the hand's own direction and size."""
+
+    fan_half_angle_deg: float = 25.0  # probable-background fan either side of the arm's direction
+    max_turn_deg: float = 90.0  # the arm's direction is searched this far from the hand's (0: off)
+    seed_start: float = 0.25  # certain-arm strip starts this many hand lengths past the wrist
+    seed_end: float = 0.8  # ... and ends this many hand lengths past the wrist
+    seed_width: float = 0.35  # strip half-width, times the forearm's half-width at the wrist
+    band: float = 1.0  # probable-arm band half-width, times the average forearm half-width
+
+    def __post_init__(self) -> None:
+        problems = []
+        if not 0.0 <= self.fan_half_angle_deg <= 89.0:
+            problems.append(f"fan_half_angle_deg must be in [0, 89], got {self.fan_half_angle_deg}")
+        if not 0.0 <= self.seed_start < self.seed_end <= 3.0:
+            problems.append(
+                f"need 0 <= seed_start < seed_end <= 3, got {self.seed_start}, {self.seed_end}"
+            )
+        if not 0.0 < self.seed_width <= 2.0:
+            problems.append(f"seed_width must be in (0, 2], got {self.seed_width}")
+        if not 0.1 <= self.band <= 5.0:
+            problems.append(f"band must be in [0.1, 5], got {self.band}")
+        if problems:
+            raise ValueError("; ".join(problems))
+
+
+def hand_direction(keypoints: np.ndarray) -> tuple[np.ndarray, np.ndarray, float] | None:
+    """``(wrist (2,), unit direction (2,), hand length px)`` of one hand ``(21, 2)``, or None.
+
+    The direction points from the middle knuckle back through the wrist (towards the forearm).
+    """
+    wrist = keypoints[WRIST]
+    if not np.all(np.isfinite(wrist)):
+        return None
+    if np.all(np.isfinite(keypoints[MIDDLE_KNUCKLE])):
+        knuckle = keypoints[MIDDLE_KNUCKLE]
+    else:
+        known = keypoints[list(KNUCKLES)]
+        known = known[np.all(np.isfinite(known), axis=1)]
+        if len(known) == 0:
+            return None
+        knuckle = known.mean(axis=0)
+    d = wrist - knuckle  # (2,)
+    length = float(np.hypot(*d))
+    if length < 1e-6:
+        return None
+    return wrist, d / length, length
+
+
+def arm_direction(
+    image: np.ndarray,
+    wrist: np.ndarray,
+    hand_dir: np.ndarray,
+    hand_len: float,
+    exclude: np.ndarray,
+    max_turn_deg: float = 90.0,
+    turn_cost: float = 0.15,
+) -> np.ndarray:
+    """Unit image direction ``(2,)`` of the forearm from ``wrist``, chosen by colour uniformity.
+
+    Candidate directions within ``max_turn_deg`` of ``hand_dir`` (every 10 degrees) are scored by
+    how uniform the colour is along a strip from 0.3 to 1.5 hand lengths past the wrist (median
+    absolute deviation in Lab, over samples inside the image and outside ``exclude (H, W)``, the
+    hand's own mask), plus ``turn_cost`` per radian of turn: a forearm (skin or sleeve) is one
+    smooth colour, a strip across a table or objects is not. The hand's direction is kept when no
+    candidate has enough samples.
+    """
+    h, w = image.shape[:2]
+    lab = cv2.cvtColor(image, cv2.COLOR_RGB2LAB).astype(np.float32)  # (H, W, 3)
+    steps = np.linspace(0.3, 1.5, 24) * hand_len  # (S,)
+    offsets = np.array([-0.25, 0.0, 0.25]) * hand_len * 0.35  # across the strip
+    best, best_score = hand_dir, np.inf
+    for turn in np.arange(-max_turn_deg, max_turn_deg + 1e-6, 10.0):
+        d = _rotate(hand_dir, float(turn))
+        n = np.array([-d[1], d[0]])
+        pts = wrist + steps[:, None, None] * d + offsets[None, :, None] * n  # (S, 3, 2)
+        pts = pts.reshape(-1, 2) - 0.5
+        xi, yi = np.round(pts[:, 0]).astype(int), np.round(pts[:, 1]).astype(int)
+        inside = (xi >= 0) & (xi < w) & (yi >= 0) & (yi < h)
+        xi, yi = xi[inside], yi[inside]
+        keep = exclude[yi, xi] == 0
+        if keep.sum() < 12:
+            continue
+        colours = lab[yi[keep], xi[keep]]  # (N, 3)
+        spread = float(np.median(np.abs(colours - np.median(colours, axis=0)).sum(axis=1)))
+        # +1 Lab unit of noise floor, so that a perfectly uniform strip still prefers no turn
+        score = (spread + 1.0) * (1.0 + turn_cost * abs(np.radians(turn)))
+        if score < best_score:
+            best, best_score = d, score
+    return best
+
+
+def _fixed(points: np.ndarray) -> np.ndarray:
+    """Pixel-centre coordinates ``(..., 2)`` to OpenCV fixed-point integer pixel indices."""
+    return np.round((np.asarray(points) - 0.5) * _ONE).astype(np.int32)
+
+
+def _rotate(v: np.ndarray, degrees: float) -> np.ndarray:
+    a = np.radians(degrees)
+    return np.array([np.cos(a) * v[0] - np.sin(a) * v[1], np.sin(a) * v[0] + np.cos(a) * v[1]])
+
+
+def draw_arm_labels(
+    labels: np.ndarray,
+    keypoints: np.ndarray,
+    capsule: CapsuleParams,
+    arm: ArmParams,
+    image: np.ndarray | None = None,
+) -> None:
+    """Paint one hand's GrabCut labels into ``labels (H, W)`` uint8 in place (see module doc).
+
+    With ``image (H, W, 3)`` the forearm's direction is searched round the hand's own
+    (:func:`arm_direction`); without it, the hand's direction is used. Regions only ever move
+    towards the foreground: a pixel already labelled more certainly hand
+    (by another hand) keeps its label. Labels: ``cv2.GC_BGD`` < ``GC_PR_BGD`` < ``GC_PR_FGD`` <
+    ``GC_FGD`` in certainty of being hand, painted in that order.
+    """
+    h, w = labels.shape
+    scale = hand_scale_px(keypoints)
+    if not np.isfinite(scale) or scale <= 0:
+        return
+    mask, core = draw_hand(keypoints, 0, h, w, CapsuleParams(capsule.radius_scale, forearm=False))
+    fan = np.zeros((h, w), np.uint8)
+    band = np.zeros((h, w), np.uint8)
+    seed = np.zeros((h, w), np.uint8)
+    found = hand_direction(keypoints)
+    if capsule.forearm and found is not None:
+        wrist, d, hand_len = found
+        if image is not None and arm.max_turn_deg > 0:
+            d = arm_direction(image, wrist, d, hand_len, mask, arm.max_turn_deg)
+        reach = float(np.hypot(h, w)) + float(np.hypot(*(wrist - [w / 2, h / 2])))
+        r0 = FOREARM_RADIUS_M[0] * scale * capsule.radius_scale * arm.band
+        r1 = FOREARM_RADIUS_M[1] * scale * capsule.radius_scale * arm.band
+        r_end = min(r0 + (r1 - r0) * reach / max(0.26 * scale, 1e-6), 2.0 * r1)
+        n = np.array([-d[1], d[0]])  # (2,) normal
+        # Fan: the wrist's neighbourhood plus every direction within the half-angle.
+        half = arm.fan_half_angle_deg
+        rays = [wrist + reach * _rotate(d, a) for a in np.linspace(-half, half, 9)]
+        fan_poly = np.stack([wrist + r0 * n, *rays, wrist - r0 * n])  # (11, 2)
+        cv2.fillPoly(fan, [_fixed(fan_poly)], 1, cv2.LINE_8, _SHIFT)
+        end = wrist + reach * d
+        quad = np.stack([wrist + r0 * n, end + r_end * n, end - r_end * n, wrist - r0 * n])
+        cv2.fillPoly(band, [_fixed(quad)], 1, cv2.LINE_8, _SHIFT)
+        a = wrist + arm.seed_start * hand_len * d
+        b = wrist + arm.seed_end * hand_len * d
+        thickness = max(1, round(2 * arm.seed_width * FOREARM_RADIUS_M[0] * scale))
+        cv2.line(seed, tuple(_fixed(a)), tuple(_fixed(b)), 1, thickness, cv2.LINE_8, _SHIFT)
+    # A probably-background ring round the hand lets the colour model trim fat capsules.
+    ring = cv2.dilate(mask, np.ones((3, 3), np.uint8), iterations=max(1, round(0.03 * scale)))
+    for region, label in (
+        (fan | ring, cv2.GC_PR_BGD),
+        (band | mask, cv2.GC_PR_FGD),
+        (seed | core, cv2.GC_FGD),
+    ):
+        _raise_labels(labels, region > 0, label)
+
+
+_CERTAINTY = {cv2.GC_BGD: 0, cv2.GC_PR_BGD: 1, cv2.GC_PR_FGD: 2, cv2.GC_FGD: 3}
+_LUT = np.array([0, 3, 1, 2], np.uint8)  # label -> certainty of being hand (GC codes 0..3)
+
+
+def _raise_labels(labels: np.ndarray, where: np.ndarray, label: int) -> None:
+    """Set ``labels`` to ``label`` on ``where`` where that is more certainly hand than before."""
+    higher = where & (_LUT[labels] < _CERTAINTY[label])
+    labels[higher] = label
+
+
+def grabcut_labels(
+    image: np.ndarray, labels: np.ndarray, iterations: int = 3, max_side: int = 256
+) -> np.ndarray:
+    """Foreground ``(H, W)`` uint8 of GrabCut on ``image (H, W, 3)`` RGB seeded by ``labels``.
+
+    Works in the bounding box of the non-background labels (plus an eighth of its size on each
+    side), downscaled so that its longer side is at most ``max_side`` pixels; the result is
+    upscaled back. Certain-hand labels always stay foreground. Without any background label in
+    the box, the probable-hand pixels are returned unchanged.
+    """
+    h, w = labels.shape
+    fg_any = labels != cv2.GC_BGD
+    out = (labels == cv2.GC_FGD) | (labels == cv2.GC_PR_FGD)
+    if not (labels == cv2.GC_FGD).any():
+        return out.astype(np.uint8)
+    ys, xs = np.nonzero(fg_any)
+    my, mx = max(4, (ys.max() - ys.min()) // 8), max(4, (xs.max() - xs.min()) // 8)
+    y0, y1 = max(0, ys.min() - my), min(h, ys.max() + my + 1)
+    x0, x1 = max(0, xs.min() - mx), min(w, xs.max() + mx + 1)
+    crop = cv2.cvtColor(np.ascontiguousarray(image[y0:y1, x0:x1]), cv2.COLOR_RGB2BGR)
+    lab = labels[y0:y1, x0:x1]
+    factor = min(1.0, max_side / max(crop.shape[:2]))
+    if factor < 1.0:
+        size = (max(1, round(crop.shape[1] * factor)), max(1, round(crop.shape[0] * factor)))
+        crop = cv2.resize(crop, size, interpolation=cv2.INTER_AREA)
+        small = cv2.resize(lab, size, interpolation=cv2.INTER_NEAREST)
+    else:
+        small = lab.copy()
+    if (
+        not np.isin(small, (cv2.GC_BGD, cv2.GC_PR_BGD)).any()
+        or not np.isin(small, (cv2.GC_FGD, cv2.GC_PR_FGD)).any()
+    ):
+        return out.astype(np.uint8)
+    bgd_model = np.zeros((1, 65), np.float64)
+    fgd_model = np.zeros((1, 65), np.float64)
+    cv2.setRNGSeed(0)
+    try:
+        cv2.grabCut(crop, small, None, bgd_model, fgd_model, iterations, cv2.GC_INIT_WITH_MASK)
+    except cv2.error:  # a degenerate colour model (e.g. one colour only): keep the labels
+        return out.astype(np.uint8)
+    hand = np.isin(small, (cv2.GC_FGD, cv2.GC_PR_FGD)).astype(np.uint8)  # (h', w')
+    if factor < 1.0:
+        hand = cv2.resize(hand, (x1 - x0, y1 - y0), interpolation=cv2.INTER_LINEAR)
+    result = np.zeros((h, w), np.uint8)
+    result[y0:y1, x0:x1] = hand
+    result[labels == cv2.GC_FGD] = 1
+    return result
+
+
+def connected_to(mask: np.ndarray, seeds: np.ndarray) -> np.ndarray:
+    """The parts of ``mask (H, W)`` (8-connected components) that touch ``seeds (H, W)``."""
+    count, comp = cv2.connectedComponents(mask.astype(np.uint8), connectivity=8)
+    if count <= 1:
+        return mask.astype(np.uint8)
+    keep = np.zeros(count, bool)
+    keep[np.unique(comp[(seeds > 0) & (mask > 0)])] = True
+    keep[0] = False
+    return keep[comp].astype(np.uint8)
+
+
+def hand_arm_mask(
+    image: np.ndarray,
+    keypoints: np.ndarray,
+    valid: np.ndarray,
+    capsule: CapsuleParams,
+    arm: ArmParams,
+    colour: bool = True,
+    iterations: int = 3,
+    max_side: int = 256,
+) -> np.ndarray:
+    """Hand-and-arm mask ``(H, W)`` uint8 of ``image (H, W, 3)`` from ``keypoints (K, 21, 2)``.
+
+    ``valid (K,)`` selects the hands. Without ``colour`` the mask is the probable-hand labels
+    (capsules and the forearm band along the hand's direction).
+    """
+    h, w = image.shape[:2]
+    labels = np.full((h, w), cv2.GC_BGD, np.uint8)
+    for hand, ok in zip(keypoints, valid, strict=True):
+        if ok:
+            draw_arm_labels(labels, np.asarray(hand, dtype=np.float64), capsule, arm, image)
+    if not colour:
+        return np.isin(labels, (cv2.GC_FGD, cv2.GC_PR_FGD)).astype(np.uint8)
+    mask = grabcut_labels(image, labels, iterations, max_side)
+    return connected_to(mask, labels == cv2.GC_FGD)

@@ -1,0 +1,105 @@
+"""Carry hand-and-arm masks backwards in time with optical flow.
+
+An arm that enters the view later in the clip is often already visible at the image border in
+the earlier frames, where no hand keypoint is (the wrist is still below the image). Going from
+the last frame to the first, frame ``t + 1``'s mask is pulled back into frame ``t`` through the
+dense optical flow from ``t`` to ``t + 1`` (OpenCV DIS):
+``warped_t(x) = mask_{t+1}(x + flow_{t->t+1}(x))``.
+
+Background that the arm covers at ``t + 1`` but not at ``t`` also maps into the arm, so the
+warped mask is only a proposal: pixels whose forward-backward flow agrees within
+``consistency_px`` and lie inside the eroded proposal are certainly arm, the rest of it probably
+arm, a ring round it probably background, and GrabCut on frame ``t`` decides which of the
+warped pixels stay (it never adds pixels outside the warped mask, so errors do not grow) (see
+``arm_region``). The result joins frame ``t``'s own mask, and only what connects to the certain
+pixels is kept.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from egosim.stages.hand_mask.arm_region import connected_to, grabcut_labels
+
+
+@dataclass(frozen=True)
+class PropagationParams:
+    """How masks travel backwards in time."""
+
+    consistency_px: float = 1.5  # forward-backward flow disagreement that marks occlusion
+    erode_px: int = 2  # the certain-arm core is the consistent warped mask eroded by this
+    ring_px: int = 12  # probably-background ring round the warped mask, pixels
+    min_pixels: int = 30  # warped masks smaller than this are dropped (noise)
+    iterations: int = 2  # GrabCut iterations per frame
+    max_side: int = 256  # GrabCut works at most at this longest side
+
+    def __post_init__(self) -> None:
+        problems = []
+        if not 0.0 < self.consistency_px <= 50.0:
+            problems.append(f"consistency_px must be in (0, 50], got {self.consistency_px}")
+        if not 0 <= self.erode_px <= 50 or not 1 <= self.ring_px <= 200:
+            problems.append(
+                f"erode_px in [0, 50] and ring_px in [1, 200], got {self.erode_px}, {self.ring_px}"
+            )
+        if self.min_pixels < 0 or self.iterations < 1 or self.max_side < 16:
+            problems.append(
+                f"min_pixels >= 0, iterations >= 1, max_side >= 16, got {self.min_pixels}, "
+                f"{self.iterations}, {self.max_side}"
+            )
+        if problems:
+            raise ValueError("; ".join(problems))
+
+
+def _flow(dis: cv2.DISOpticalFlow, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Dense flow ``(H, W, 2)`` float32 from grey image ``a`` to ``b`` (pixels)."""
+    return dis.calc(a, b, None)
+
+
+def _pull(image: np.ndarray, flow: np.ndarray, interpolation: int) -> np.ndarray:
+    """``image`` sampled at ``x + flow(x)`` (OpenCV remap; outside = 0)."""
+    h, w = flow.shape[:2]
+    gx, gy = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
+    return cv2.remap(
+        image, gx + flow[..., 0], gy + flow[..., 1], interpolation, borderMode=cv2.BORDER_CONSTANT
+    )
+
+
+def propagate_backwards(
+    frames: np.ndarray, masks: np.ndarray, params: PropagationParams | None = None
+) -> np.ndarray:
+    """Masks ``(T, H, W)`` uint8 with later masks carried back into earlier frames.
+
+    ``frames (T, H, W, 3)`` uint8 RGB; ``masks (T, H, W)`` uint8 (1 = hand or arm), each frame's
+    own mask. Frame ``T - 1`` is returned as given; every earlier frame gains what the
+    (already propagated) next frame's mask shows of it (see the module docstring).
+    """
+    p = params or PropagationParams()
+    out = masks.astype(np.uint8).copy()
+    if len(frames) < 2:
+        return out
+    grey = [cv2.cvtColor(f, cv2.COLOR_RGB2GRAY) for f in frames]
+    dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_FAST)
+    erode = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * p.erode_px + 1,) * 2)
+    ring = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * p.ring_px + 1,) * 2)
+    for t in range(len(frames) - 2, -1, -1):
+        if out[t + 1].sum() < p.min_pixels:
+            continue
+        fwd = _flow(dis, grey[t], grey[t + 1])  # (H, W, 2) t -> t+1
+        bwd = _flow(dis, grey[t + 1], grey[t])  # (H, W, 2) t+1 -> t
+        warped = _pull(out[t + 1], fwd, cv2.INTER_NEAREST)  # (H, W) proposal at t
+        new = (warped > 0) & (out[t] == 0)
+        if new.sum() < p.min_pixels:
+            continue
+        back = _pull(bwd, fwd, cv2.INTER_LINEAR)  # (H, W, 2) bwd at x + fwd(x)
+        consistent = np.hypot(*(fwd + back).transpose(2, 0, 1)) <= p.consistency_px
+        core = cv2.erode(warped, erode) & consistent.astype(np.uint8)
+        labels = np.full(warped.shape, cv2.GC_BGD, np.uint8)
+        labels[cv2.dilate(warped | out[t], ring) > 0] = cv2.GC_PR_BGD
+        labels[warped > 0] = cv2.GC_PR_FGD
+        labels[(core > 0) | (out[t] > 0)] = cv2.GC_FGD
+        grown = grabcut_labels(frames[t], labels, p.iterations, p.max_side) & (warped | out[t])
+        out[t] = connected_to(grown, labels == cv2.GC_FGD) | out[t]
+    return out

@@ -1,0 +1,113 @@
+"""Fill the hand pixels of frame 0 from later frames aligned in the image (no depth needed).
+
+For clips without depth, a static camera above all (the ``depth_camera`` stage gives a static
+camera no depth): each later frame is aligned to frame 0 by a homography fitted to features
+outside the hand masks (ORB matches, RANSAC), or by the identity when the camera is known to be
+static. A masked pixel of frame 0 then takes the per-channel **median** of the colours that the
+first ``candidates`` aligned frames show there unoccluded (their own masks, dilated): with a still
+camera this is the plain temporal median, and a median over several frames leaves no ghost of a
+hand that one frame's mask missed. What no frame sees goes to :func:`unseen_fill`.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from egosim.schemas.inpaint import FILL_OPENCV, FILL_ORIGINAL, FILL_REPROJECTED
+from egosim.stages.inpaint.reproject_fill import FillResult, dilate, unseen_fill
+
+MIN_MATCHES = 12  # fewer good feature matches than this: the frame is not used
+
+
+def homography_to_first(
+    frame: np.ndarray, first: np.ndarray, mask: np.ndarray, mask0: np.ndarray
+) -> np.ndarray | None:
+    """Homography ``(3, 3)`` taking pixels of ``frame`` to ``first`` (OpenCV coordinates).
+
+    Features under ``mask`` (this frame's hands) or ``mask0`` (frame 0's) are ignored. None when
+    too few matches or RANSAC inliers support one.
+    """
+    orb = cv2.ORB_create(1500)
+    grey_a = cv2.cvtColor(frame, cv2.COLOR_RGB2GRAY)
+    grey_b = cv2.cvtColor(first, cv2.COLOR_RGB2GRAY)
+    kp_a, des_a = orb.detectAndCompute(grey_a, (mask == 0).astype(np.uint8) * 255)
+    kp_b, des_b = orb.detectAndCompute(grey_b, (mask0 == 0).astype(np.uint8) * 255)
+    if des_a is None or des_b is None or len(kp_a) < MIN_MATCHES or len(kp_b) < MIN_MATCHES:
+        return None
+    matches = cv2.BFMatcher(cv2.NORM_HAMMING, crossCheck=True).match(des_a, des_b)
+    if len(matches) < MIN_MATCHES:
+        return None
+    src = np.float32([kp_a[m.queryIdx].pt for m in matches])  # (M, 2)
+    dst = np.float32([kp_b[m.trainIdx].pt for m in matches])  # (M, 2)
+    hom, inliers = cv2.findHomography(src, dst, cv2.RANSAC, 3.0)
+    if hom is None or inliers is None or int(inliers.sum()) < MIN_MATCHES:
+        return None
+    return hom
+
+
+def aligned_fill(
+    frames: np.ndarray,
+    hand_mask: np.ndarray,
+    static_camera: bool = False,
+    dilate_px: int = 2,
+    candidates: int = 5,
+    inpaint_radius: float = 5.0,
+    unseen_method: str = "telea",
+) -> FillResult:
+    """Remove the hand from ``frames[0]``; see the module docstring.
+
+    ``frames (T, H, W, 3)`` uint8 RGB, ``hand_mask (T, H, W)`` 1 = hand. ``static_camera``: use
+    the identity instead of fitted homographies. ``candidates``: frames whose colours are
+    medianed per pixel (the earliest that see it).
+    """
+    t, h, w = frames.shape[:3]
+    masks = dilate(hand_mask > 0, dilate_px)  # (T, H, W)
+    target = masks[0] > 0  # (H, W)
+    image = frames[0].copy()
+    fill_source = np.zeros((h, w), np.uint8)
+    source_frame = np.zeros((h, w), np.uint16)
+    if not target.any():
+        return FillResult(image, fill_source, source_frame, target)
+    ys, xs = np.nonzero(target)  # (M,)
+    samples = np.zeros((candidates, len(ys), 3), np.float32)  # colours per candidate slot
+    count = np.zeros(len(ys), np.int32)  # (M,) slots used per pixel
+    first_frame = np.zeros(len(ys), np.uint16)  # (M,) earliest frame that filled the pixel
+    for k in range(1, t):
+        if count.min() >= candidates:
+            break
+        if static_camera:
+            warped, free = frames[k], masks[k] == 0
+        else:
+            hom = homography_to_first(frames[k], frames[0], masks[k], masks[0])
+            if hom is None:
+                continue
+            warped = cv2.warpPerspective(frames[k], hom, (w, h), flags=cv2.INTER_LINEAR)
+            seen = cv2.warpPerspective(
+                (masks[k] == 0).astype(np.uint8), hom, (w, h), flags=cv2.INTER_NEAREST
+            )  # (H, W) 1 = unoccluded and inside frame k
+            free = seen > 0
+        ok = free[ys, xs] & (count < candidates)  # (M,)
+        if not ok.any():
+            continue
+        idx = np.nonzero(ok)[0]
+        samples[count[idx], idx] = warped[ys[idx], xs[idx]]
+        first_frame[idx[count[idx] == 0]] = k
+        count[idx] += 1
+    done = count > 0
+    if done.any():
+        filled = np.zeros((int(done.sum()), 3), np.float32)
+        for n in range(1, candidates + 1):  # median over the slots each pixel filled
+            sel = count[done] == n
+            if sel.any():
+                filled[sel] = np.median(samples[:n, np.nonzero(done)[0][sel]], axis=0)
+        image[ys[done], xs[done]] = np.clip(np.round(filled), 0, 255).astype(np.uint8)
+        fill_source[ys[done], xs[done]] = FILL_REPROJECTED
+        source_frame[ys[done], xs[done]] = first_frame[done]
+    unseen = np.zeros((h, w), np.uint8)
+    unseen[ys[~done], xs[~done]] = 1
+    if unseen.any():
+        image = unseen_fill(image, unseen, inpaint_radius, unseen_method)
+        fill_source[unseen > 0] = FILL_OPENCV
+    fill_source[~target] = FILL_ORIGINAL
+    return FillResult(image, fill_source, source_frame, target)
