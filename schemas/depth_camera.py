@@ -11,7 +11,9 @@ plane. ``posed_by`` says per frame what posed it; ``registered`` is True where a
 by estimation (not interpolated).
 
 Version 2 added ``camera_model``, ``posed_by``, ``focal_prior_px`` and the metric-scale columns
-``metric_scale``, ``scale_source``, ``scale_spread``.
+``metric_scale``, ``scale_source``, ``scale_spread``. Version 3 dropped ``seconds`` (wall-clock time
+made identical runs write different bytes; the time per task is in the run's manifest) and fills
+``metric_scale`` for ``sfm`` from the hands' size (poses and depth then in metres).
 """
 
 from __future__ import annotations
@@ -83,7 +85,7 @@ def _check_depth(row: Mapping[str, Any]) -> list[str]:
 
 def _check_figures(row: Mapping[str, Any]) -> list[str]:
     problems: list[str] = []
-    for name in ("reprojection_error_px", "confident_fraction", "seconds"):
+    for name in ("reprojection_error_px", "confident_fraction"):
         value = row.get(name)
         if value is not None and not (np.isfinite(value) and value >= 0):
             problems.append(f"{name} must be finite and >= 0, got {value}")
@@ -127,7 +129,7 @@ def _check_models(row: Mapping[str, Any]) -> list[str]:
 
 DEPTH_CAMERA = ShardSchema(
     name="depth_camera",
-    version=2,
+    version=3,
     doc="Intrinsics, per-frame camera-to-world poses and first-frame depth with confidence.",
     columns=(
         Column("clip_id", pa.string(), "Clip id, as in the clips shard."),
@@ -201,7 +203,6 @@ DEPTH_CAMERA = ShardSchema(
             "Frame indices the first-frame depth was matched against (plane sweep).",
             True,
         ),
-        Column("seconds", pa.float64(), "Wall-clock seconds the stage spent on the clip.", True),
         Column(
             "camera_model",
             pa.string(),

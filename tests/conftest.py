@@ -112,7 +112,7 @@ def write_cameras(
         "confidence0": None if static else media.encode_mask_video(np.full((1, h, w), 255)),
         "backend": "given",
         **dict.fromkeys(("reprojection_error_px", "num_points3d", "confident_fraction")),
-        **dict.fromkeys(("depth_source_frames", "seconds")),
+        "depth_source_frames": None,
         "camera_model": "static" if static else "given",
         "posed_by": [4] * t,
         "focal_prior_px": None,

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 from pathlib import Path
 
 import numpy as np
@@ -87,3 +88,22 @@ def test_egodex_file_with_a_missing_key_is_rejected_by_name(tmp_path: Path) -> N
     with ShardReader(tmp_path / "o.rejects.parquet") as reader:
         (row,) = list(reader.iter_rows())
     assert "transforms/camera" in row["reason"] and "0.hdf5" in row["reason"]
+
+
+def test_identical_runs_write_byte_identical_shards(tmp_path: Path) -> None:
+    """No wall-clock time or other run-varying value lands in shard content (issue 11)."""
+    overrides = [f"ingest.{kv}" for kv in [*TINY, "synthetic_count=1"]]
+    overrides.append("pack.frame_stride=1")
+    wf = load_workflow(REPO / "workflows" / "dataset.yaml", overrides)
+    digests = []
+    for name in ("a", "b"):
+        out = tmp_path / name
+        run_workflow(wf, out, n_workers=2, gpu_workers=0)
+        files = sorted(out.glob("*/*.parquet"))
+        assert len(files) >= len(wf.steps)
+        digests.append(
+            {str(p.relative_to(out)): hashlib.sha256(p.read_bytes()).hexdigest() for p in files}
+        )
+    assert digests[0].keys() == digests[1].keys()
+    differ = sorted(k for k in digests[0] if digests[0][k] != digests[1][k])
+    assert differ == [], f"shards that differ between identical runs: {differ}"

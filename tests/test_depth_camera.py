@@ -101,7 +101,6 @@ def test_schema_is_registered_and_validates_static_rows() -> None:
         "num_points3d": None,
         "confident_fraction": None,
         "depth_source_frames": None,
-        "seconds": 1.0,
         "camera_model": "static",
         "posed_by": [2, 2],
         "focal_prior_px": 20.0,

@@ -40,7 +40,6 @@ reject that names the figures.
 from __future__ import annotations
 
 import dataclasses
-import time
 from collections.abc import Mapping
 from typing import Any, ClassVar, Literal
 
@@ -61,6 +60,7 @@ from egosim.schemas.depth_camera import (
     POSED_BY_SOURCE,
 )
 from egosim.stages.depth_camera import da3, given
+from egosim.stages.depth_camera.metric_scale import estimate_metric_scale
 from egosim.stages.depth_camera.plane_sweep import (
     PlaneSweepParams,
     first_frame_depth,
@@ -129,6 +129,8 @@ class DepthCameraConfig(StageConfig):
     device: str = "cpu"  # torch device of the plane sweep and of da3
     da3_weights: str = ""  # da3: local folder of the Depth Anything 3 weights
     da3_process_res: int = 504  # da3: processing resolution
+    metric_scale: Literal["hand_size", "none"] = "hand_size"  # sfm: put poses and depth in
+    # metres from the hands' size prior (:mod:`.metric_scale`); none: keep SfM's units
 
     def __post_init__(self) -> None:
         problems: list[str] = []
@@ -205,6 +207,10 @@ class DepthCameraConfig(StageConfig):
         rng = self.given_depth_range
         if len(rng) != 2 or not (0 < rng[0] < rng[1] and np.isfinite(rng[1])):
             problems.append(f"given_depth_range must be (near, far) with 0 < near < far, got {rng}")
+        if self.metric_scale not in ("hand_size", "none"):
+            problems.append(
+                f"metric_scale must be 'hand_size' or 'none', got {self.metric_scale!r}"
+            )
         if problems:
             raise ConfigError("; ".join(problems))
 
@@ -295,6 +301,22 @@ class CameraEstimate:
             scale_source=source,
             scale_spread=spread,
         )
+
+
+def with_hand_size_scale(est: CameraEstimate, frames: np.ndarray) -> CameraEstimate:
+    """``est`` in metres by :func:`.metric_scale.estimate_metric_scale`, when it finds a scale.
+
+    Static and rotation-only estimates (no depth, no translation) and clips where the hands give
+    no usable estimate are returned unchanged (``scale_source`` ``none``).
+    """
+    if est.depth0 is None or est.metric_scale is not None:
+        return est
+    scale = estimate_metric_scale(
+        frames, est.intrinsics, est.world_from_cam, est.depth0, est.confidence0
+    )
+    if scale.scale is None:
+        return est
+    return est.with_scale(scale.scale, scale.source, scale.spread)
 
 
 def usable_pixels(hand_mask: np.ndarray | None, dilate_px: int) -> np.ndarray | None:
@@ -584,7 +606,7 @@ def estimate_da3(clip_id: str, frames: np.ndarray, config: DepthCameraConfig) ->
 
 
 def row_from_estimate(
-    clip_id: str, est: CameraEstimate, height: int, width: int, threshold: float, seconds: float
+    clip_id: str, est: CameraEstimate, height: int, width: int, threshold: float
 ) -> dict[str, Any]:
     """Encode a :class:`CameraEstimate` as one ``depth_camera`` row."""
     t = len(est.world_from_cam)
@@ -613,7 +635,6 @@ def row_from_estimate(
         "num_points3d": est.num_points3d,
         "confident_fraction": frac,
         "depth_source_frames": list(est.sources) if est.sources else None,
-        "seconds": seconds,
         "camera_model": est.camera_model,
         "posed_by": est.posed_by_codes().tolist(),
         "focal_prior_px": est.focal_prior_px,
@@ -628,9 +649,10 @@ class DepthCameraStage(ClipStage):
 
     name = "depth_camera"
     description = "intrinsics, poses and first-frame depth: pycolmap SfM + plane sweep, or given"
+    # 5: sfm poses and depth in metres from the hands' size prior (metric_scale)
     # 4: schema v2, background-motion static test, PnP tracking, rotation model, focal prior
     # 3: one SfM thread (reproducible); 2: visibility-aware depth confidence
-    version = 4
+    version = 5
     config_class = DepthCameraConfig
     inputs: ClassVar[Mapping[str, ShardSchema]] = {"clips": CLIPS}
     output = DEPTH_CAMERA
@@ -656,11 +678,13 @@ class DepthCameraStage(ClipStage):
         if backend == "da3":
             return estimate_da3(clip_id, frames, self.config)
         intrinsics = np.asarray(row["intrinsics"], dtype=np.float64)
-        return estimate_sfm(clip_id, frames, hand_mask, intrinsics, self.config)
+        est = estimate_sfm(clip_id, frames, hand_mask, intrinsics, self.config)
+        if self.config.metric_scale == "hand_size":
+            est = with_hand_size_scale(est, frames)
+        return est
 
     def process(self, rows: Mapping[str, Mapping[str, Any]]) -> dict[str, Any]:
         """Return the ``depth_camera`` row of one clips row."""
-        start = time.perf_counter()
         row = rows["clips"]
         est = self.estimate(row)
         return row_from_estimate(
@@ -669,5 +693,4 @@ class DepthCameraStage(ClipStage):
             int(row["height"]),
             int(row["width"]),
             self.config.confidence_threshold,
-            time.perf_counter() - start,
         )

@@ -1,0 +1,404 @@
+"""Metric scale of a reconstruction from the size of the hands in it (issue 17).
+
+SfM gives poses and frame-0 depth in arbitrary units; MediaPipe's world landmarks carry an
+average-hand size prior (wrist to middle knuckle 8-10 cm), so a hand placed in the camera by PnP
+has a metric depth. Hands touch or hover in front of the surfaces behind them, so along the ray of
+a joint its metric depth ``z_m`` plus the distance from the joint to the surface it rests on is at
+most ``s * z_s``, where ``z_s`` is the depth of the scene surface under the joint in
+reconstruction units and ``s`` the wanted scale in metres per unit, with equality at contact.
+
+Method, for one clip (:func:`estimate_metric_scale`):
+
+1. **Landmarks**: MediaPipe Hands in video mode (:mod:`egosim.stages.common.hand_landmarks`):
+   per detection 21 pixel landmarks and 21 metric world landmarks.
+2. **Metric joints**: the translation that makes the world landmarks project onto the pixel
+   landmarks (linear least squares with ``K``, a translation-only PnP) gives camera-frame joints
+   in metres; detections smaller than ``min_hand_px`` are skipped.
+3. **Scene depth under each joint**: frame 0's depth is lifted to world points with
+   ``world_from_cam[0]`` and splatted into frame ``t`` with a z-buffer (frame 0 uses ``depth0``
+   itself). ``z_s`` is the median of the known depths within ``window_px`` of the joint's pixel
+   (this also bridges the splat's pinholes); a window that spans a depth edge (max/min above
+   ``1 + max_edge_rel``) or has fewer than ``min_window_pixels`` known depths gives no sample.
+   A joint where frame ``t`` shows frame 0's scene colour (the splatted colour differs by less
+   than ``min_colour_diff``) is hidden behind the scene, not in front of it, and is dropped.
+4. **Per detection**: ``r = (z_m + contact_offset_m) / z_s`` per joint; the detection's estimate
+   is the ``joint_quantile`` (0.75) quantile of its joints' ``r``: the part of the hand nearest
+   its surface, but not the single highest joint (fingers curled behind an object and hidden by
+   the back of the hand itself have ``r > s``; no colour test sees them).
+5. **Rule**: the scale is the ``contact_quantile`` (0.9) quantile of the per-detection
+   estimates: hands at rest or touching sit at the top of the distribution, reaching/hovering
+   ones below it, and the top decile is left out as outliers. ``spread`` is the MAD / median of
+   the per-detection estimates at or above their median (how well the contact half agrees).
+   Fewer than ``min_detections`` usable detections: ``scale`` is None and ``reason`` says why.
+
+``contact_offset_m`` (3 cm), ``joint_quantile`` and ``contact_quantile`` were tuned on the
+synthetic world, tabletop seeds 0-1 (61 frames, 480x832, poses and depth scaled by 0.37 and 2.9,
+frame-0 depth masked under the hands), oracle and MediaPipe landmarks together. Scale error
+(estimate / truth - 1), from ``.venv/bin/python tests/test_metric_scale.py MODE:SEED ...``:
+
+- tuned on: tabletop 0 oracle +0.6%, MediaPipe -4.8%; tabletop 1 oracle +2.5%, MediaPipe +2.5%.
+- held out, oracle: tabletop 2 -2.1%, 3 +3.9%, 4 +1.4%; wild 0 -1.4%, 1 +0.1%, 2 -2.3%,
+  3 +2.2%, 4 +0.5%.
+- held out, MediaPipe: wild 0 +10.7% (9 usable detections, spread 0.063). All other held-out
+  clips give ``scale=None``: MediaPipe finds no capsule hand in tabletop 2-3, wild 2 (also not
+  in per-image mode at detection confidence 0.1) and 2-8 in wild 1, 3, 4; in tabletop 4 it finds
+  only the resting left hand, which never leaves the pixels masked at frame 0, so no scene depth
+  lies under it (``fill_px`` inpaints such holes; off by default, not yet measured to help).
+
+The error is the same for both factors (the method is scale-equivariant). Known biases: the size
+prior (MediaPipe's hands came out 3% near on median, +-8% per detection), hands that never
+touch a visible surface (the estimate is then low by their hover gap), and moving objects (frame
+0's depth shows them where they were).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from egosim.pipeline.geometry import invert_se3, project_points, transform_points, unproject_depth
+from egosim.stages.common.hand_landmarks import (
+    HandLandmarkParams,
+    HandLandmarks,
+    detect_hand_landmarks,
+    place_in_camera,
+)
+
+SOURCE_HAND_SIZE = "hand_size"  # ScaleEstimate.source of this estimator
+ALL_JOINTS = tuple(range(21))  # MANO/MediaPipe joint indices
+
+
+class MetricScaleParamsError(ValueError):
+    """A :class:`MetricScaleParams` field holds an invalid value; names every bad one."""
+
+
+class MetricScaleInputError(ValueError):
+    """The inputs of :func:`estimate_metric_scale` disagree in shape; names every problem."""
+
+
+@dataclass(frozen=True)
+class MetricScaleParams:
+    """Knobs of :func:`estimate_metric_scale`."""
+
+    detector: HandLandmarkParams = field(default_factory=HandLandmarkParams)  # MediaPipe
+    joints: tuple[int, ...] = ALL_JOINTS  # joints that give samples (MediaPipe order)
+    contact_offset_m: float = 0.03  # depth from a resting hand's joint centres to the surface it
+    # rests on, metres (half a hand's thickness, longer along oblique rays); tuned, tabletop 0-1
+    window_px: int = 3  # z_s: median of known depths within this many pixels of the joint
+    min_window_pixels: int = 5  # fewer known depths in the window: no sample
+    max_edge_rel: float = 0.15  # window max/min depth above 1 + this: a depth edge, no sample
+    fill_px: int = 0  # frame-0 depth holes (under hands) are inpainted up to this many pixels
+    # from known depth (a hand that stays where it was at frame 0); 0 = off (not yet measured)
+    min_confidence: float = 0.5  # depth0 pixels with confidence0 below this count as unknown
+    min_colour_diff: float = 20.0  # joint hidden by the scene: frame t matches frame 0's splat
+    # there (mean over the window of the max channel difference below this, 0..255); 0 = no test
+    colour_window_px: int = 1  # window half size of the colour test, pixels
+    min_hand_px: float = 24.0  # detections whose landmark box diagonal is smaller are skipped
+    min_joint_samples: int = 5  # a detection needs this many joint samples to count
+    joint_quantile: float = 0.75  # per detection: this quantile of its joints' ratios (tuned)
+    contact_quantile: float = 0.9  # per clip: this quantile of the per-detection estimates (tuned)
+    spread_from_quantile: float = 0.5  # spread: MAD/median of the estimates above this quantile
+    min_detections: int = 5  # fewer usable detections: no scale
+
+    def __post_init__(self) -> None:
+        problems: list[str] = []
+        if not self.joints or any(not 0 <= j < 21 for j in self.joints):
+            problems.append(f"joints must be a non-empty tuple of indices 0..20, got {self.joints}")
+        for name in ("joint_quantile", "contact_quantile", "spread_from_quantile"):
+            value = getattr(self, name)
+            if not 0.0 <= value <= 1.0:
+                problems.append(f"{name} must be in [0, 1], got {value!r}")
+        for name in ("contact_offset_m", "max_edge_rel", "min_confidence", "min_hand_px"):
+            value = getattr(self, name)
+            if not (np.isfinite(value) and value >= 0):
+                problems.append(f"{name} must be finite and >= 0, got {value!r}")
+        for name in ("window_px", "colour_window_px", "fill_px"):
+            if getattr(self, name) < 0:
+                problems.append(f"{name} must be >= 0, got {getattr(self, name)!r}")
+        if not 0.0 <= self.min_colour_diff <= 255.0:
+            problems.append(f"min_colour_diff must be in [0, 255], got {self.min_colour_diff!r}")
+        for name in ("min_window_pixels", "min_joint_samples", "min_detections"):
+            if getattr(self, name) < 1:
+                problems.append(f"{name} must be >= 1, got {getattr(self, name)!r}")
+        if problems:
+            raise MetricScaleParamsError("invalid MetricScaleParams: " + "; ".join(problems))
+
+
+@dataclass(frozen=True)
+class ScaleEstimate:
+    """Metric scale of a reconstruction and how well its samples agree."""
+
+    scale: float | None  # metres per reconstruction unit; None when it could not be estimated
+    spread: float | None  # MAD / median of the contact estimates (relative); None with no scale
+    num_samples: int  # usable detections (frame, hand) that gave an estimate
+    source: str = SOURCE_HAND_SIZE  # metric cue the scale comes from
+    reason: str = ""  # why scale is None ("" when it is set)
+
+
+def splat_depth(
+    depth0: np.ndarray,
+    intrinsics: np.ndarray,
+    world_from_cam0: np.ndarray,
+    world_from_cam_t: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Frame 0's depth ``(H, W)`` seen from camera ``t``, z-buffered.
+
+    Each known pixel of ``depth0`` is lifted to the world with ``world_from_cam0 (4, 4)``, moved
+    into camera ``t`` (``world_from_cam_t (4, 4)``) and written to the pixel it projects into;
+    where several land on one pixel the nearest wins. Returns ``depth (H, W)`` (0 = unknown) and
+    ``source (H, W)`` int64, the flat frame-0 pixel index each pixel came from (-1 = none).
+    """
+    h, w = depth0.shape
+    known = np.isfinite(depth0) & (depth0 > 0)  # (H, W)
+    points_cam0 = unproject_depth(np.where(known, depth0, 0.0), intrinsics)[known]  # (P, 3)
+    src = np.flatnonzero(known)  # (P,) flat frame-0 pixel of each point
+    t_from_0 = invert_se3(world_from_cam_t) @ world_from_cam0  # (4, 4)
+    points_t = transform_points(t_from_0, points_cam0)  # (P, 3)
+    uv, z = project_points(points_t, intrinsics)  # (P, 2), (P,)
+    ok = np.isfinite(uv).all(axis=1) & (z > 0)
+    cols = np.floor(uv[ok, 0]).astype(np.int64)  # (Q,)
+    rows = np.floor(uv[ok, 1]).astype(np.int64)  # (Q,)
+    z, src = z[ok], src[ok]
+    inside = (cols >= 0) & (cols < w) & (rows >= 0) & (rows < h)
+    flat = rows[inside] * w + cols[inside]  # (Q',)
+    z, src = z[inside], src[inside]
+    order = np.argsort(z, kind="stable")  # nearest first
+    uniq, first = np.unique(flat[order], return_index=True)
+    depth = np.zeros(h * w)
+    depth[uniq] = z[order][first]
+    source = np.full(h * w, -1, dtype=np.int64)
+    source[uniq] = src[order][first]
+    return depth.reshape(h, w), source.reshape(h, w)
+
+
+def fill_depth_holes(depth: np.ndarray, fill_px: int) -> np.ndarray:
+    """``depth (H, W)`` with unknown pixels (0 / NaN) within ``fill_px`` of known ones inpainted.
+
+    OpenCV's Telea inpainting continues the surrounding surface into the hole (the table under
+    a hand that hid it at frame 0). Pixels further than ``fill_px`` from known depth stay 0.
+    """
+    known = np.isfinite(depth) & (depth > 0)  # (H, W)
+    if fill_px <= 0 or known.all() or not known.any():
+        return np.where(known, depth, 0.0)
+    hole = (~known).astype(np.uint8)  # (H, W) 1 = unknown
+    dist = cv2.distanceTransform(hole, cv2.DIST_L2, 5)  # (H, W) px to the nearest known pixel
+    filled = cv2.inpaint(np.where(known, depth, 0.0).astype(np.float32), hole, 5, cv2.INPAINT_TELEA)
+    return np.where(known, depth, np.where(dist <= fill_px, filled.astype(np.float64), 0.0))
+
+
+def surface_depth(depth: np.ndarray, uv: np.ndarray, params: MetricScaleParams) -> np.ndarray:
+    """Scene depth ``(N,)`` under pixels ``uv (N, 2)`` of ``depth (H, W)``; NaN = no sample.
+
+    The median of the known depths within ``window_px``; NaN where fewer than
+    ``min_window_pixels`` are known or the window spans a depth edge.
+    """
+    h, w = depth.shape
+    r = params.window_px
+    out = np.full(len(uv), np.nan)
+    for n, (u, v) in enumerate(uv):
+        if not (np.isfinite(u) and np.isfinite(v)):
+            continue
+        col, row = int(np.floor(u)), int(np.floor(v))
+        if not (0 <= col < w and 0 <= row < h):
+            continue
+        patch = depth[max(0, row - r) : row + r + 1, max(0, col - r) : col + r + 1]
+        values = patch[np.isfinite(patch) & (patch > 0)]  # (M,)
+        if values.size < params.min_window_pixels:
+            continue
+        if values.max() > (1.0 + params.max_edge_rel) * values.min():
+            continue
+        out[n] = float(np.median(values))
+    return out
+
+
+def scene_visible(
+    frame_t: np.ndarray,
+    scene_t: np.ndarray,
+    known: np.ndarray,
+    uv: np.ndarray,
+    params: MetricScaleParams,
+) -> np.ndarray:
+    """Per pixel ``uv (N, 2)``: does frame ``t`` show frame 0's scene there (the joint is hidden)?
+
+    ``frame_t (H, W, 3)`` uint8, ``scene_t (H, W, 3)`` frame 0's colours splatted into view ``t``,
+    ``known (H, W)`` bool where the splat has a value. True where the mean over the window of
+    the per-pixel max channel difference is below ``min_colour_diff``: the hand is not in front
+    of that surface there, so the joint lies behind it (e.g. fingers around an object). ``(N,)``.
+    """
+    h, w = known.shape
+    r = params.colour_window_px
+    out = np.zeros(len(uv), dtype=bool)
+    diff = np.abs(frame_t.astype(np.int16) - scene_t.astype(np.int16)).max(axis=-1)  # (H, W)
+    for n, (u, v) in enumerate(uv):
+        col, row = int(np.floor(u)), int(np.floor(v))
+        if not (0 <= col < w and 0 <= row < h):
+            continue
+        win = (slice(max(0, row - r), row + r + 1), slice(max(0, col - r), col + r + 1))
+        ok = known[win]
+        if ok.any():
+            out[n] = float(diff[win][ok].mean()) < params.min_colour_diff
+    return out
+
+
+def detection_samples(
+    landmarks: HandLandmarks,
+    frames: np.ndarray,
+    intrinsics: np.ndarray,
+    world_from_cam: np.ndarray,
+    depth0: np.ndarray,
+    params: MetricScaleParams,
+    measured0: np.ndarray | None = None,
+) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Per usable detection, its joints' metric and surface depths: ``(z_m (J,), z_s (J,))``.
+
+    ``landmarks`` holds ``uv (T, K, 21, 2)`` pixels and metric ``world (T, K, 21, 3)``;
+    ``frames (T, H, W, 3)`` uint8 RGB; ``depth0 (H, W)`` is frame 0's depth in reconstruction
+    units (0 or NaN = unknown). Joints hidden behind the scene (:func:`scene_visible`) are
+    dropped from frames after the first; the colour test uses only ``measured0 (H, W)`` bool
+    pixels (depth measured, not filled: a filled pixel's colour is the hand that hid it;
+    default: every known pixel of ``depth0``).
+    """
+    if measured0 is None:
+        measured0 = np.isfinite(depth0) & (depth0 > 0)
+    measured_flat = measured0.reshape(-1)  # (H*W,)
+    joints = np.asarray(params.joints)
+    out: list[tuple[np.ndarray, np.ndarray]] = []
+    t_count = landmarks.present.shape[0]
+    for t in range(t_count):
+        slots = [k for k in np.flatnonzero(landmarks.present[t])]
+        if not slots:
+            continue
+        scene_t = None
+        if t == 0:
+            depth_t = np.where(np.isfinite(depth0), depth0, 0.0)
+        else:
+            depth_t, source = splat_depth(depth0, intrinsics, world_from_cam[0], world_from_cam[t])
+            if params.min_colour_diff > 0:
+                scene_t = frames[0].reshape(-1, 3)[np.maximum(source, 0)]  # (H*W, 3)
+                scene_t = scene_t.reshape(frames.shape[1:])  # (H, W, 3)
+        for k in slots:
+            uv, world = landmarks.uv[t, k], landmarks.world[t, k]  # (21, 2), (21, 3)
+            if not (np.isfinite(uv).all() and np.isfinite(world).all()):
+                continue
+            if np.linalg.norm(uv.max(axis=0) - uv.min(axis=0)) < params.min_hand_px:
+                continue
+            points_cam = place_in_camera(uv, world, intrinsics)  # (21, 3) metres
+            z_m = points_cam[joints, 2]  # (J,)
+            z_s = surface_depth(depth_t, uv[joints], params)  # (J,)
+            ok = np.isfinite(z_s) & (z_m > 0)
+            if scene_t is not None:
+                seen = (source >= 0) & measured_flat[np.maximum(source, 0)]  # (H, W)
+                ok &= ~scene_visible(frames[t], scene_t, seen, uv[joints], params)
+            if ok.sum() < params.min_joint_samples:
+                continue
+            out.append((z_m[ok], z_s[ok]))
+    return out
+
+
+def scale_from_samples(
+    samples: list[tuple[np.ndarray, np.ndarray]], params: MetricScaleParams
+) -> ScaleEstimate:
+    """Apply the contact rule (module docstring, steps 4-5) to :func:`detection_samples`."""
+    per_detection = np.array(
+        [
+            np.quantile((z_m + params.contact_offset_m) / z_s, params.joint_quantile)
+            for z_m, z_s in samples
+        ]
+    )
+    n = len(per_detection)
+    if n < params.min_detections:
+        return ScaleEstimate(
+            scale=None,
+            spread=None,
+            num_samples=n,
+            reason=f"{n} usable hand detections, need {params.min_detections}",
+        )
+    scale = float(np.quantile(per_detection, params.contact_quantile))
+    top = per_detection[per_detection >= np.quantile(per_detection, params.spread_from_quantile)]
+    median = float(np.median(top))
+    spread = float(np.median(np.abs(top - median)) / median)
+    return ScaleEstimate(scale=scale, spread=spread, num_samples=n)
+
+
+def _check_inputs(
+    landmarks: HandLandmarks,
+    frames: np.ndarray,
+    intrinsics: np.ndarray,
+    world_from_cam: np.ndarray,
+    depth0: np.ndarray | None,
+    confidence0: np.ndarray | None,
+) -> None:
+    """Raise :class:`MetricScaleInputError` listing every shape disagreement."""
+    problems: list[str] = []
+    t = landmarks.present.shape[0]
+    if frames.ndim != 4 or frames.shape[0] != t or frames.shape[-1] != 3:
+        problems.append(f"frames must be (T={t}, H, W, 3), got {frames.shape}")
+    if np.shape(intrinsics) != (4,):
+        problems.append(f"intrinsics must be (4,), got {np.shape(intrinsics)}")
+    if np.shape(world_from_cam) != (t, 4, 4):
+        problems.append(f"world_from_cam must be (T={t}, 4, 4), got {np.shape(world_from_cam)}")
+    for name, image in (("depth0", depth0), ("confidence0", confidence0)):
+        if image is not None and np.shape(image) != frames.shape[1:3]:
+            problems.append(f"{name} must be (H, W) = {frames.shape[1:3]}, got {np.shape(image)}")
+    if problems:
+        raise MetricScaleInputError("; ".join(problems))
+
+
+def scale_from_landmarks(
+    landmarks: HandLandmarks,
+    frames: np.ndarray,
+    intrinsics: np.ndarray,
+    world_from_cam: np.ndarray,
+    depth0: np.ndarray | None,
+    confidence0: np.ndarray | None,
+    params: MetricScaleParams | None = None,
+) -> ScaleEstimate:
+    """Steps 2-5 of the module docstring on given landmarks (MediaPipe's, or an oracle's).
+
+    Shapes as :func:`estimate_metric_scale`; ``landmarks`` has ``T`` frames. Raises
+    :class:`MetricScaleInputError` when the shapes disagree.
+    """
+    params = params or MetricScaleParams()
+    _check_inputs(landmarks, frames, intrinsics, world_from_cam, depth0, confidence0)
+    if depth0 is None:
+        return ScaleEstimate(None, None, 0, reason="no frame-0 depth (static camera?)")
+    depth0 = np.asarray(depth0, dtype=np.float64)
+    if confidence0 is not None:
+        depth0 = np.where(np.asarray(confidence0) >= params.min_confidence, depth0, 0.0)
+    if not np.any(np.isfinite(depth0) & (depth0 > 0)):
+        return ScaleEstimate(None, None, 0, reason="frame-0 depth has no known pixel")
+    if not landmarks.present.any():
+        return ScaleEstimate(None, None, 0, reason="no hand detected")
+    measured0 = np.isfinite(depth0) & (depth0 > 0)  # (H, W)
+    depth0 = fill_depth_holes(depth0, params.fill_px)
+    samples = detection_samples(
+        landmarks, frames, intrinsics, world_from_cam, depth0, params, measured0
+    )
+    return scale_from_samples(samples, params)
+
+
+def estimate_metric_scale(
+    frames: np.ndarray,
+    intrinsics: np.ndarray,
+    world_from_cam: np.ndarray,
+    depth0: np.ndarray | None,
+    confidence0: np.ndarray | None,
+    params: MetricScaleParams | None = None,
+) -> ScaleEstimate:
+    """Metres per reconstruction unit of a clip, from the hands' metric size prior.
+
+    ``frames (T, H, W, 3)`` uint8 RGB; ``intrinsics (4,)`` fx, fy, cx, cy in pixels;
+    ``world_from_cam (T, 4, 4)`` in reconstruction units; ``depth0 (H, W)`` frame-0 z-depth in
+    the same units, 0 = unknown (None: no scale); ``confidence0 (H, W)`` in [0, 1] or None.
+    Raises :class:`~egosim.stages.common.hand_landmarks.MediaPipeUnavailableError` without
+    MediaPipe.
+    """
+    params = params or MetricScaleParams()
+    if depth0 is None:  # no detection needed
+        return ScaleEstimate(None, None, 0, reason="no frame-0 depth (static camera?)")
+    landmarks = detect_hand_landmarks(frames, params.detector)
+    return scale_from_landmarks(
+        landmarks, frames, intrinsics, world_from_cam, depth0, confidence0, params
+    )
