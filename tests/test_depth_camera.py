@@ -108,7 +108,7 @@ def test_schema_is_registered_and_validates_static_rows() -> None:
         "scale_source": "none",
         "scale_spread": None,
     }
-    assert DEPTH_CAMERA.version == 2
+    assert DEPTH_CAMERA.version == 3
     assert DEPTH_CAMERA.row_problems(row) == []
     bad = dict(row, world_from_cam=[np.eye(4).ravel().tolist(), (2 * np.eye(4)).ravel().tolist()])
     bad["registered"] = [True]
