@@ -10,7 +10,7 @@ import numpy as np
 from egosim.pipeline.records import Clip
 from egosim.pipeline.stage import ClipRejected
 from egosim.stages.world.clip import render_clip
-from egosim.stages.world.config import WorldConfig
+from egosim.stages.world.config import VARIANTS, WorldConfig
 
 
 class SyntheticFormat(Protocol):
@@ -24,22 +24,28 @@ class SyntheticFormat(Protocol):
     synthetic_count: int
     synthetic_mode: str
     synthetic_articulated_every: int
+    synthetic_variant: str
     seed: int
 
 
 def list_units(cfg: SyntheticFormat) -> list[str]:
-    """One unit per generated clip: ``synthetic:<mode>:<seed>[:articulated]``."""
+    """One unit per generated clip: ``synthetic:<mode>:<seed>[:articulated][:<variant>]``.
+
+    The variant is named only when it is not the default one, so default units are unchanged.
+    """
     units = []
     for i in range(cfg.synthetic_count):
         every = cfg.synthetic_articulated_every
         articulated = every > 0 and i % every == every - 1
         suffix = ":articulated" if articulated else ""
+        if cfg.synthetic_variant != "default":
+            suffix += f":{cfg.synthetic_variant}"
         units.append(f"synthetic:{cfg.synthetic_mode}:{cfg.seed + i}{suffix}")
     return units
 
 
 def render_unit(spec: str, cfg: SyntheticFormat) -> Clip:
-    """Render the clip a unit spec (``<mode>:<seed>[:articulated]``) names.
+    """Render the clip a unit spec (``<mode>:<seed>[:articulated][:<variant>]``) names.
 
     The world renders exactly ``num_frames`` frames at ``fps``, so the clip is one full window
     of its own source (``source_frame_indices`` 0..T-1).
@@ -49,6 +55,7 @@ def render_unit(spec: str, cfg: SyntheticFormat) -> Clip:
         mode, seed = parts[0], int(parts[1])
     except (IndexError, ValueError) as exc:
         raise ClipRejected(f"bad synthetic unit {spec!r}") from exc
+    variants = [p for p in parts[2:] if p in VARIANTS]
     world = WorldConfig(
         seed=seed,
         mode=mode,
@@ -57,9 +64,11 @@ def render_unit(spec: str, cfg: SyntheticFormat) -> Clip:
         num_frames=cfg.num_frames,
         fps=cfg.fps,
         articulated="articulated" in parts[2:],
+        variant=variants[-1] if variants else "default",
     )
     kind = "art" if world.articulated else mode
-    clip = render_clip(world, clip_id=f"synth-{kind}-{seed:05d}")
+    tag = "" if world.variant == "default" else f"{world.variant}-"
+    clip = render_clip(world, clip_id=f"synth-{tag}{kind}-{seed:05d}")
     return replace(
         clip,
         source_fps=float(cfg.fps),

@@ -6,6 +6,7 @@ import numpy as np
 
 from egosim.pipeline.geometry import intrinsics_from_fov
 from egosim.pipeline.records import Clip
+from egosim.stages.world.camera_alt import alt_fov_deg, camera_path_alt
 from egosim.stages.world.camera_path import camera_path
 from egosim.stages.world.config import WorldConfig
 from egosim.stages.world.hands import (
@@ -14,10 +15,12 @@ from egosim.stages.world.hands import (
     hand_joints_world,
     hand_mesh,
 )
+from egosim.stages.world.hands_alt import AltBody
 from egosim.stages.world.interaction import LEFT_SIDE, RIGHT_SIDE, Interaction, script_interaction
 from egosim.stages.world.meshes import Mesh
 from egosim.stages.world.render import WorldRenderer, to_uint8
-from egosim.stages.world.scene import build_scene
+from egosim.stages.world.scene import Scene, build_scene
+from egosim.stages.world.scene_alt import build_scene_alt
 
 SKIN_TONES = np.array(
     [[0.96, 0.80, 0.69], [0.90, 0.70, 0.56], [0.78, 0.57, 0.42], [0.56, 0.38, 0.26]]
@@ -54,6 +57,38 @@ def _elbow(wrist: np.ndarray, world_from_cam: np.ndarray, side: int) -> np.ndarr
     return wrist + FOREARM_LENGTH * direction / np.linalg.norm(direction)
 
 
+def _default_parts(
+    joints: np.ndarray, world_from_hand: np.ndarray, world_from_cam: np.ndarray
+) -> list[Mesh]:
+    """``[left hand, left forearm, right hand, right forearm]`` meshes of the default variant.
+
+    ``joints (2, 21, 3)`` and ``world_from_hand (2, 4, 4)`` are the left and right hands.
+    """
+    parts: list[Mesh] = []
+    for side_index, side in enumerate(SIDES):
+        wrist = joints[side_index, 0]
+        parts.append(hand_mesh(joints[side_index], world_from_hand[side_index], side))
+        parts.append(forearm_mesh(wrist, _elbow(wrist, world_from_cam, side)))
+    return parts
+
+
+def _setup(config: WorldConfig) -> tuple[Scene, np.ndarray, np.ndarray]:
+    """Scene, intrinsics ``(4,)`` and ``world_from_cam (T, 4, 4)`` of the config's variant."""
+    t, h, w = config.num_frames, config.height, config.width
+    if config.variant == "alt":
+        fov = alt_fov_deg(config.seed, config.horizontal_fov_deg)
+        return (
+            build_scene_alt(config.seed, config.articulated),
+            intrinsics_from_fov(w, h, fov),
+            camera_path_alt(config.seed, config.mode, t, config.fps),
+        )
+    return (
+        build_scene(config.seed, config.articulated),
+        intrinsics_from_fov(w, h, config.horizontal_fov_deg),
+        camera_path(config.seed, config.mode, t, config.fps),
+    )
+
+
 def render_clip(config: WorldConfig, clip_id: str | None = None) -> Clip:
     """Render the clip of ``config``: interaction and static videos plus all ground truth.
 
@@ -65,15 +100,17 @@ def render_clip(config: WorldConfig, clip_id: str | None = None) -> Clip:
     instance ids ``1..N`` (index into ``object_poses`` plus one) where no hand covers them.
     """
     t, h, w = config.num_frames, config.height, config.width
-    scene = build_scene(config.seed, config.articulated)
-    intrinsics = intrinsics_from_fov(w, h, config.horizontal_fov_deg)
-    world_from_cam = camera_path(config.seed, config.mode, t, config.fps)  # (T, 4, 4)
+    scene, intrinsics, world_from_cam = _setup(config)  # world_from_cam (T, 4, 4)
     inter = script_interaction(scene, config.seed, t, config.articulated)
     joints = hand_joints(inter)  # (T, 2, 21, 3)
-    rng = np.random.default_rng([config.seed, 4])
-    skin = SKIN_TONES[int(rng.integers(0, len(SKIN_TONES)))] * rng.uniform(0.95, 1.05, 3)
-    sleeve = rng.uniform(0.1, 0.6, 3)
-    part_colours = np.stack([skin, sleeve, skin, sleeve]).astype(np.float32)  # (4, 3)
+    alt_body = AltBody(config.seed) if config.variant == "alt" else None
+    if alt_body is None:
+        rng = np.random.default_rng([config.seed, 4])
+        skin = SKIN_TONES[int(rng.integers(0, len(SKIN_TONES)))] * rng.uniform(0.95, 1.05, 3)
+        sleeve = rng.uniform(0.1, 0.6, 3)
+        part_colours = np.stack([skin, sleeve, skin, sleeve]).astype(np.float32)  # (4, 3)
+    else:
+        part_colours = alt_body.colours  # (4, 3)
 
     renderer = WorldRenderer(scene, intrinsics, h, w)
     n_bg = len(scene.background)
@@ -95,12 +132,8 @@ def render_clip(config: WorldConfig, clip_id: str | None = None) -> Clip:
             moving = static
         else:
             moving = renderer.render_static(cam, inter.object_poses[k], rays)
-        parts: list[Mesh] = []
-        for side_index, side in enumerate(SIDES):
-            pose = inter.world_from_hand[k, side_index]
-            wrist = joints[k, side_index, 0]
-            parts.append(hand_mesh(joints[k, side_index], pose, side))
-            parts.append(forearm_mesh(wrist, _elbow(wrist, cam, side)))
+        body = _default_parts if alt_body is None else alt_body.parts
+        parts = body(joints[k], inter.world_from_hand[k], cam)  # 2 meshes per hand, left first
         hands = renderer.render_meshes(cam, parts, part_colours)
         on_hand = hands.depth < moving.depth  # (H, W)
         frames[k] = to_uint8(np.where(on_hand[..., None], hands.rgb, moving.rgb))
@@ -112,7 +145,8 @@ def render_clip(config: WorldConfig, clip_id: str | None = None) -> Clip:
         hand_valid[k] = [np.any(on_hand & (hands.ids // 2 == s)) for s in range(2)]
     if clip_id is None:
         kind = "lid" if config.articulated else "pick"
-        clip_id = f"synthetic-{config.mode}-{kind}-{config.seed:06d}"
+        variant = "" if config.variant == "default" else f"{config.variant}-"
+        clip_id = f"synthetic-{variant}{config.mode}-{kind}-{config.seed:06d}"
     return Clip(
         clip_id=clip_id,
         source="synthetic",

@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 MODES = ("tabletop", "wild")
+VARIANTS = ("default", "alt")  # differently made worlds; see WorldConfig.variant
 
 
 class WorldConfigError(ValueError):
@@ -22,8 +23,12 @@ class WorldConfig:
     width: int = 832  # image width in pixels
     num_frames: int = 61  # number of frames T
     fps: float = 16.0  # frames per second
-    horizontal_fov_deg: float = 75.0  # horizontal field of view of the pinhole camera, degrees
+    horizontal_fov_deg: float = 75.0  # horizontal FOV of the pinhole camera, degrees ("alt"
+    # adds a per-seed offset in [-15, 15] and clips the result to [10, 150])
     articulated: bool = False  # True: the right hand opens a hinged lid instead of moving an object
+    variant: str = "default"  # "default": the world the stages were tuned on; "alt": held-out
+    # world (ellipsoid hands, sleeved arms with elbows, per-seed FOV, higher steeper head, round
+    # table, other objects, colours and textures), for checking stages off their tuning world
 
     def __post_init__(self) -> None:
         problems: list[str] = []
@@ -48,5 +53,7 @@ class WorldConfig:
             problems.append(f"horizontal_fov_deg must be in [10, 150], got {fov!r}")
         if not isinstance(self.articulated, bool):
             problems.append(f"articulated must be a bool, got {self.articulated!r}")
+        if self.variant not in VARIANTS:
+            problems.append(f"variant must be one of {VARIANTS}, got {self.variant!r}")
         if problems:
             raise WorldConfigError("invalid WorldConfig: " + "; ".join(problems))
