@@ -649,7 +649,8 @@ class DepthCameraStage(ClipStage):
 
     name = "depth_camera"
     description = "intrinsics, poses and first-frame depth: pycolmap SfM + plane sweep, or given"
-    # 5: sfm poses and depth in metres from the hands' size prior (metric_scale)
+    # 5: sfm poses and depth in metres from the hands' size prior (metric_scale); static test
+    # takes still corners as the background, skips occluded frames, tolerates an end bump
     # 4: schema v2, background-motion static test, PnP tracking, rotation model, focal prior
     # 3: one SfM thread (reproducible); 2: visibility-aware depth confidence
     version = 5
