@@ -12,6 +12,11 @@ Steps, for one clip:
    and a tile's detection is kept where the full frame found no hand near it
    (:func:`merge_tile_detections`). On the real DWM Aria clips this raised the frames with a
    detection from 1 to 12 of 49 (00013) and found the second hand in 00017.
+   Then every hand found is followed forwards and backwards in time into the frames that miss
+   it (``track_misses``): MediaPipe's landmark model is run directly, with a TFLite runtime, on
+   the ROI its previous landmarks predict, moved by optical flow
+   (:mod:`egosim.stages.hands.roi_landmarks`), so a hand found at frame 3 is also found at
+   frames 0-2. On DWM clip 00013 this raised left-hand recall from 0.17 to 1.0, right 0.42 to 0.79.
 2. **Sides** (:func:`assign_sides`): MediaPipe's labels assume a mirrored (selfie) image, so on
    egocentric video its "Left" is the real right hand, and the labels flip now and then. Detections
    are linked into tracks (nearest centroid frame to frame); each track takes one side from its
@@ -47,6 +52,7 @@ import numpy as np
 from egosim.pipeline.geometry import transform_points
 from egosim.pipeline.records import LEFT, NUM_HAND_JOINTS, RIGHT, Clip
 from egosim.stages.hands.filters import Detections
+from egosim.stages.hands.roi_landmarks import LandmarkModel, TrackParams, track_through_misses
 
 BRIDGED_CONFIDENCE_FACTOR = 0.5  # confidence of interpolated frames relative to detected ones
 MIDDLE_MCP = 9  # joint index of the middle finger's knuckle (hand size: wrist to it)
@@ -90,6 +96,8 @@ class MediaPipeParams:
     duplicate_distance: float = 0.5  # a tile hand this near a kept hand (in hand sizes) is the same
     lift: str = "palm_pnp"  # 3D lift: "palm_pnp" (template palm PnP) or "translation" (old)
     prefer_fingers_away: bool = True  # palm PnP: of its two poses take knuckles beyond the wrist
+    track_misses: bool = True  # follow found hands through misses (needs ai-edge-litert)
+    track: TrackParams = TrackParams()  # noqa: RUF009 (frozen) how hands are followed
 
 
 @dataclass
@@ -100,6 +108,7 @@ class RawLandmarks:
     world: np.ndarray  # (T, K, 21, 3) float64 metres about the hand's centre
     label_right: np.ndarray  # (T, K) float64 score that this is the real right hand, in [0, 1]
     present: np.ndarray  # (T, K) bool
+    tracked: np.ndarray | None = None  # (T, K) bool found by following a hand (None: none were)
 
 
 @dataclass
@@ -168,6 +177,11 @@ def detect_landmarks(frames: np.ndarray, params: MediaPipeParams | None = None) 
     finally:
         for hands in (full, *tiled):
             hands.close()
+    if params.track_misses:
+        model = LandmarkModel(params.model_complexity)
+        out.tracked = track_through_misses(
+            frames, out.uv, out.world, out.label_right, out.present, model, params.track
+        )
     return out
 
 

@@ -134,7 +134,8 @@ class HandsStage(ClipStage):
     name = "hands"
     # 2: mediapipe lifts by palm PnP (not translation only), drops overlapping detections,
     # links tracks across gaps less far; the spike filter also tests the palm's orientation.
-    version = 2
+    # 3: mediapipe follows found hands through detector misses, forwards and backwards in time.
+    version = 3
     description = "3D hand joints per frame from the clip's labels, de-duplicated and de-spiked"
     config_class = HandsConfig
     inputs: ClassVar[Mapping[str, ShardSchema]] = {"clips": CLIPS}

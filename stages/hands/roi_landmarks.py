@@ -1,0 +1,281 @@
+"""MediaPipe's hand landmark model run directly on regions we choose (tracking through misses).
+
+MediaPipe Hands finds a hand with its palm detector and then follows it with the landmark model on a
+region of interest (ROI) predicted from the previous frame's landmarks; when the landmark model's
+hand-presence score drops below ``min_tracking_confidence`` the hand is dropped and only the palm
+detector can find it again. On head-mounted footage the palm detector misses most small, partial
+and sleeved hands, so a hand that MediaPipe found once is lost for good a frame later. Here the same
+landmark model (``hand_landmark_full.tflite``, shipped inside the ``mediapipe`` 0.10.21 wheel) is
+run with a TFLite runtime (``ai-edge-litert``) on ROIs built the way MediaPipe builds them
+(:func:`roi_from_landmarks`), carried from frame to frame by optical flow
+(:func:`flow_shift`), forwards and backwards in time from every detection
+(:func:`track_through_misses`), so a hand found at frame 3 is also followed back to frame 0.
+
+Crops are rotated so that the wrist-to-knuckles direction points up, as MediaPipe's are; the
+landmarks come back in crop pixels and are mapped to the frame through the same affine map.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from egosim.pipeline.records import NUM_HAND_JOINTS
+
+INPUT_SIZE = 224  # the landmark model's square input, pixels
+# Landmarks MediaPipe builds its tracking ROI from: wrist, thumb CMC/MCP/IP, index, middle, ring and
+# pinky MCP and PIP (hand_landmark_landmarks_to_roi.pbtxt).
+ROI_JOINTS = (0, 1, 2, 3, 5, 6, 9, 10, 13, 14, 17, 18)
+ROI_SCALE = 2.0  # the ROI's side over the rotated box of ROI_JOINTS (MediaPipe's value)
+ROI_SHIFT = -0.1  # ROI centre moved along the hand's axis by this fraction of the box (MediaPipe)
+
+
+class LandmarkRuntimeUnavailableError(ImportError):
+    """No TFLite runtime (``ai-edge-litert``) or no landmark model in the ``mediapipe`` wheel."""
+
+
+@dataclass(frozen=True)
+class Roi:
+    """A square, rotated region of a frame: its centre, side and the hand's up direction."""
+
+    centre: np.ndarray  # (2,) pixels (u right, v down)
+    side: float  # pixels
+    up: np.ndarray  # (2,) unit vector in the frame that the crop's up (-v) maps to
+
+    def crop_from_frame(self) -> np.ndarray:
+        """Affine ``(2, 3)`` taking frame pixels to crop pixels (``INPUT_SIZE`` square)."""
+        return cv2.invertAffineTransform(self.frame_from_crop())
+
+    def frame_from_crop(self) -> np.ndarray:
+        """Affine ``(2, 3)`` taking crop pixels to frame pixels."""
+        s = self.side / INPUT_SIZE
+        ex = np.array([-self.up[1], self.up[0]])  # (2,) crop x axis in the frame
+        ey = -self.up  # (2,) crop y axis (down) in the frame
+        lin = s * np.stack([ex, ey], axis=1)  # (2, 2) columns: crop axes in the frame
+        offset = self.centre - lin @ np.array([INPUT_SIZE / 2, INPUT_SIZE / 2])  # (2,)
+        return np.concatenate([lin, offset[:, None]], axis=1)
+
+
+def roi_from_landmarks(uv: np.ndarray) -> Roi:
+    """MediaPipe's tracking ROI for the next frame from landmarks ``uv (21, 2)`` pixels.
+
+    The hand's up direction runs from the wrist to the mean of the middle knuckle and of the
+    index/ring knuckles' mean; the box of :data:`ROI_JOINTS` in that rotated frame, shifted by
+    :data:`ROI_SHIFT` along the hand and scaled by :data:`ROI_SCALE` (long side), is the ROI.
+    """
+    wrist = uv[0]
+    knuckles = 0.5 * (0.5 * (uv[5] + uv[13]) + uv[9])  # (2,)
+    up = knuckles - wrist
+    norm = float(np.linalg.norm(up))
+    up = up / norm if norm > 1e-6 else np.array([0.0, -1.0])
+    ex = np.array([-up[1], up[0]])  # (2,) crop x in the frame
+    pts = uv[list(ROI_JOINTS)]  # (12, 2)
+    local = np.stack([pts @ ex, pts @ -up], axis=1)  # (12, 2) rotated coordinates
+    lo, hi = local.min(axis=0), local.max(axis=0)
+    mid = 0.5 * (lo + hi)  # (2,) rotated
+    size = hi - lo  # (2,) box width, height in rotated axes
+    mid = mid + np.array([0.0, ROI_SHIFT * size[1]])
+    centre = mid[0] * ex + mid[1] * -up  # (2,) back to the frame
+    return Roi(centre=centre, side=float(ROI_SCALE * max(size.max(), 1.0)), up=up)
+
+
+@dataclass
+class RoiLandmarks:
+    """The landmark model's answer on one ROI."""
+
+    uv: np.ndarray  # (21, 2) frame pixels
+    world: np.ndarray  # (21, 3) metres about the hand's centre (MediaPipe's world landmarks)
+    presence: float  # hand-presence score in [0, 1]
+    right: float  # score that this is a right hand as seen in the (unmirrored) frame, [0, 1]
+
+
+def _model_path(complexity: int) -> Path:
+    """The landmark ``.tflite`` inside the installed ``mediapipe`` wheel."""
+    import importlib.util
+
+    spec = importlib.util.find_spec("mediapipe")
+    if spec is None or not spec.submodule_search_locations:
+        raise LandmarkRuntimeUnavailableError("mediapipe is not installed (make setup)")
+    name = "hand_landmark_full.tflite" if complexity else "hand_landmark_lite.tflite"
+    path = Path(spec.submodule_search_locations[0]) / "modules" / "hand_landmark" / name
+    if not path.is_file():
+        raise LandmarkRuntimeUnavailableError(f"{path}: no landmark model (mediapipe 0.10.21)")
+    return path
+
+
+class LandmarkModel:
+    """``hand_landmark_{full,lite}.tflite`` on ROIs, one thread (see the module docstring)."""
+
+    def __init__(self, complexity: int = 1, num_threads: int = 1) -> None:
+        try:
+            from ai_edge_litert.interpreter import Interpreter
+        except ImportError as exc:
+            raise LandmarkRuntimeUnavailableError(
+                "ROI tracking needs a TFLite runtime: pip install ai-edge-litert"
+            ) from exc
+        self._interp = Interpreter(model_path=str(_model_path(complexity)), num_threads=num_threads)
+        self._interp.allocate_tensors()
+        self._input = self._interp.get_input_details()[0]["index"]
+        # Outputs by name: Identity landmarks (63), _1 presence, _2 handedness, _3 world (63).
+        self._out = {d["name"]: d["index"] for d in self._interp.get_output_details()}
+
+    def run(self, frame: np.ndarray, roi: Roi) -> RoiLandmarks:
+        """Landmarks of the hand in ``roi`` of ``frame (H, W, 3)`` uint8 RGB."""
+        crop = cv2.warpAffine(
+            frame,
+            roi.crop_from_frame(),
+            (INPUT_SIZE, INPUT_SIZE),
+            flags=cv2.INTER_LINEAR,
+            borderMode=cv2.BORDER_CONSTANT,
+        )  # (224, 224, 3)
+        x = (crop.astype(np.float32) / 255.0)[None]  # (1, 224, 224, 3) in [0, 1]
+        self._interp.set_tensor(self._input, x)
+        self._interp.invoke()
+        lm = self._interp.get_tensor(self._out["Identity"]).reshape(NUM_HAND_JOINTS, 3)
+        presence = float(self._interp.get_tensor(self._out["Identity_1"]).ravel()[0])
+        right = float(self._interp.get_tensor(self._out["Identity_2"]).ravel()[0])
+        world = self._interp.get_tensor(self._out["Identity_3"]).reshape(NUM_HAND_JOINTS, 3)
+        m = roi.frame_from_crop()  # (2, 3)
+        uv = lm[:, :2].astype(np.float64) @ m[:, :2].T + m[:, 2]  # (21, 2) frame pixels
+        return RoiLandmarks(uv, world.astype(np.float64), presence, right)
+
+
+@dataclass(frozen=True)
+class TrackParams:
+    """Knobs of :func:`track_through_misses`."""
+
+    min_presence: float = 0.2  # landmark model's hand-presence score needed to keep a tracked hand
+    refine: bool = True  # re-run the model on the ROI of its own best first answer (hand moved)
+    scales: tuple[float, ...] = (1.0, 1.3)  # ROI sides tried, relative to the predicted one
+    shifts: tuple[float, ...] = (0.0, 0.15)  # ROI moves tried, down the image, in ROI sides
+    unmoved: bool = True  # also try the predicted ROI without the optical flow's shift
+    max_size_change: float = 1.6  # a tracked hand's size may change at most this factor per frame
+    max_jump: float = 1.0  # ... and its centre move at most this many hand sizes per frame
+    duplicate_distance: float = 0.5  # a hand this near (in hand sizes) one already there is it
+    flow: bool = True  # carry the ROI by the optical flow of the landmarks between frames
+    max_steps: int = 1000  # frames a hand is followed from its last palm-detector detection
+
+
+def flow_shift(prev_gray: np.ndarray, next_gray: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Median displacement ``(2,)`` pixels of ``points (N, 2)`` from one grey frame to the next
+    (pyramidal Lucas-Kanade); zero when no point is followed."""
+    p0 = np.ascontiguousarray(points, dtype=np.float32).reshape(-1, 1, 2)
+    p1, status, _ = cv2.calcOpticalFlowPyrLK(
+        prev_gray, next_gray, p0, None, winSize=(21, 21), maxLevel=3
+    )
+    ok = status.ravel() == 1
+    if not ok.any():
+        return np.zeros(2)
+    return np.median((p1 - p0).reshape(-1, 2)[ok], axis=0).astype(np.float64)
+
+
+def _size(uv: np.ndarray) -> float:
+    return float(np.linalg.norm(uv.max(axis=0) - uv.min(axis=0)))
+
+
+def track_through_misses(
+    frames: np.ndarray,
+    uv: np.ndarray,
+    world: np.ndarray,
+    label_right: np.ndarray,
+    present: np.ndarray,
+    model: LandmarkModel,
+    params: TrackParams | None = None,
+) -> np.ndarray:
+    """Follow every detected hand forwards and backwards in time into frames that lack it.
+
+    ``frames (T, H, W, 3)`` uint8 RGB; ``uv (T, K, 21, 2)``, ``world (T, K, 21, 3)``,
+    ``label_right (T, K)`` and ``present (T, K)`` are the detections, filled in place where a
+    followed hand lands in a free slot. A hand at frame ``f`` is looked for at ``f +- 1`` in the
+    ROI its landmarks predict (:func:`roi_from_landmarks`, moved by :func:`flow_shift`) unless a
+    hand is already there; it is kept when the model's presence score is at least
+    ``min_presence`` and its size and position stay plausible, and then followed on. Returns
+    ``tracked (T, K)`` bool: the slots filled here.
+    """
+    params = params or TrackParams()
+    t = present.shape[0]
+    tracked = np.zeros_like(present)
+    steps = np.where(present, 0, -1)  # (T, K) frames since a detection, -1 = empty
+    grey = [cv2.cvtColor(f, cv2.COLOR_RGB2GRAY) if params.flow else None for f in frames]
+    for direction in (1, -1):
+        order = range(t) if direction > 0 else range(t - 1, -1, -1)
+        for f in order:
+            g = f + direction
+            if not 0 <= g < t:
+                continue
+            for k in np.flatnonzero(present[f]):
+                if steps[f, k] >= params.max_steps:
+                    continue
+                src = uv[f, k]  # (21, 2)
+                size = _size(src)
+                if _near_any(src.mean(axis=0), size, uv[g], present[g], params.duplicate_distance):
+                    continue
+                free = np.flatnonzero(~present[g])
+                if free.size == 0:
+                    continue
+                res = _search(model, frames[g], src, grey[f], grey[g], params)
+                if res.presence < params.min_presence:
+                    continue
+                new_size = _size(res.uv)
+                ratio = new_size / max(size, 1e-6)
+                jump = float(np.linalg.norm(res.uv.mean(axis=0) - src.mean(axis=0)))
+                if not (1 / params.max_size_change <= ratio <= params.max_size_change):
+                    continue
+                if jump > params.max_jump * max(size, new_size):
+                    continue
+                if _near_any(
+                    res.uv.mean(axis=0), new_size, uv[g], present[g], params.duplicate_distance
+                ):
+                    continue  # it slid onto a hand already there
+                s = int(free[0])
+                uv[g, s], world[g, s], label_right[g, s] = res.uv, res.world, res.right
+                present[g, s], tracked[g, s] = True, True
+                steps[g, s] = steps[f, k] + 1
+    return tracked
+
+
+def _search(
+    model: LandmarkModel,
+    frame: np.ndarray,
+    src: np.ndarray,
+    grey_from: np.ndarray | None,
+    grey_to: np.ndarray | None,
+    params: TrackParams,
+) -> RoiLandmarks:
+    """The most present hand among ROIs around the one ``src (21, 2)`` predicts in ``frame``.
+
+    Tried: the predicted ROI moved by the optical flow (when ``params.flow``) at every scale and
+    downward shift of ``params`` (head-mounted cameras tilt up and down, so hands move mostly
+    vertically in the image), and unmoved; the best answer is refined once on its own ROI.
+    """
+    base = roi_from_landmarks(src)
+    moves = [np.zeros(2)]
+    if params.flow and grey_from is not None and grey_to is not None:
+        moves = [flow_shift(grey_from, grey_to, src)] + ([np.zeros(2)] if params.unmoved else [])
+    rois = [
+        Roi(base.centre + move + np.array([0.0, shift * base.side]), base.side * scale, base.up)
+        for i, move in enumerate(moves)
+        for scale in (params.scales if i == 0 else (1.0,))
+        for shift in (params.shifts if i == 0 else (0.0,))
+    ]
+    best = max((model.run(frame, roi) for roi in rois), key=lambda r: r.presence)
+    if params.refine and best.presence >= params.min_presence:
+        again = model.run(frame, roi_from_landmarks(best.uv))
+        if again.presence >= best.presence:
+            best = again
+    return best
+
+
+def _near_any(
+    centre: np.ndarray, size: float, uv: np.ndarray, present: np.ndarray, distance: float
+) -> bool:
+    """Whether a present hand of ``uv (K, 21, 2)`` has its centre within ``distance`` sizes."""
+    for k in np.flatnonzero(present):
+        other = uv[k]
+        limit = distance * max(size, _size(other))
+        if np.linalg.norm(other.mean(axis=0) - centre) <= limit:
+            return True
+    return False
