@@ -22,10 +22,10 @@ from typing import Annotated
 import typer
 
 from egosim.pipeline.check import check_paths
-from egosim.pipeline.execute import ShardTask, run_shard_task, task_fingerprint
 from egosim.pipeline.media import MediaError
 from egosim.pipeline.records import ClipValueError
-from egosim.pipeline.shards import ShardError, ShardReader
+from egosim.pipeline.runner import IN_PROCESS, RunError, plan_stage, run_tasks_here, run_workflow
+from egosim.pipeline.shards import ShardError, ShardReader, find_shards, shard_file_name
 from egosim.pipeline.stage import SourceStage, StageError, get_stage, registered_stages
 from egosim.pipeline.summary import (
     FinalStepEmptyError,
@@ -36,7 +36,6 @@ from egosim.pipeline.summary import (
 )
 from egosim.pipeline.workflow import load_workflow
 from egosim.schemas import SchemaError
-from egosim.schemas.ids import path_under, validate_id
 
 app = typer.Typer(
     help="egosim: egocentric hand-object videos to world-simulator training data.",
@@ -79,6 +78,32 @@ def _params(items: list[str], flag: str) -> dict[str, str]:
     return out
 
 
+# `--param k=v` was the flag of `stage`, `simulate` and `evaluate` before `--set` (every
+# command's flag now); it is kept as a hidden alias and warns.
+PARAM_ALIAS = typer.Option("--param", hidden=True, help="Deprecated: use --set.")
+
+# Where `simulate` and `evaluate` run their workflow's tasks (default: this process).
+SCHEDULER_OPTION = typer.Option(
+    "--scheduler",
+    help="'here' (this process, no Dask), 'local' (a local Dask cluster) or tcp://HOST:PORT.",
+)
+
+# The repository's workflow files (`egosim simulate` and `evaluate` run theirs).
+WORKFLOWS_DIR = Path(__file__).resolve().parents[1] / "workflows"
+
+
+def _settings(set_: list[str] | None, param: list[str] | None) -> dict[str, str]:
+    """``--set k=v`` values, with the deprecated ``--param k=v`` ones before them."""
+    if param:
+        typer.secho("warning: --param is deprecated; use --set", fg=typer.colors.YELLOW, err=True)
+    return {**_params(param or [], "--param"), **_params(set_ or [], "--set")}
+
+
+def _scheduler(name: str) -> str | None:
+    """The runner's scheduler for a ``--scheduler`` value ('local' = a local Dask cluster)."""
+    return None if name == "local" else name
+
+
 @app.command()
 def run(
     workflow: Annotated[Path, typer.Argument(help="Workflow YAML file.")],
@@ -87,7 +112,10 @@ def run(
         str | None, typer.Option("--input", help="Input path for source steps (ingest).")
     ] = None,
     scheduler: Annotated[
-        str | None, typer.Option("--scheduler", help="Existing Dask scheduler, tcp://HOST:PORT.")
+        str | None,
+        typer.Option(
+            "--scheduler", help="Existing Dask scheduler tcp://HOST:PORT, or 'here' (no Dask)."
+        ),
     ] = None,
     workers: Annotated[
         int | None, typer.Option("--workers", help="Local cluster size (default: cores).")
@@ -108,8 +136,6 @@ def run(
     4  a final step wrote no clip
     """
     from rich.progress import Progress
-
-    from egosim.pipeline.runner import RunError, run_workflow
 
     try:
         wf = load_workflow(workflow, set_ or [])
@@ -147,52 +173,34 @@ def stage(
         list[str] | None,
         typer.Option("--input", help="Input shard, role=path for several roles, or ingest path."),
     ] = None,
-    param: Annotated[
-        list[str] | None, typer.Option("--param", help="Stage parameter key=value.")
+    set_: Annotated[
+        list[str] | None,
+        typer.Option("--set", help="Stage parameter key=value (nested: a.b=value)."),
     ] = None,
+    param: Annotated[list[str] | None, PARAM_ALIAS] = None,
 ) -> None:
     """Run one stage on one shard, in this process, without a cluster.
 
-    Ends with the same summary and exit codes as `egosim run`:
+    The task is planned by the runner as a one-step workflow (same fingerprint as a one-shard
+    `egosim run`). Ends with the same summary and exit codes as `egosim run`:
     3 when the stage rejected every clip (or ingest made no clip),
     4 when it wrote no clip and rejected none (an empty input).
     """
     try:
         stage_cls = get_stage(name)
-        stage_obj = stage_cls.from_params(_params(param or [], "--param"))
-        rejects = output.with_name(output.stem + ".rejects.parquet")
-        common = {
-            "step": name,
-            "stage": name,
-            "params": stage_obj.params(),
-            "shard_index": 0,
-            "shard_count": 1,
-            "output": output,
-            "rejects": rejects,
-        }
-        if isinstance(stage_obj, SourceStage):
-            sources = input or [None]
-            units = [u for src in sources for u in stage_obj.list_units(src)]
-            if not units:
-                raise StageError(f"no inputs found under {input}")
-            fps = {u: stage_obj.unit_fingerprint(u) for u in units}
-            task = ShardTask(**common, units=tuple(units), input_fingerprints=fps)
+        params = _settings(set_, param)
+        if issubclass(stage_cls, SourceStage):
+            task = plan_stage(name, params, output, source=input or None)
         else:
             roles = list(stage_cls.inputs)
             given = dict(i.split("=", 1) if "=" in i else (roles[0], i) for i in input or [])
             inputs = {role: Path(p) for role, p in given.items()}
-            in_fps = {}
-            for role, p in inputs.items():
-                with ShardReader(p) as reader:
-                    in_fps[role] = reader.meta.fingerprint
-            task = ShardTask(**common, inputs=inputs, input_fingerprints=in_fps)
-        fp = task_fingerprint(stage_cls, task.params, task.input_fingerprints, 0, 1)
-        task = dataclasses.replace(task, fingerprint=fp)
-        result = run_shard_task(task)
+            task = plan_stage(name, params, output, inputs=inputs)
+        (result,) = run_tasks_here([task])
         report = summarize_tasks([task])
     except USER_ERRORS as exc:
         raise _fail(exc) from exc
-    typer.echo(f"{output}: {result.rows} rows, {result.rejected} rejected (see {rejects})")
+    typer.echo(f"{output}: {result.rows} rows, {result.rejected} rejected (see {task.rejects})")
     _finish_with_report(report)
 
 
@@ -296,7 +304,7 @@ def synth(
                 typer.echo(f"wrote {hdf5}")
             return
         for start in range(0, n, per_shard):
-            path = out / f"shard-{start // per_shard:05d}.parquet"
+            path = out / shard_file_name(start // per_shard)
             clips = (render_clip(c) for c in configs[start : start + per_shard])
             count = write_clips(path, clips, stage="synth", params={"mode": mode, "seed": seed})
             typer.echo(f"wrote {path} ({count} clips)")
@@ -341,7 +349,7 @@ def train(
         params: dict[str, object] = {"preset": preset, **_params(set_ or [], "--set")}
         if steps is not None:
             params["steps"] = steps
-        config = build_config(TrainConfig, params, where="train")  # type: ignore[arg-type]
+        config = build_config(TrainConfig, params, where="train")
         job = TrainJob(tuple(str(p) for p in data), str(out), config, not fresh, sample_steps)
         summary = submit_training(job, scheduler) if scheduler else run_training(job)
     except _model_errors() as exc:
@@ -355,27 +363,12 @@ def train(
     )
 
 
-def _shard_task(stage_name: str, params: dict, inputs: dict[str, Path], out: Path, i: int, n: int):
-    """A one-shard task of ``stage_name`` writing ``out/shard-i`` (fingerprinted like `run`)."""
-    stage_cls = get_stage(stage_name)
-    stage_obj = stage_cls.from_params(params)
-    in_fps = {}
-    for role, path in inputs.items():
-        with ShardReader(path) as reader:
-            in_fps[role] = reader.meta.fingerprint
-    task = ShardTask(
-        step=stage_name,
-        stage=stage_name,
-        params=stage_obj.params(),
-        shard_index=i,
-        shard_count=n,
-        output=out / f"shard-{i:05d}.parquet",
-        rejects=out / f"rejects-{i:05d}.parquet",
-        inputs=inputs,
-        input_fingerprints=in_fps,
-    )
-    fp = task_fingerprint(stage_cls, task.params, in_fps, i, n)
-    return dataclasses.replace(task, fingerprint=fp)
+def _bundled_workflow(workflow: Path | None, file_name: str) -> Path:
+    """``workflow``, or the repository's ``workflows/FILE_NAME`` when none is given."""
+    path = workflow if workflow is not None else WORKFLOWS_DIR / file_name
+    if not path.is_file():
+        raise FileNotFoundError(f"no workflow file at {path} (give one with --workflow)")
+    return path
 
 
 @app.command()
@@ -383,20 +376,30 @@ def simulate(
     data: Annotated[
         list[Path], typer.Option("--data", help="Pack shards, folders of them, or a run folder.")
     ],
-    out: Annotated[Path, typer.Option("--out", help="Folder for simulation shards and videos.")],
+    out: Annotated[Path, typer.Option("--out", help="Run folder for simulation shards, videos.")],
     checkpoint: Annotated[
         str,
         typer.Option(
             "--checkpoint", help="Run directory or .safetensors checkpoint ('' = untrained)."
         ),
     ] = "",
-    param: Annotated[
-        list[str] | None, typer.Option("--param", help="simulate parameter key=value (steps=50).")
+    set_: Annotated[
+        list[str] | None,
+        typer.Option("--set", help="simulate parameter key=value (e.g. steps=50)."),
     ] = None,
+    param: Annotated[list[str] | None, PARAM_ALIAS] = None,
+    workflow: Annotated[
+        Path | None, typer.Option("--workflow", help="Workflow file (default simulate.yaml).")
+    ] = None,
+    scheduler: Annotated[str, SCHEDULER_OPTION] = IN_PROCESS,
 ) -> None:
-    """Generate every packed clip; writes OUT/shard-*.parquet and OUT/videos/<clip_id>.mp4."""
-    from egosim.pipeline.media import decode_rgb_video, write_video_file
+    """Generate every packed clip: runs workflows/simulate.yaml, then writes the videos.
+
+    Writes OUT/simulate/shard-*.parquet (with the run's manifest, rejects and summary) and
+    OUT/videos/<clip_id>.mp4; a re-run skips the shards that are done.
+    """
     from egosim.stages.pack.dataset import find_pack_shards
+    from egosim.stages.simulate.videos import write_videos
 
     try:
         if checkpoint:
@@ -405,21 +408,21 @@ def simulate(
 
             # Refuse a pickle before any task runs (inside a task it would reject every clip).
             refuse_pickle(resolve_checkpoint(checkpoint))
-        params = {"checkpoint": checkpoint, **_params(param or [], "--param")}
-        shards = find_pack_shards(data)
-        for i, shard in enumerate(shards):
-            task = _shard_task("simulate", params, {"pack": shard}, out, i, len(shards))
-            result = run_shard_task(task)
-            with ShardReader(task.output) as reader:
-                for row in reader.iter_rows():
-                    video = decode_rgb_video(row["video"], row["height"], row["width"])
-                    clip_id = validate_id(row["clip_id"])
-                    path = path_under(out, "videos", f"{clip_id}.mp4")
-                    path.parent.mkdir(parents=True, exist_ok=True)
-                    write_video_file(path, video, fps=row["fps"])
-            typer.echo(f"{task.output}: {result.rows} clips, {result.rejected} rejected")
+        settings = {"checkpoint": checkpoint, **_settings(set_, param)}
+        wf = load_workflow(
+            _bundled_workflow(workflow, "simulate.yaml"),
+            [f"simulate.{k}={v}" for k, v in settings.items()],
+        )
+        summary = run_workflow(
+            wf, out, scheduler=_scheduler(scheduler), inputs={"pack": find_pack_shards(data)}
+        )
+        for result in sorted(summary.results, key=lambda r: r.shard_index):
+            typer.echo(f"{result.output}: {result.rows} clips, {result.rejected} rejected")
+        shards = [Path(r.output) for r in sorted(summary.results, key=lambda r: r.shard_index)]
+        videos = write_videos(shards, out / "videos")
     except _model_errors() as exc:
         raise _fail(exc) from exc
+    typer.echo(f"wrote {len(videos)} video(s) under {out / 'videos'}")
 
 
 @app.command()
@@ -428,26 +431,38 @@ def evaluate(
         list[Path], typer.Option("--data", help="Pack shards, folders of them, or a run folder.")
     ],
     simulation: Annotated[
-        Path, typer.Option("--simulation", help="Folder written by `egosim simulate`.")
+        Path, typer.Option("--simulation", help="Run folder written by `egosim simulate`.")
     ],
-    out: Annotated[Path, typer.Option("--out", help="Folder for evaluation shards.")],
-    param: Annotated[
+    out: Annotated[Path, typer.Option("--out", help="Run folder for evaluation shards.")],
+    set_: Annotated[
         list[str] | None,
-        typer.Option("--param", help="evaluate parameter key=value (camera_backend=sfm)."),
+        typer.Option("--set", help="evaluate parameter key=value (e.g. camera_backend=sfm)."),
     ] = None,
+    param: Annotated[list[str] | None, PARAM_ALIAS] = None,
+    workflow: Annotated[
+        Path | None, typer.Option("--workflow", help="Workflow file (default eval.yaml).")
+    ] = None,
+    scheduler: Annotated[str, SCHEDULER_OPTION] = IN_PROCESS,
 ) -> None:
-    """Evaluate generated clips against their pack samples; prints per-clip and overall tables."""
+    """Evaluate generated clips against their pack samples: runs workflows/eval.yaml.
+
+    Shard i of --data is paired with shard i of --simulation; prints per-clip and overall tables.
+    """
     from egosim.stages.evaluate.report import format_table, read_evaluations
     from egosim.stages.pack.dataset import find_pack_shards
 
     try:
-        params = _params(param or [], "--param")
-        shards = find_pack_shards(data)
-        for i, shard in enumerate(shards):
-            sim = simulation / f"shard-{i:05d}.parquet"
-            inputs = {"pack": shard, "simulation": sim}
-            run_shard_task(_shard_task("evaluate", params, inputs, out, i, len(shards)))
-        typer.echo(format_table(read_evaluations([out])))
+        wf = load_workflow(
+            _bundled_workflow(workflow, "eval.yaml"),
+            [f"evaluate.{k}={v}" for k, v in _settings(set_, param).items()],
+        )
+        inputs = {
+            "pack": find_pack_shards(data),
+            "simulation": find_shards([simulation], "simulate"),
+        }
+        summary = run_workflow(wf, out, scheduler=_scheduler(scheduler), inputs=inputs)
+        shards = [Path(r.output) for r in sorted(summary.results, key=lambda r: r.shard_index)]
+        typer.echo(format_table(read_evaluations(shards)))
     except _model_errors() as exc:
         raise _fail(exc) from exc
 

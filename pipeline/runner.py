@@ -18,11 +18,16 @@
   that killed or failed runs left behind.
 - Before a task is skipped as done, its output is read and verified (page checksums, content
   hashes); a damaged output is removed and recomputed.
+- The runner is the one planner: :func:`plan_tasks` builds every :class:`ShardTask` and its
+  fingerprint. ``egosim stage`` plans a one-step workflow (:func:`plan_stage`) and runs it here
+  (:func:`run_tasks_here`); ``simulate`` and ``evaluate`` run their workflow files with the given
+  shards as the workflow's ``inputs``, in this process (``scheduler=IN_PROCESS``) or on Dask.
 """
 
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import fcntl
 import json
 import logging
@@ -30,7 +35,7 @@ import math
 import os
 import uuid
 import warnings
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -44,15 +49,15 @@ from egosim.pipeline.shards import (
     ShardReader,
     ShardWriter,
     read_shard_meta,
+    rejects_file_name,
+    shard_file_name,
     verify_shard,
 )
-from egosim.pipeline.stage import SourceStage, StageError, get_stage
+from egosim.pipeline.stage import SourceStage, StageError, config_to_data, get_stage
 from egosim.pipeline.summary import RunReport, summarize_tasks
-from egosim.pipeline.workflow import Workflow
+from egosim.pipeline.workflow import Step, Workflow
 from egosim.schemas import REJECTS, SchemaError
 from egosim.schemas.ids import path_under, validate_id
-
-log = logging.getLogger(__name__)
 
 
 class RunError(StageError):
@@ -103,8 +108,6 @@ def remove_stale_temporaries(out: Path) -> list[Path]:
         if path.is_file() and not path.is_symlink():
             path.unlink(missing_ok=True)
             removed.append(path)
-    if removed:
-        log.info("removed %d stale temporary file(s) under %s", len(removed), out)
     return removed
 
 
@@ -124,7 +127,7 @@ def discard_if_damaged(task: ShardTask) -> bool:
     try:
         verify_shard(task.output)
     except CorruptShardError as exc:
-        log.warning("recomputing %s: %s", task.output, exc)
+        warnings.warn(f"recomputing {task.output}: {exc}", stacklevel=2)
         task.output.unlink(missing_ok=True)
         return True
     return False
@@ -151,18 +154,35 @@ def shard_path(out: Path, step: str, index: int) -> Path:
     ``step`` must be a valid identifier and the path must stay under ``out``
     (:class:`~egosim.schemas.ids.InvalidIdError`, :class:`~egosim.schemas.ids.PathEscapeError`).
     """
-    return path_under(out, validate_id(step, "step name"), f"shard-{index:05d}.parquet")
+    return path_under(out, validate_id(step, "step name"), shard_file_name(index))
 
 
 def rejects_path(out: Path, step: str, index: int) -> Path:
     """Where the rejects of shard ``index`` of ``step`` live (checked like :func:`shard_path`)."""
-    return path_under(out, validate_id(step, "step name"), f"rejects-{index:05d}.parquet")
+    return path_under(out, validate_id(step, "step name"), rejects_file_name(index))
 
 
-def plan_tasks(workflow: Workflow, source: str | None, out: Path) -> list[ShardTask]:
-    """Turn a workflow into tasks, in dependency order, with their fingerprints."""
+# A step's shards as its readers see them: (path, fingerprint) per shard index.
+_Shards = list[tuple[Path, str]]
+
+
+def plan_tasks(
+    workflow: Workflow,
+    source: str | Sequence[str] | None,
+    out: Path,
+    inputs: Mapping[str, Sequence[Path]] | None = None,
+    one_shard: bool = False,
+) -> list[ShardTask]:
+    """Turn a workflow into tasks, in dependency order, with their fingerprints.
+
+    This is the one place where shard tasks and their fingerprints are built (``egosim run``,
+    ``egosim stage``, ``simulate`` and ``evaluate`` all plan here). ``source`` is the input of
+    source steps (several for ``egosim stage ingest``); ``inputs`` gives the shards of each
+    workflow input (``Workflow.inputs``), fingerprinted by their provenance. ``one_shard`` puts
+    every unit of a source step in one shard (``egosim stage``).
+    """
+    by_step = _given_inputs(workflow, inputs or {})
     tasks: list[ShardTask] = []
-    by_step: dict[str, list[ShardTask]] = {}
     for step in workflow.steps:
         stage_cls = get_stage(step.stage)
         stage = stage_cls.from_params(step.params)
@@ -170,21 +190,15 @@ def plan_tasks(workflow: Workflow, source: str | None, out: Path) -> list[ShardT
         # Per shard: (units, input paths by role, input fingerprints by role or unit).
         shards: list[tuple[tuple[str, ...], dict[str, Path], dict[str, str]]] = []
         if isinstance(stage, SourceStage):
-            units = stage.list_units(source)
-            if not units:
-                raise RunError(f"step {step.name!r}: no inputs found under {source!r}")
-            per = max(1, stage.units_per_shard())
-            for i in range(math.ceil(len(units) / per)):
-                chunk = tuple(units[i * per : (i + 1) * per])
-                shards.append((chunk, {}, {u: stage.unit_fingerprint(u) for u in chunk}))
+            shards = _source_shards(step.name, stage, source, one_shard)
         else:
             counts = {role: len(by_step[up]) for role, up in step.inputs.items()}
             if len(set(counts.values())) != 1:
                 raise RunError(f"step {step.name!r}: inputs have different shard counts {counts}")
             for i in range(next(iter(counts.values()))):
                 ups = {role: by_step[up][i] for role, up in step.inputs.items()}
-                paths = {role: t.output for role, t in ups.items()}
-                shards.append(((), paths, {role: t.fingerprint for role, t in ups.items()}))
+                paths = {role: path for role, (path, _) in ups.items()}
+                shards.append(((), paths, {role: fp for role, (_, fp) in ups.items()}))
         count = len(shards)
         step_tasks = [
             ShardTask(
@@ -202,9 +216,95 @@ def plan_tasks(workflow: Workflow, source: str | None, out: Path) -> list[ShardT
             )
             for i, (units, paths, in_fps) in enumerate(shards)
         ]
-        by_step[step.name] = step_tasks
+        by_step[step.name] = [(t.output, t.fingerprint) for t in step_tasks]
         tasks += step_tasks
     return tasks
+
+
+def _given_inputs(workflow: Workflow, inputs: Mapping[str, Sequence[Path]]) -> dict[str, _Shards]:
+    """The shards of each workflow input, with the fingerprints their provenance records."""
+    missing = sorted(set(workflow.inputs) - set(inputs))
+    unknown = sorted(set(inputs) - set(workflow.inputs))
+    if missing or unknown:
+        raise RunError(
+            f"workflow {workflow.name!r} takes inputs {sorted(workflow.inputs)}; "
+            f"missing {missing}, unknown {unknown}"
+        )
+    given: dict[str, _Shards] = {}
+    for name, paths in inputs.items():
+        if not paths:
+            raise RunError(f"workflow input {name!r}: no shards given")
+        given[name] = [(Path(p), read_shard_meta(Path(p)).fingerprint) for p in paths]
+    return given
+
+
+def _source_shards(
+    step: str, stage: SourceStage, source: str | Sequence[str] | None, one_shard: bool
+) -> list[tuple[tuple[str, ...], dict[str, Path], dict[str, str]]]:
+    """Deal a source step's units out to shards (``units_per_shard`` each, or all in one)."""
+    sources = [source] if source is None or isinstance(source, str) else list(source)
+    units = [u for src in sources for u in stage.list_units(src)]
+    if not units:
+        raise RunError(f"step {step!r}: no inputs found under {source!r}")
+    per = len(units) if one_shard else max(1, stage.units_per_shard())
+    chunks = [tuple(units[i * per : (i + 1) * per]) for i in range(math.ceil(len(units) / per))]
+    return [(chunk, {}, {u: stage.unit_fingerprint(u) for u in chunk}) for chunk in chunks]
+
+
+def plan_stage(
+    stage: str,
+    params: Mapping[str, Any],
+    output: Path,
+    inputs: Mapping[str, Path] | None = None,
+    source: Sequence[str] | None = None,
+) -> ShardTask:
+    """The task of ``egosim stage``: a one-step workflow, planned by :func:`plan_tasks`.
+
+    A clip stage reads ``inputs`` (role -> shard) as workflow inputs; a source stage lists the
+    units of every path in ``source`` into one shard. The task writes ``output`` and its rejects
+    beside it (``NAME.rejects.parquet``); its fingerprint is that of a one-shard ``egosim run``.
+    """
+    stage_cls = get_stage(stage)
+    schemas = stage_cls.input_schemas()
+    given = dict(inputs or {})
+    unknown = sorted(set(given) - set(schemas))
+    if unknown:
+        raise StageError(f"stage {stage!r} has no input roles {unknown} (takes {list(schemas)})")
+    step = Step(
+        name=validate_id(stage, "step name"),
+        stage=stage,
+        params=config_to_data(stage_cls.from_params(params).config),
+        inputs={role: role for role in given},
+    )
+    workflow = Workflow(
+        name=stage, steps=(step,), inputs={role: schemas[role].name for role in given}
+    )
+    (task,) = plan_tasks(
+        workflow,
+        source[0] if source and len(source) == 1 else source,
+        output.parent,
+        inputs={role: [path] for role, path in given.items()},
+        one_shard=True,
+    )
+    rejects = output.with_name(output.stem + ".rejects.parquet")
+    return dataclasses.replace(task, output=output, rejects=rejects)
+
+
+def run_tasks_here(
+    tasks: Sequence[ShardTask],
+    progress: Callable[[ShardResult, int, int], None] | None = None,
+) -> list[ShardResult]:
+    """Run ``tasks`` one after another in this process (dependency order), no Dask.
+
+    Like a worker, a finished output is verified before it is skipped.
+    """
+    results = []
+    for task in tasks:
+        discard_if_damaged(task)
+        results.append(run_shard_task(task))
+        if progress is not None:
+            progress(results[-1], len(results), len(tasks))
+    return results
 
 
 def _run_and_name_worker(task: ShardTask, *deps: Any) -> tuple[ShardResult, str]:
@@ -247,6 +347,9 @@ def local_cluster(n_workers: int | None = None, gpu_workers: int | None = None) 
     )
 
 
+IN_PROCESS = "here"  # scheduler value of run_workflow: run every task in this process, no Dask
+
+
 def run_workflow(
     workflow: Workflow,
     out: Path,
@@ -255,35 +358,54 @@ def run_workflow(
     n_workers: int | None = None,
     gpu_workers: int | None = None,
     progress: Callable[[ShardResult, int, int], None] | None = None,
+    inputs: Mapping[str, Sequence[Path]] | None = None,
 ) -> RunSummary:
-    """Run every (step, shard) task of ``workflow`` on a Dask cluster; see the module doc.
+    """Run every (step, shard) task of ``workflow``; see the module doc.
 
-    Raises :class:`RunLockedError` at once when another run holds ``out``.
+    ``scheduler``: None for a local Dask cluster, ``tcp://HOST:PORT`` for an existing one, or
+    :data:`IN_PROCESS` to run the tasks one after another in this process. ``inputs`` gives the
+    shards of the workflow's declared inputs. Raises :class:`RunLockedError` at once when
+    another run holds ``out``.
     """
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     with run_lock(out):
         remove_stale_temporaries(out)
-        return _run_locked(workflow, out, source, scheduler, n_workers, gpu_workers, progress)
+        write_text_atomic(
+            out / "workflow.resolved.yaml",
+            yaml.safe_dump(
+                {
+                    **workflow.to_dict(),
+                    "input": source,
+                    **({"given": _given_record(inputs)} if inputs else {}),
+                },
+                sort_keys=False,
+            ),
+        )
+        tasks = plan_tasks(workflow, source, out, inputs)
+        if scheduler == IN_PROCESS:
+            results = run_tasks_here(tasks, progress)
+            report = _write_run_records(out, tasks, results)
+            return RunSummary(out=out, results=results, report=report)
+        return _run_on_dask(workflow, out, tasks, scheduler, n_workers, gpu_workers, progress)
 
 
-def _run_locked(
+def _given_record(inputs: Mapping[str, Sequence[Path]]) -> dict[str, list[str]]:
+    return {name: [str(p) for p in paths] for name, paths in inputs.items()}
+
+
+def _run_on_dask(
     workflow: Workflow,
     out: Path,
-    source: str | None,
+    tasks: list[ShardTask],
     scheduler: str | None,
     n_workers: int | None,
     gpu_workers: int | None,
     progress: Callable[[ShardResult, int, int], None] | None,
 ) -> RunSummary:
-    """:func:`run_workflow` once the run holds its folder's lock."""
+    """Run planned ``tasks`` on a Dask cluster once the run holds its folder's lock."""
     from distributed import Client, as_completed
 
-    write_text_atomic(
-        out / "workflow.resolved.yaml",
-        yaml.safe_dump({**workflow.to_dict(), "input": source}, sort_keys=False),
-    )
-    tasks = plan_tasks(workflow, source, out)
     cluster = None
     if scheduler is None:
         cluster = local_cluster(n_workers, gpu_workers)
@@ -304,7 +426,11 @@ def _run_locked(
                     stacklevel=2,
                 )
                 resources.pop("GPU")
-            deps = [futures[(up, task.shard_index)] for up in step.inputs.values()]
+            deps = [
+                futures[(up, task.shard_index)]
+                for up in step.inputs.values()
+                if up not in workflow.inputs  # given shards: nothing to wait for
+            ]
             key = f"{task.step}-{task.shard_index:05d}-{task.fingerprint}"
             future = client.submit(
                 _run_and_name_worker, task, *deps, key=key, resources=resources or None, pure=False

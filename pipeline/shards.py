@@ -22,7 +22,7 @@ import hashlib
 import json
 import os
 import uuid
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from dataclasses import asdict, dataclass, field
 from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
@@ -329,6 +329,37 @@ def read_shard_meta(path: Path) -> ShardMeta:
         return reader.meta
 
 
-def is_temporary(path: Path) -> bool:
-    """True for the temporary files of unfinished writes."""
-    return TMP_MARKER in Path(path).name
+SHARD_GLOB = "shard-*.parquet"  # the output shards of a step folder
+
+
+def shard_file_name(index: int) -> str:
+    """File name of output shard ``index`` of a step (``shard-00000.parquet``)."""
+    return f"shard-{index:05d}.parquet"
+
+
+def rejects_file_name(index: int) -> str:
+    """File name of the rejects of shard ``index`` of a step (``rejects-00000.parquet``)."""
+    return f"rejects-{index:05d}.parquet"
+
+
+def find_shards(paths: Iterable[str | Path], step: str) -> list[Path]:
+    """Shard files under ``paths``: files, folders of shards, or run folders with a ``step/``.
+
+    Raises :class:`FileNotFoundError` naming the paths when nothing is found.
+    """
+    found: list[Path] = []
+    for raw in paths:
+        path = Path(raw)
+        if path.is_file():
+            found.append(path)
+            continue
+        if not path.is_dir():
+            raise FileNotFoundError(f"no {step} shard or folder at {path}")
+        folder = path / step if (path / step).is_dir() else path
+        found += sorted(folder.glob(SHARD_GLOB))
+    if not found:
+        raise FileNotFoundError(
+            f"no {step} shards under {[str(p) for p in paths]} (expected {SHARD_GLOB} files, "
+            f"or a run folder with a {step}/ step)"
+        )
+    return found

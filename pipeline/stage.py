@@ -135,27 +135,16 @@ def get_stage(name: str) -> type[Stage]:
     return stages[name]
 
 
-def build_config(
-    config_class: type[StageConfig], params: Mapping[str, Any], where: str
-) -> StageConfig:
-    """Build a frozen config from ``params``, converting strings to the field types.
+def build_config(config_class: type[Any], params: Mapping[str, Any], where: str) -> Any:
+    """Build a frozen config dataclass from ``params``, converting values to the field types.
 
-    Every unknown name and every unconvertible value is reported in one :class:`ConfigError`;
-    the config's own ``__post_init__`` checks run after that.
+    ``params`` holds YAML values or ``k=v`` strings; a nested dataclass field takes a mapping
+    (``lora: {rank: 8}``) or dotted keys (``lora.rank=8``). Every unknown name and every value
+    that does not convert is reported in one :class:`ConfigError` that quotes the bad value; the
+    config's own ``__post_init__`` checks run after that.
     """
-    hints = typing.get_type_hints(config_class)
-    known = {f.name for f in dataclasses.fields(config_class)}
-    problems = [
-        f"unknown parameter {k!r} (known: {sorted(known)})" for k in params if k not in known
-    ]
-    values: dict[str, Any] = {}
-    for key, raw in params.items():
-        if key not in known:
-            continue
-        try:
-            values[key] = coerce(raw, hints[key])
-        except (TypeError, ValueError) as exc:
-            problems.append(f"parameter {key!r}: {exc}")
+    problems: list[str] = []
+    values = _config_values(config_class, params, "", problems)
     if problems:
         raise ConfigError(f"{where}: " + "; ".join(problems))
     try:
@@ -164,43 +153,179 @@ def build_config(
         raise ConfigError(f"{where}: {exc}") from exc
 
 
+def _config_values(
+    config_class: type[Any], params: Mapping[str, Any], prefix: str, problems: list[str]
+) -> dict[str, Any]:
+    """Converted field values of ``config_class`` from ``params``; problems are appended."""
+    hints = typing.get_type_hints(config_class)
+    fields = {f.name for f in dataclasses.fields(config_class)}
+    grouped: dict[str, Any] = {}
+    for key, raw in params.items():
+        head, dot, rest = str(key).partition(".")
+        if head not in fields:
+            problems.append(f"unknown parameter {prefix + str(key)!r} (known: {sorted(fields)})")
+        elif not dot:
+            grouped[head] = raw
+        elif not _is_config_class(hints[head]):
+            problems.append(f"parameter {prefix + head!r} has no fields, got {prefix + key!r}")
+        else:
+            nested = grouped.setdefault(head, {})
+            if isinstance(nested, Mapping):
+                grouped[head] = {**nested, rest: raw}
+            else:
+                problems.append(f"parameter {prefix + head!r} is given whole and by field")
+    values: dict[str, Any] = {}
+    for name, raw in grouped.items():
+        annotation = hints[name]
+        if _is_config_class(annotation) and isinstance(raw, Mapping):
+            inner: list[str] = []
+            sub = _config_values(annotation, raw, f"{prefix}{name}.", inner)
+            problems += inner
+            if not inner:
+                try:
+                    values[name] = annotation(**sub)
+                except (TypeError, ValueError) as exc:
+                    problems.append(f"parameter {prefix + name!r}: {exc}")
+            continue
+        try:
+            values[name] = coerce(raw, annotation)
+        except (TypeError, ValueError) as exc:
+            problems.append(f"parameter {prefix + name!r}: {exc}")
+    return values
+
+
+def _is_config_class(annotation: Any) -> bool:
+    return isinstance(annotation, type) and dataclasses.is_dataclass(annotation)
+
+
+_TRUE = ("true", "1", "yes", "on")
+_FALSE = ("false", "0", "no", "off")
+
+
 def coerce(value: Any, annotation: Any) -> Any:
-    """Convert ``value`` (often a string from the command line) to ``annotation``."""
+    """Convert ``value`` (a YAML value or a command-line string) to ``annotation``, strictly.
+
+    Supported: ``int``, ``float``, ``bool``, ``str``, ``Literal[...]``, ``tuple[X, ...]`` and
+    ``tuple[X, Y]`` (a comma-separated string or a sequence), ``list[X]``, ``X | None`` (the
+    strings ``none``/``null`` give None) and nested config dataclasses (a mapping of fields).
+    Raises :class:`ValueError` quoting the value when it does not convert, and
+    :class:`TypeError` for a field type outside that list (never returns a value unchanged).
+    """
     origin = typing.get_origin(annotation)
     args = typing.get_args(annotation)
     if origin in (typing.Union, types.UnionType):
-        is_none = value is None or (isinstance(value, str) and value.lower() in ("none", "null"))
-        if is_none and type(None) in args:
-            return None
-        errors = []
-        for arg in (a for a in args if a is not type(None)):
-            try:
-                return coerce(value, arg)
-            except (TypeError, ValueError) as exc:
-                errors.append(str(exc))
-        raise ValueError("; ".join(errors))
+        return _coerce_union(value, args)
     if origin is typing.Literal:
-        if value not in args:
-            raise ValueError(f"must be one of {list(args)}, got {value!r}")
-        return value
-    if origin is tuple:
-        items = value.split(",") if isinstance(value, str) else list(value)
-        inner = args[0] if args else str
-        return tuple(coerce(v, inner) for v in items)
-    if annotation is bool:
-        if isinstance(value, bool):
+        for choice in args:
+            if value == choice and type(value) is type(choice):
+                return choice
+            if isinstance(value, str) and not isinstance(choice, str) and value == str(choice):
+                return choice
+        raise ValueError(f"must be one of {list(args)}, got {value!r}")
+    if origin in (tuple, list) or annotation in (tuple, list):
+        return _coerce_sequence(value, annotation, origin or annotation, args)
+    if _is_config_class(annotation):
+        if isinstance(value, annotation):
             return value
-        if isinstance(value, str) and value.lower() in ("true", "1", "yes", "false", "0", "no"):
-            return value.lower() in ("true", "1", "yes")
-        raise ValueError(f"expected a boolean, got {value!r}")
+        if isinstance(value, Mapping):
+            return build_config(annotation, value, where=annotation.__name__)
+        raise ValueError(
+            f"expected {annotation.__name__} fields (a mapping, or dotted keys such as "
+            f"name.field=value), got {value!r}"
+        )
+    if annotation is bool:
+        return _coerce_bool(value)
     if annotation is int:
-        if isinstance(value, bool) or (isinstance(value, float) and not value.is_integer()):
-            raise ValueError(f"expected an integer, got {value!r}")
-        return int(value)
+        return _coerce_int(value)
     if annotation is float:
-        return float(value)
+        return _coerce_float(value)
     if annotation is str:
-        if not isinstance(value, str | int | float):
+        if isinstance(value, bool) or not isinstance(value, str | int | float):
             raise ValueError(f"expected a string, got {value!r}")
         return str(value)
+    if annotation is typing.Any:
+        return value
+    raise TypeError(f"field type {annotation!r} is not supported by the config system")
+
+
+def _coerce_union(value: Any, args: tuple[Any, ...]) -> Any:
+    is_none = value is None or (isinstance(value, str) and value.lower() in ("none", "null"))
+    if is_none and type(None) in args:
+        return None
+    errors = []
+    for arg in (a for a in args if a is not type(None)):
+        try:
+            return coerce(value, arg)
+        except ValueError as exc:
+            errors.append(str(exc))
+    raise ValueError("; ".join(errors))
+
+
+def _coerce_sequence(value: Any, annotation: Any, kind: type, args: tuple[Any, ...]) -> Any:
+    if isinstance(value, str):
+        items: list[Any] = [v.strip() for v in value.split(",")] if value.strip() else []
+    elif isinstance(value, list | tuple):
+        items = list(value)
+    else:
+        raise ValueError(f"expected a comma-separated list or a sequence, got {value!r}")
+    if kind is list:
+        inner = args[0] if args else str
+        return [coerce(v, inner) for v in items]
+    if not args or (len(args) == 2 and args[1] is Ellipsis):
+        inner = args[0] if args else str
+        return tuple(coerce(v, inner) for v in items)
+    if len(items) != len(args):
+        raise ValueError(f"expected {len(args)} values, got {value!r}")
+    return tuple(coerce(v, a) for v, a in zip(items, args, strict=True))
+
+
+def _coerce_bool(value: Any) -> bool:
+    if isinstance(value, bool):
+        return value
+    if isinstance(value, str) and value.lower() in (*_TRUE, *_FALSE):
+        return value.lower() in _TRUE
+    raise ValueError(f"expected a boolean, got {value!r}")
+
+
+def _coerce_int(value: Any) -> int:
+    if isinstance(value, bool):
+        raise ValueError(f"expected an integer, got {value!r}")
+    if isinstance(value, int):
+        return value
+    if isinstance(value, float) and value.is_integer():
+        return int(value)
+    if isinstance(value, str):
+        try:
+            return int(value.strip())
+        except ValueError:
+            pass
+    raise ValueError(f"expected an integer, got {value!r}")
+
+
+def _coerce_float(value: Any) -> float:
+    if isinstance(value, bool):
+        raise ValueError(f"expected a number, got {value!r}")
+    if isinstance(value, int | float):
+        return float(value)
+    if isinstance(value, str):
+        try:
+            return float(value.strip())
+        except ValueError:
+            pass
+    raise ValueError(f"expected a number, got {value!r}")
+
+
+def config_to_data(config: Any) -> dict[str, Any]:
+    """A config as plain YAML/JSON data: every field (defaults included), tuples as lists.
+
+    ``build_config(type(config), config_to_data(config), ...)`` gives ``config`` back.
+    """
+    return _plain(dataclasses.asdict(config))
+
+
+def _plain(value: Any) -> Any:
+    if isinstance(value, Mapping):
+        return {str(k): _plain(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_plain(v) for v in value]
     return value

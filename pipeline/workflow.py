@@ -3,13 +3,15 @@
 Format::
 
     name: dataset            # workflow name
+    inputs: {pack: pack}     # optional: shards the run is given (name -> schema), not made here
     steps:
       ingest:                # step name (unique)
         stage: ingest        # registered stage (defaults to the step name)
         params: {source: synthetic}
       pose_clean:
         stage: pose_clean
-        inputs: {clips: ingest}    # role -> upstream step (a bare step name fills the one role)
+        inputs: {clips: ingest}    # role -> upstream step or workflow input (a bare name fills
+                                   # the one role)
         resources: {GPU: 1}        # Dask worker resources this step needs
 
 Every problem (unknown keys, unknown stages or parameters, missing or unknown input roles,
@@ -31,14 +33,22 @@ from typing import Any
 
 import yaml
 
-from egosim.pipeline.stage import ConfigError, SourceStage, StageError, build_config, get_stage
+from egosim.pipeline.stage import (
+    ConfigError,
+    SourceStage,
+    StageError,
+    build_config,
+    config_to_data,
+    get_stage,
+)
+from egosim.schemas import SCHEMAS
 from egosim.schemas.ids import id_problems
 
 MAX_WORKFLOW_BYTES = 1 << 20  # largest workflow file read (1 MiB)
 MAX_WORKFLOW_VALUES = 100_000  # most values (keys included) once aliases are expanded
 MAX_WORKFLOW_CHARS = 10_000_000  # most string characters once aliases are expanded
 
-WORKFLOW_KEYS = {"name", "description", "steps"}
+WORKFLOW_KEYS = {"name", "description", "inputs", "steps"}
 STEP_KEYS = {"stage", "params", "inputs", "resources"}
 
 
@@ -52,7 +62,7 @@ class Step:
 
     name: str  # step name, unique within the workflow
     stage: str  # registered stage name
-    params: dict[str, Any] = field(default_factory=dict)  # stage parameters
+    params: dict[str, Any] = field(default_factory=dict)  # resolved parameters: every field
     inputs: dict[str, str] = field(default_factory=dict)  # role -> upstream step name
     resources: dict[str, float] = field(default_factory=dict)  # Dask resources, e.g. GPU: 1
 
@@ -63,6 +73,7 @@ class Workflow:
 
     name: str  # workflow name
     steps: tuple[Step, ...]  # topologically ordered
+    inputs: dict[str, str] = field(default_factory=dict)  # given shards: name -> schema name
 
     def step(self, name: str) -> Step:
         """The step called ``name``."""
@@ -72,6 +83,7 @@ class Workflow:
         """The resolved workflow as YAML-ready data (saved next to run outputs)."""
         return {
             "name": self.name,
+            **({"inputs": dict(self.inputs)} if self.inputs else {}),
             "steps": {
                 s.name: {
                     "stage": s.stage,
@@ -150,13 +162,35 @@ def parse_workflow(data: Any, overrides: Sequence[str] = (), where: str = "workf
             "inputs": body.get("inputs") or {},
             "resources": dict(body.get("resources") or {}),
         }
+    inputs = _check_workflow_inputs(data.get("inputs") or {}, raw_steps, problems)
     problems += _apply_overrides(raw_steps, overrides)
     steps = {n: _check_step(n, b, problems) for n, b in raw_steps.items()}
-    _check_edges(steps, problems)
+    _check_edges(steps, inputs, problems)
     order = _topological_order(steps, problems)
     if problems:
         raise WorkflowError(f"{where}: {len(problems)} problem(s):\n  - " + "\n  - ".join(problems))
-    return Workflow(name=str(data.get("name", Path(where).stem)), steps=tuple(order))
+    name = str(data.get("name", Path(where).stem))
+    return Workflow(name=name, steps=tuple(order), inputs=inputs)
+
+
+def _check_workflow_inputs(
+    raw: Any, steps: Mapping[str, Any], problems: list[str]
+) -> dict[str, str]:
+    """The workflow's given inputs (name -> schema name), checked."""
+    if not isinstance(raw, Mapping):
+        problems.append(f"workflow inputs must map a name to a schema name, got {raw!r}")
+        return {}
+    inputs: dict[str, str] = {}
+    for name, schema in raw.items():
+        found = [f"input {name!r}: {p}" for p in id_problems(name, "input name")]
+        if name in steps:
+            found.append(f"input {name!r}: a step has the same name")
+        if str(schema) not in SCHEMAS:
+            found.append(f"input {name!r}: unknown schema {schema!r} (known: {sorted(SCHEMAS)})")
+        problems += found
+        if not found:
+            inputs[str(name)] = str(schema)
+    return inputs
 
 
 def _apply_overrides(steps: dict[str, dict[str, Any]], overrides: Sequence[str]) -> list[str]:
@@ -189,17 +223,21 @@ def _check_step(name: str, body: dict[str, Any], problems: list[str]) -> Step:
             inputs = {}
         else:
             inputs = dict(zip(roles, names, strict=True))
+    params = body["params"]
     try:
-        build_config(stage_cls.config_class, body["params"], where=f"step {name!r}")
+        # Every field, typed, defaults included: what the run saves and its tasks use.
+        params = config_to_data(
+            build_config(stage_cls.config_class, params, where=f"step {name!r}")
+        )
     except ConfigError as exc:
         problems.append(str(exc))
     resources = body["resources"]
     if stage_cls.gpu and "GPU" not in resources:
         resources = {**resources, "GPU": 1}
-    return Step(name, stage_name, body["params"], dict(inputs), resources)
+    return Step(name, stage_name, params, dict(inputs), resources)
 
 
-def _check_edges(steps: dict[str, Step], problems: list[str]) -> None:
+def _check_edges(steps: dict[str, Step], inputs: Mapping[str, str], problems: list[str]) -> None:
     for step in steps.values():
         try:
             stage_cls = get_stage(step.stage)
@@ -212,6 +250,13 @@ def _check_edges(steps: dict[str, Step], problems: list[str]) -> None:
                     f"step {step.name!r}: unknown input role {role!r} "
                     f"(stage {step.stage!r} takes {list(expected)})"
                 )
+            elif upstream in inputs:
+                if inputs[upstream] != expected[role].name:
+                    problems.append(
+                        f"step {step.name!r}: input {role!r} needs schema "
+                        f"{expected[role].name!r} but workflow input {upstream!r} is "
+                        f"{inputs[upstream]!r}"
+                    )
             elif upstream not in steps:
                 problems.append(
                     f"step {step.name!r}: input {role!r} names unknown step {upstream!r}"

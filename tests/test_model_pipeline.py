@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 from typer.testing import CliRunner
 
 from egosim.model.errors import CheckpointMismatchError
@@ -203,23 +204,48 @@ def test_checkpoint_from_another_preset_is_refused(run_dir: Path) -> None:
         load_trained(run_dir, preset="wan2.1-fun-1.3b-inp")
 
 
-def test_simulate_writes_video_and_shard(chain, run_dir: Path, tmp_path: Path) -> None:
+def test_simulate_and_evaluate_run_their_workflows(chain, run_dir: Path, tmp_path: Path) -> None:
     out = tmp_path / "sim"
-    result = CliRunner().invoke(
-        app,
-        [
-            *("simulate", "--data", str(chain["pack"]), "--checkpoint", str(run_dir)),
-            *("--out", str(out), "--param", "steps=2"),
-        ],
-    )
+    args = [
+        *("simulate", "--data", str(chain["pack"]), "--checkpoint", str(run_dir)),
+        *("--out", str(out), "--set", "steps=2"),
+    ]
+    # Whichever test ran last trained the module's run (4 steps, or 6 after the CLI resume).
+    trained_to = json.loads((run_dir / "summary.json").read_text())["step"]
+    result = CliRunner().invoke(app, args)
     assert result.exit_code == 0, result.output
-    with ShardReader(out / "shard-00000.parquet", SIMULATION) as reader:
+    shard = out / "simulate" / "shard-00000.parquet"  # the runner's layout: OUT/<step>/
+    assert f"{shard}: 1 clips, 0 rejected" in result.output
+    with ShardReader(shard, SIMULATION) as reader:
         row = next(reader.iter_rows())
     SIMULATION.validate_row(row)
-    assert row["checkpoint_step"] == 6 or row["checkpoint_step"] == 4
+    assert row["checkpoint_step"] == trained_to and row["sampling_steps"] == 2
     assert (row["num_frames"], row["height"], row["width"]) == (T, PH, PW)
     video, _ = media.read_video_file(out / "videos" / f"{row['clip_id']}.mp4")
     assert video.shape == (T, PH, PW, 3)
+    resolved = yaml.safe_load((out / "workflow.resolved.yaml").read_text())
+    assert resolved["steps"]["simulate"]["params"]["steps"] == 2
+    assert resolved["given"] == {"pack": [str(chain["pack"])]}
+    # The runner owns the run: a second run skips the finished shard.
+    result = CliRunner().invoke(app, args)
+    assert result.exit_code == 0, result.output
+    manifest = json.loads((out / "manifest.json").read_text())
+    assert [r["skipped"] for r in manifest["results"]] == [True]
+
+    ev = tmp_path / "eval"
+    result = CliRunner().invoke(
+        app,
+        [
+            *("evaluate", "--data", str(chain["pack"]), "--simulation", str(out)),
+            *("--out", str(ev), "--set", "camera_backend=given"),
+        ],
+    )
+    assert result.exit_code == 0, result.output
+    assert "overall" in result.output and row["clip_id"] in result.output
+    with ShardReader(ev / "evaluate" / "shard-00000.parquet", EVALUATION) as reader:
+        evaluation = next(reader.iter_rows())
+    assert evaluation["clip_id"] == row["clip_id"] and np.isfinite(evaluation["psnr"])
+    assert evaluation["cam_err"] == pytest.approx(0.0, abs=1e-9)
 
 
 def _simulation_row(pack: dict, video: bytes, num_frames: int) -> dict:

@@ -44,7 +44,7 @@ def test_stage_command_and_one_step_run_make_the_same_shard(tmp_path: Path, vide
     cli = CliRunner()
     video = videos / "v0.mp4"
     single = tmp_path / "single.parquet"
-    params = [a for k, v in SMALL.items() for a in ("--param", f"{k}={v}")]
+    params = [a for k, v in SMALL.items() for a in ("--set", f"{k}={v}")]
     result = cli.invoke(
         app, ["stage", "ingest", "--input", str(video), "--output", str(single), *params]
     )

@@ -2,11 +2,15 @@
 
 from __future__ import annotations
 
+import dataclasses
+import re
 from collections.abc import Mapping
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any, ClassVar, Literal
 
 import pytest
+import yaml
 
 from egosim.pipeline.stage import (
     ClipStage,
@@ -14,6 +18,7 @@ from egosim.pipeline.stage import (
     StageConfig,
     StageError,
     build_config,
+    coerce,
     get_stage,
     register_stage,
     registered_stages,
@@ -106,4 +111,48 @@ def test_workflow_orders_steps_and_applies_overrides() -> None:
         {"steps": {"ingest": {"params": {"fps": 8}}}}, overrides=["ingest.num_frames=9"]
     )
     assert [s.name for s in wf.steps] == ["ingest"]
-    assert wf.steps[0].params == {"fps": 8, "num_frames": "9"}
+    params = wf.steps[0].params  # resolved: typed, every field, defaults included
+    assert params["fps"] == 8.0 and isinstance(params["fps"], float)
+    assert params["num_frames"] == 9 and params["synthetic_count"] == 4
+    assert set(params) == {f.name for f in dataclasses.fields(get_stage("ingest").config_class)}
+
+
+def test_build_config_is_strict_and_nested() -> None:
+    from egosim.model.train import TrainConfig
+
+    cfg = build_config(TrainConfig, {"lora.rank": "8", "betas": "0.8, 0.9"}, "train")
+    assert cfg.lora.rank == 8 and cfg.betas == (0.8, 0.9)
+    assert build_config(TrainConfig, {"lora": {"alpha": 2}}, "train").lora.alpha == 2.0
+    for params, expected in (
+        ({"lora": "8"}, "parameter 'lora': expected LoRAConfig fields"),
+        ({"lora.rnk": "8"}, "unknown parameter 'lora.rnk'"),
+        ({"steps.x": "1"}, "parameter 'steps' has no fields"),
+        ({"betas": "0.9"}, "expected 2 values, got '0.9'"),
+        ({"steps": "2.5"}, "expected an integer, got '2.5'"),
+        ({"lr": "fast"}, "expected a number, got 'fast'"),
+        ({"lr": True}, "expected a number, got True"),
+        ({"finetune": ["full"]}, "expected a string, got ['full']"),
+        ({"ema_decay": "x"}, "got 'x'"),
+    ):
+        with pytest.raises(ConfigError, match=re.escape(expected)):
+            build_config(TrainConfig, params, "train")
+    assert coerce("none", float | None) is None and coerce("", tuple[int, ...]) == ()
+
+
+def test_build_config_refuses_unsupported_field_types() -> None:
+    @dataclass(frozen=True)
+    class Odd:
+        where: Path = Path()  # a type the config system does not convert
+
+    with pytest.raises(TypeError, match="not supported"):
+        coerce("x", Path)
+    with pytest.raises(ConfigError, match="not supported"):
+        build_config(Odd, {"where": "x"}, "odd")
+
+
+def test_resolved_workflow_round_trips_typed() -> None:
+    wf = parse_workflow({"steps": {"ingest": {}}}, overrides=["ingest.synthetic_count=2"])
+    data = yaml.safe_load(yaml.safe_dump(wf.to_dict()))
+    ingest = data["steps"]["ingest"]["params"]
+    assert ingest["synthetic_count"] == 2 and ingest["fps"] == 16.0 and "tail" in ingest
+    assert parse_workflow(data).to_dict() == wf.to_dict()

@@ -7,7 +7,7 @@ from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
-from egosim.pipeline.shards import ShardReader
+from egosim.pipeline.shards import ShardReader, find_shards
 from egosim.schemas.pack import EVALUATION
 
 FIGURES = (
@@ -24,14 +24,11 @@ FIGURES = (
 
 
 def read_evaluations(paths: Iterable[str | Path]) -> list[dict[str, Any]]:
-    """Every row of the evaluation shards (files or folders of ``shard-*.parquet``)."""
+    """Every row of the evaluation shards (files, folders of shards, or run folders)."""
     rows: list[dict[str, Any]] = []
-    for raw in paths:
-        path = Path(raw)
-        files = sorted(path.glob("shard-*.parquet")) if path.is_dir() else [path]
-        for file in files:
-            with ShardReader(file, EVALUATION) as reader:
-                rows += list(reader.iter_rows())
+    for file in find_shards(paths, "evaluate"):
+        with ShardReader(file, EVALUATION) as reader:
+            rows += list(reader.iter_rows())
     return rows
 
 
