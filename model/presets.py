@@ -16,7 +16,7 @@ EgoSim widens the patch embedding to 52 (+ skeleton-video latent 16), see ``netw
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 from egosim.model.errors import ModelConfigError, UnknownPresetError
 
@@ -99,9 +99,10 @@ class ModelPreset:
     num_frames: int = 61  # default clip length (1 + 4k so latent frames are whole)
     height: int = 480  # default frame height in pixels
     width: int = 832  # default frame width in pixels
-    published_param_count: int | None = None  # parameters at 36 input channels, if published
+    # Parameters at 36 input channels as published: the architecture check that the meta-device
+    # build counts exactly this many (tests/test_model_network.py); None when not published.
+    published_param_count: int | None = None
     notes: str = ""  # provenance of the numbers
-    extra: dict = field(default_factory=dict, compare=False)  # free-form, not used by code
 
     def __post_init__(self) -> None:
         problems = []

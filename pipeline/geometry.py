@@ -1,6 +1,6 @@
 """Shared geometry: SE(3), quaternions, pinhole projection, Umeyama alignment.
 
-One convention for the whole project (see docs/conventions.md):
+One convention for the whole project (docs/design.md, "Conventions"; ARCHITECTURE.md section 2):
 
 - Camera axes are OpenCV's: x right, y down, z forward.
 - Intrinsics are a 4-vector ``(fx, fy, cx, cy)`` in pixels of the stored resolution.
