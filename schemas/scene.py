@@ -26,7 +26,7 @@ def _check_cloud(row: Mapping[str, Any]) -> list[str]:
     n = row["num_points"]
     if n is None or n < 1:
         return [f"num_points must be >= 1, got {n}"]
-    sizes = {"points_xyz": 12 * n, "points_rgb": 3 * n, "point_size": 4 * n}
+    sizes = {"points_xyz": 12 * n, "points_rgb": 3 * n, "point_size": 4 * n, "point_confidence": n}
     for name, expected in sizes.items():
         if len(row[name]) != expected:
             problems.append(
@@ -47,7 +47,7 @@ def _check_cloud(row: Mapping[str, Any]) -> list[str]:
 
 SCENE_CLOUD = ShardSchema(
     name="scene_cloud",
-    version=1,
+    version=2,  # 2: point_confidence (measured or filled depth)
     doc="World point cloud of each clip's hand-free first frame, with colours, one per row.",
     columns=(
         Column("clip_id", pa.string(), "Clip id, joins with the clips shard."),
@@ -76,10 +76,21 @@ SCENE_CLOUD = ShardSchema(
         Column(
             "kept_fraction",
             pa.float64(),
-            "Points kept / pixels of the frame, in (0, 1]: the rest had unknown depth, a hand or "
-            "were flying pixels at depth edges.",
+            "Points kept / pixels of the frame, in (0, 1]: the rest were hands (or, without the "
+            "depth fill, had unknown depth or were flying pixels at depth edges).",
         ),
-        Column("num_flying_removed", pa.int64(), "Pixels removed as flying pixels at depth edges."),
+        Column(
+            "num_flying_removed",
+            pa.int64(),
+            "Measured pixels dropped as flying pixels at depth edges or speckles (then filled).",
+        ),
+        Column(
+            "point_confidence",
+            pa.binary(),
+            "(N,) uint8 per point: 255 = depth measured (confident multi-view depth or the "
+            "source's own); 1..254 = depth filled (superpixel plane or inpainting), "
+            "1 + round(253 x fill confidence).",
+        ),
     ),
     validators=(_check_cloud,),
 )

@@ -16,12 +16,16 @@ camera (``camera_model`` ``rotation``, no depth0): without parallax there is no 
 is placed on a fronto-parallel plane at ``STATIC_PLANE_DEPTH``; rendered from the one pose, that
 repeats the (inpainted) first frame in every frame, the fixed-camera recipe of DWM; rendered from
 pure rotations about frame 0's centre, it is the homography warp of frame 0, exact whatever the
-true depth. Pixels with unknown depth (0) are skipped;
-negative or non-finite depth rejects the clip. Flying pixels (depth interpolated across an
-occlusion edge by estimators and codecs) are removed where inverse depth breaks planarity: the
-second difference of ``1/z`` along a row, a column or a diagonal, relative to ``1/z``, exceeds
-``edge_threshold``. Inverse depth is affine in pixel coordinates on any plane, so slanted
-surfaces (a table seen at a grazing angle) keep every pixel while both sides of a depth edge go.
+true depth. Negative or non-finite depth rejects the clip.
+
+Depth is made dense by :func:`egosim.stages.scene_cloud.densify.densify_depth`: pixels whose
+depth was measured (the ``cameras`` row's ``confidence0`` at or above ``min_confidence``; every
+known pixel of a source's own depth) are kept, flying pixels at depth edges (inverse depth breaks
+planarity: both sides of an occlusion edge) and isolated speckles among them are dropped, and
+every other pixel (unconfident, flying, under the inpainted hands) is filled edge-aware: by the
+plane of its colour superpixel fitted to the measured inverse depth, else by inpainting the
+inverse depth. Each point records whether its depth was measured or filled
+(``point_confidence``). ``fill=False`` keeps the measured pixels only.
 """
 
 from __future__ import annotations
@@ -45,6 +49,14 @@ from egosim.stages.common.cameras import (
     first_frame_depth,
     resolve_cameras,
 )
+from egosim.stages.scene_cloud.densify import (
+    MEASURED,
+    DensifyParams,
+    densify_depth,
+    flying_pixel_mask,
+)
+
+__all__ = ["flying_pixel_mask"]  # re-exported: it moved to densify
 
 STATIC_PLANE_DEPTH = 1.0  # depth of the plane standing in for a static / rotating camera's scene
 
@@ -60,31 +72,19 @@ class SceneCloud:
     points: np.ndarray  # (N, 3) float32 world metres
     colours: np.ndarray  # (N, 3) uint8 RGB
     point_size: np.ndarray  # (N,) float32 side in metres of each point's source pixel (z / fx)
-    num_flying_removed: int  # pixels dropped by the depth-edge test
+    num_flying_removed: int  # measured pixels dropped as flying pixels or speckles (then filled)
     kept_fraction: float  # N / (H * W)
+    confidence: np.ndarray  # (N,) uint8 255 = depth measured; 1..254 = filled, 254 x confidence
 
 
-def flying_pixel_mask(depth: np.ndarray, edge_threshold: float) -> np.ndarray:
-    """``(H, W)`` bool, True where a pixel sits on a depth edge (a flying pixel candidate).
+def point_confidence(source: np.ndarray, confidence: np.ndarray) -> np.ndarray:
+    """Per-pixel uint8 code of :class:`SceneCloud`'s ``confidence`` from a densified depth.
 
-    ``depth (H, W)`` metres, 0 = unknown. A pixel is flagged when, along any of the four
-    directions (row, column, two diagonals), ``|d(p-1) - 2 d(p) + d(p+1)| / d(p)`` exceeds
-    ``edge_threshold`` with ``d = 1/z``; neighbours of unknown depth or outside the image are
-    ignored.
+    ``source (...)`` a :mod:`~egosim.stages.scene_cloud.densify` source code, ``confidence
+    (...)`` in [0, 1]: 255 where the depth was measured, else ``1 + round(253 x confidence)``.
     """
-    known = depth > 0  # (H, W)
-    inv = np.where(known, 1.0 / np.where(known, depth, 1.0), np.nan)  # (H, W)
-    pad = np.pad(inv, 1, constant_values=np.nan)  # (H+2, W+2)
-    h, w = depth.shape
-    centre = pad[1 : h + 1, 1 : w + 1]
-    flagged = np.zeros((h, w), dtype=bool)
-    for dy, dx in ((0, 1), (1, 0), (1, 1), (1, -1)):
-        before = pad[1 - dy : h + 1 - dy, 1 - dx : w + 1 - dx]
-        after = pad[1 + dy : h + 1 + dy, 1 + dx : w + 1 + dx]
-        with np.errstate(invalid="ignore"):
-            second = np.abs(before - 2.0 * centre + after) / centre  # (H, W), NaN at borders
-        flagged |= np.nan_to_num(second, nan=0.0) > edge_threshold
-    return flagged & known
+    filled = 1 + np.round(253.0 * np.clip(confidence, 0.0, 1.0)).astype(np.uint8)
+    return np.where(source == MEASURED, np.uint8(255), filled).astype(np.uint8)
 
 
 def build_scene_cloud(
@@ -93,14 +93,21 @@ def build_scene_cloud(
     world_from_cam: np.ndarray,
     intrinsics: np.ndarray,
     exclude: np.ndarray | None = None,
-    edge_threshold: float = 0.05,
+    *,
+    confidence: np.ndarray | None = None,
+    unmeasured: np.ndarray | None = None,
+    params: DensifyParams | None = None,
+    fill: bool = True,
 ) -> SceneCloud:
     """Unproject ``image (H, W, 3)`` uint8 with ``depth (H, W)`` metres through one camera.
 
     ``world_from_cam (4, 4)``, ``intrinsics (fx, fy, cx, cy)``; ``exclude (H, W)`` marks pixels
-    to leave out (1 = hand). Depth 0 means unknown and is skipped; ``edge_threshold <= 0``
-    disables the flying-pixel filter. Raises :class:`SceneCloudError` for shapes that disagree,
-    negative or non-finite depth, an invalid pose and an empty result.
+    to leave out (1 = hand); ``confidence (H, W)`` in [0, 1] of the depth (None: every known
+    pixel is measured); ``unmeasured (H, W)`` pixels whose depth is to be filled, not trusted.
+    The depth is densified by :func:`densify_depth` with ``params``; ``fill=False`` keeps only
+    the measured pixels (depth 0 = unknown, flying pixels and speckles dropped). Raises
+    :class:`SceneCloudError` for shapes that disagree, negative or non-finite depth, an invalid
+    pose and an empty result.
     """
     image = np.asarray(image)
     depth = np.asarray(depth, dtype=np.float64)
@@ -109,8 +116,13 @@ def build_scene_cloud(
         problems.append(f"image must be (H, W, 3) uint8, got {image.shape} {image.dtype}")
     elif depth.shape != image.shape[:2]:
         problems.append(f"depth shape {depth.shape} != image shape {image.shape[:2]}")
-    if exclude is not None and np.shape(exclude) != depth.shape:
-        problems.append(f"exclude shape {np.shape(exclude)} != depth shape {depth.shape}")
+    for name, extra in (
+        ("exclude", exclude),
+        ("confidence", confidence),
+        ("unmeasured", unmeasured),
+    ):
+        if extra is not None and np.shape(extra) != depth.shape:
+            problems.append(f"{name} shape {np.shape(extra)} != depth shape {depth.shape}")
     if not np.all(np.isfinite(depth)):
         problems.append("depth contains NaN or infinite values")
     elif np.any(depth < 0):
@@ -118,25 +130,29 @@ def build_scene_cloud(
     problems += [f"world_from_cam: {p}" for p in se3_problems(world_from_cam)]
     if problems:
         raise SceneCloudError("; ".join(problems))
-    keep = depth > 0  # (H, W)
-    if exclude is not None:
-        keep &= np.asarray(exclude) == 0
-    masked = np.where(keep, depth, 0.0)  # (H, W) hands count as unknown depth for the edge test
-    flying = (
-        flying_pixel_mask(masked, edge_threshold) if edge_threshold > 0 else np.zeros_like(keep)
+    dense = densify_depth(
+        depth,
+        image,
+        intrinsics,
+        confidence=confidence,
+        exclude=exclude,
+        unmeasured=unmeasured,
+        params=params,
+        fill=fill,
     )
-    keep &= ~flying
+    keep = dense.depth > 0  # (H, W)
     if not keep.any():
         raise SceneCloudError("empty point cloud: no pixel has known depth outside the masks")
-    points_cam = unproject_depth(masked, intrinsics)[keep]  # (N, 3)
+    points_cam = unproject_depth(dense.depth, intrinsics)[keep]  # (N, 3)
     points_world = transform_points(world_from_cam, points_cam).astype(np.float32)  # (N, 3)
     fx = float(np.asarray(intrinsics, dtype=np.float64)[0])
     return SceneCloud(
         points=points_world,
         colours=np.ascontiguousarray(image[keep]),  # (N, 3)
-        point_size=(masked[keep] / fx).astype(np.float32),  # (N,)
-        num_flying_removed=int(flying.sum()),
+        point_size=(dense.depth[keep] / fx).astype(np.float32),  # (N,)
+        num_flying_removed=dense.num_flying,
         kept_fraction=float(keep.sum()) / keep.size,
+        confidence=point_confidence(dense.source[keep], dense.confidence[keep]),  # (N,)
     )
 
 
@@ -152,6 +168,7 @@ def cloud_row(clip_id: str, cloud: SceneCloud, image_source: str) -> dict[str, A
         "image_source": image_source,
         "kept_fraction": cloud.kept_fraction,
         "num_flying_removed": cloud.num_flying_removed,
+        "point_confidence": cloud.confidence.astype(np.uint8).tobytes(),
     }
 
 
@@ -164,20 +181,66 @@ def cloud_from_row(row: Mapping[str, Any]) -> SceneCloud:
         point_size=np.frombuffer(row["point_size"], dtype="<f4").reshape(n),
         num_flying_removed=int(row["num_flying_removed"]),
         kept_fraction=float(row["kept_fraction"]),
+        confidence=np.frombuffer(row["point_confidence"], dtype=np.uint8).reshape(n),
     )
 
 
 @dataclasses.dataclass(frozen=True)
 class SceneCloudConfig(StageConfig):
-    """Parameters of ``scene_cloud``."""
+    """Parameters of ``scene_cloud`` (the depth fill: see :class:`DensifyParams`)."""
 
-    edge_threshold: float = (
-        0.05  # flying pixel: |2nd difference of 1/z| / (1/z) above this; 0 = off
-    )
+    fill: bool = True  # fill unmeasured depth edge-aware; False = keep measured pixels only
+    min_confidence: float = 0.5  # depth_camera confidence at or above = measured depth (0..1)
+    edge_threshold: float = 0.05  # flying pixel: |2nd difference of 1/z| / (1/z) above; 0 = off
+    drop_edges: bool = True  # True: both sides of a depth edge left out; False: refill them
+    speckle_px: int = 200  # measured blobs up to this many pixels that disagree ... (0 = off)
+    speckle_rel: float = 0.03  # ... with their surround by more than this (relative 1/z) go
+    segment_px: int = 20  # colour superpixel seed spacing (pixels) for the plane fill
+    plane_tolerance: float = 0.03  # plane inlier: |1/z - plane| / (1/z) at most this
+    min_plane_support: int = 12  # a superpixel plane needs this many inlier pixels ...
+    min_plane_fraction: float = 0.05  # ... and this share of the superpixel
+    inpaint_radius: float = 5.0  # radius (pixels) of the inpainting fill for what planes miss
 
     def __post_init__(self) -> None:
-        if not (np.isfinite(self.edge_threshold) and self.edge_threshold >= 0):
-            raise ConfigError(f"edge_threshold must be finite and >= 0, got {self.edge_threshold}")
+        problems: list[str] = []
+        for name in ("fill", "drop_edges"):
+            if not isinstance(getattr(self, name), bool):
+                problems.append(f"{name} must be a bool, got {getattr(self, name)!r}")
+        for name in ("min_confidence", "min_plane_fraction"):
+            value = getattr(self, name)
+            if not (np.isfinite(value) and 0.0 <= value <= 1.0):
+                problems.append(f"{name} must be in [0, 1], got {value}")
+        for name in ("edge_threshold", "speckle_rel"):
+            value = getattr(self, name)
+            if not (np.isfinite(value) and value >= 0):
+                problems.append(f"{name} must be finite and >= 0, got {value}")
+        for name in ("plane_tolerance", "inpaint_radius"):
+            value = getattr(self, name)
+            if not (np.isfinite(value) and value > 0):
+                problems.append(f"{name} must be > 0, got {value}")
+        if self.speckle_px < 0:
+            problems.append(f"speckle_px must be >= 0, got {self.speckle_px}")
+        if self.segment_px < 2:
+            problems.append(f"segment_px must be >= 2, got {self.segment_px}")
+        if self.min_plane_support < 3:
+            problems.append(f"min_plane_support must be >= 3, got {self.min_plane_support}")
+        if problems:
+            raise ConfigError("; ".join(problems))
+
+    def densify_params(self) -> DensifyParams:
+        """The :class:`DensifyParams` these settings describe."""
+        return DensifyParams(
+            min_confidence=self.min_confidence,
+            edge_threshold=self.edge_threshold,
+            drop_edges=self.drop_edges,
+            speckle_px=self.speckle_px,
+            speckle_rel=self.speckle_rel,
+            segment_px=self.segment_px,
+            plane_tolerance=self.plane_tolerance,
+            min_plane_support=self.min_plane_support,
+            min_plane_fraction=self.min_plane_fraction,
+            inpaint_radius=self.inpaint_radius,
+        )
 
 
 class SceneCloudStage(ClipStage):
@@ -194,7 +257,9 @@ class SceneCloudStage(ClipStage):
     # 2: static_depth beats depth for frames+hand_mask; image_source names the depth
     # 3: a static camera gets a plane at STATIC_PLANE_DEPTH instead of a reject
     # 4: so does a rotation-only camera (depth_camera camera_model "rotation")
-    version = 4
+    # 5: dense depth (measured where confident, filled by superpixel planes / inpainting),
+    #    flying pixels only at depth edges; point_confidence (scene_cloud schema v2)
+    version = 5
     config: SceneCloudConfig
 
     def process(self, rows: Mapping[str, Mapping[str, Any]]) -> dict[str, Any]:
@@ -203,19 +268,22 @@ class SceneCloudStage(ClipStage):
         cams = resolve_cameras(rows)
         if cams.world_from_cam is None:
             raise ClipRejected(f"clip {cid!r}: no camera poses (world_from_cam is null)")
-        image, depth, exclude, source = _first_frame(rows)
+        first = _first_frame(rows, self.config.fill)
         try:
             cloud = build_scene_cloud(
-                image,
-                depth,
+                first.image,
+                first.depth,
                 cams.world_from_cam[0],
                 cams.intrinsics,
-                exclude,
-                self.config.edge_threshold,
+                first.exclude,
+                confidence=first.confidence,
+                unmeasured=first.unmeasured,
+                params=self.config.densify_params(),
+                fill=self.config.fill,
             )
         except SceneCloudError as exc:
             raise ClipRejected(f"clip {cid!r}: {exc}") from exc
-        return cloud_row(cid, cloud, source)
+        return cloud_row(cid, cloud, first.source)
 
 
 def _depth_name(rows: Mapping[str, Mapping[str, Any]]) -> str:
@@ -241,14 +309,36 @@ def fill_depth_under(depth: np.ndarray, filled: np.ndarray, radius: float = 5.0)
     return np.where(filled, guess, depth).astype(np.float32)
 
 
-def _first_frame(
-    rows: Mapping[str, Mapping[str, Any]],
-) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, str]:
-    """``(image (H, W, 3), depth (H, W), exclude (H, W) or None, source name)`` of frame 0."""
+@dataclasses.dataclass(frozen=True)
+class FirstFrame:
+    """What frame 0 gives the cloud: colour, depth and which pixels to trust or leave out."""
+
+    image: np.ndarray  # (H, W, 3) uint8 RGB
+    depth: np.ndarray  # (H, W) float32 metres, 0 = unknown
+    confidence: np.ndarray | None  # (H, W) float32 in [0, 1] of depth0, None = all measured
+    exclude: np.ndarray | None  # (H, W) bool pixels left out (hands), None = none
+    unmeasured: np.ndarray | None  # (H, W) bool pixels whose depth is filled (under inpainting)
+    source: str  # image_source column value
+
+
+def _confidence0(rows: Mapping[str, Mapping[str, Any]], shape: tuple[int, ...]) -> Any:
+    """``(H, W)`` float32 confidence of the ``cameras`` depth0 in [0, 1], or None."""
+    cams, cid = rows.get("cameras"), rows["clips"]["clip_id"]
+    if cams is None or cams.get("confidence0") is None:
+        return None
+    conf = media.decode_lossless_video(cams["confidence0"], f"clip {cid} confidence0", 1)[0]
+    if conf.shape != shape:
+        raise ClipRejected(f"clip {cid!r}: confidence0 {conf.shape} != depth0 {shape}")
+    return conf.astype(np.float32) / 255.0
+
+
+def _first_frame(rows: Mapping[str, Mapping[str, Any]], fill: bool = True) -> FirstFrame:
+    """Frame 0's image, depth, depth confidence, pixels to leave out or fill (module docstring)."""
     row, inpaint = rows["clips"], rows.get("inpaint")
     cid, h, w = row["clip_id"], row["height"], row["width"]
     depth = first_frame_depth(rows)  # (H, W)
     depth_name = _depth_name(rows)
+    confidence = None
     if depth is None:
         if not depth_is_unknown_by_model(rows):
             raise ClipRejected(f"clip {cid!r}: no depth (needs depth0, static_depth or depth)")
@@ -257,20 +347,26 @@ def _first_frame(
         # scene_render warp frame 0 by the rotation's homography (repeat it when static).
         depth = np.full((h, w), STATIC_PLANE_DEPTH, np.float32)
         depth_name = "static_plane"
+    elif depth_name == "depth0":
+        confidence = _confidence0(rows, depth.shape)
     hand_free = depth_name in ("static_depth", "static_plane")
     if inpaint is not None:
         image = media.decode_png(inpaint["first_frame"], f"clip {cid} inpaint first_frame")
+        unmeasured = None
         if not hand_free:
             filled = media.decode_png(inpaint["fill_source"], f"clip {cid} fill_source") > 0
             if filled.shape != depth.shape:
                 raise ClipRejected(
                     f"clip {cid!r}: inpaint fill_source {filled.shape} != depth {depth.shape}"
                 )
-            depth = fill_depth_under(depth, filled)
-        return image, depth, None, f"inpaint+{depth_name}"
+            if fill:
+                unmeasured = filled
+            else:
+                depth = fill_depth_under(depth, filled)
+        return FirstFrame(image, depth, confidence, None, unmeasured, f"inpaint+{depth_name}")
     if row.get("first_frame_clean") is not None and hand_free:
         image = media.decode_png(row["first_frame_clean"], f"clip {cid} first_frame_clean")
-        return image, depth, None, f"first_frame_clean+{depth_name}"
+        return FirstFrame(image, depth, confidence, None, None, f"first_frame_clean+{depth_name}")
     if row.get("hand_mask") is None:
         raise ClipRejected(
             f"clip {cid!r}: no inpaint, first_frame_clean or hand_mask: the cloud would "
@@ -278,4 +374,4 @@ def _first_frame(
         )
     image = media.decode_rgb_video(row["video"], h, w, f"clip {cid} video")[0]
     hands = media.decode_lossless_video(row["hand_mask"], f"clip {cid} hand_mask", 1)[0]
-    return image, depth, hands, f"frames+{depth_name}-hand_mask"
+    return FirstFrame(image, depth, confidence, hands > 0, None, f"frames+{depth_name}-hand_mask")

@@ -1,0 +1,316 @@
+"""Scene-cloud density and scene-render coverage on real DWM clips and the synthetic world.
+
+``python -m bench.scene_coverage [--data ../shared/data] [--out runs/scene_coverage] [--only NAME]
+[--no-run]`` prints one table and writes ``OUT/scene_coverage.json`` and ``OUT/contact_sheet.png``
+(per real clip: real frame 0 | render at t=0 | visible at t=0, hands in red | render at the end).
+
+- **Real** (``dwm_*``): the dataset workflow (``workflows/dataset.yaml``, ``ingest.preset=dwm``,
+  through :func:`bench.real_video.run_case`; finished steps are skipped) on each DWM dynamic clip;
+  the scene render is compared with ``videos_static`` (the true static scene along the true
+  trajectory). Hand pixels are ``videos_hands`` dilated by ``HAND_DILATE_PX``.
+- **Synthetic** (``world_*``): a small synthetic clip whose depth is removed, so ``depth_camera``
+  (backend ``given``: the world's poses) estimates it by plane sweep like on real video; then
+  ``scene_cloud`` (hands left out by the world's hand mask) and ``scene_render``; compared with
+  the world's static video. ``alt`` rows use ``WorldConfig(variant="alt")`` when it exists (a
+  differently made world nothing here was tuned on).
+
+Columns: ``measured`` share of frame-0 pixels whose depth was measured (the rest filled);
+``cloud`` points / pixels; ``cov0``, ``cov`` and ``covN``: share of non-hand pixels the render
+marks visible at t=0, on average over the clip, and at the last frame; ``dB``: PSNR of the render
+against the static truth on visible non-hand pixels, averaged over frames (``dB0`` at t=0).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import yaml
+
+from bench.real_video import (
+    CASES,
+    DEFAULT_DATA,
+    HAND_DILATE_PX,
+    HAND_RENDER_THRESHOLD,
+    ROOT,
+    RealCase,
+    _fit,
+    _psnr,
+    _video_frames,
+    read_step,
+    run_case,
+)
+from egosim.pipeline import media
+
+SYNTHETIC = (  # (label, mode, seed, variant) at SYN_H x SYN_W, SYN_T frames
+    ("world_wild_s1", "wild", 1, ""),
+    ("world_wild_s2", "wild", 2, ""),
+    ("world_table_s1", "tabletop", 1, ""),
+    ("alt_wild_s3", "wild", 3, "alt"),
+    ("alt_table_s3", "tabletop", 3, "alt"),
+)
+SYN_H, SYN_W, SYN_T = 192, 336, 17  # small synthetic clips
+
+
+def coverage_figures(
+    scene: np.ndarray, visible: np.ndarray, truth: np.ndarray, hand: np.ndarray
+) -> dict[str, float]:
+    """Coverage and PSNR of a render ``scene (T, H, W, 3)`` with ``visible (T, H, W)`` bool.
+
+    ``truth (T, H, W, 3)`` the static scene, ``hand (T, H, W)`` bool pixels left out of every
+    figure.
+    """
+    free = ~hand  # (T, H, W)
+    cov = (visible & free).reshape(len(scene), -1).sum(1) / np.maximum(
+        free.reshape(len(scene), -1).sum(1), 1
+    )  # (T,)
+    psnrs = [_psnr(scene[t], truth[t], visible[t] & free[t]) for t in range(len(scene))]
+    return {
+        "cov0": float(cov[0]),
+        "cov": float(cov.mean()),
+        "covN": float(cov[-1]),
+        "dB0": psnrs[0],
+        "dB": float(np.nanmean(psnrs)),
+    }
+
+
+def _rows(path: Path) -> dict[str, dict]:
+    """Rows of one shard by clip id ({} when it does not exist)."""
+    from egosim.pipeline.shards import open_shard
+
+    if not path.is_file():
+        return {}
+    with open_shard(path) as reader:
+        return {row["clip_id"]: row for row in reader.iter_rows()}
+
+
+def _cloud_figures(cloud: dict | None, hw: tuple[int, int]) -> dict[str, float]:
+    """Measured share of the frame's pixels and points / pixels of one scene_cloud row."""
+    if cloud is None:
+        return {"cloud": float("nan"), "measured": float("nan")}
+    out = {"cloud": float(cloud["kept_fraction"])}
+    conf = cloud.get("point_confidence")
+    if conf is not None:
+        c = np.frombuffer(conf, dtype=np.uint8)
+        out["measured"] = float((c == 255).sum()) / (hw[0] * hw[1])
+    else:
+        out["measured"] = out["cloud"]
+    return out
+
+
+def _step(
+    stage: str, inputs: dict[str, Path], params: dict[str, Any], out: Path, name: str = ""
+) -> Path:
+    """Run one stage on one shard (skipped when already complete); returns the output path."""
+    from egosim.pipeline.execute import ShardTask, run_shard_task
+
+    name = name or stage
+    path = out / f"{name}.parquet"
+    run_shard_task(
+        ShardTask(
+            step=name,
+            stage=stage,
+            params=params,
+            shard_index=0,
+            shard_count=1,
+            output=path,
+            rejects=out / f"{name}-rejects.parquet",
+            inputs=inputs,
+        )
+    )
+    return path
+
+
+def rerender(run: Path, out: Path, cloud_params: dict[str, Any]) -> Path:
+    """``scene_cloud`` + ``scene_render`` with the current code on a run's upstream shards.
+
+    Reads the run's ``ingest``, ``cameras``, ``poses`` and ``inpaint`` shard 0 (the dataset
+    workflow's inputs of ``scene_cloud``) and writes ``out/scene_cloud`` and
+    ``out/scene_render``, so the scene steps are measured on fixed inputs whatever else changes.
+    """
+    inputs = {
+        role: run / step / "shard-00000.parquet"
+        for role, step in (
+            ("clips", "ingest"),
+            ("cameras", "cameras"),
+            ("poses", "poses"),
+            ("inpaint", "inpaint"),
+        )
+    }
+    missing = [str(p) for p in inputs.values() if not p.is_file()]
+    if missing:
+        raise FileNotFoundError(f"run {run} lacks {missing}")
+    out.mkdir(parents=True, exist_ok=True)
+    cloud = _step("scene_cloud", inputs, cloud_params, out)
+    render_in = {k: inputs[k] for k in ("clips", "cameras", "poses")}
+    _step("scene_render", {**render_in, "scene_cloud": cloud}, {}, out)
+    return out
+
+
+def real_case(
+    case: RealCase, data: Path, run: Path, scene: Path | None = None
+) -> tuple[dict[str, Any], np.ndarray | None]:
+    """Figures of one DWM clip, and its contact-sheet row.
+
+    The render is the run's own ``scene_render`` step, or ``scene/scene_render.parquet`` when
+    ``scene`` is given (see :func:`rerender`).
+    """
+    clips = read_step(run, "ingest")
+    if scene is None:
+        renders = read_step(run, "scene_render")
+        cloud_rows = read_step(run, "scene_cloud")
+    else:
+        renders = _rows(scene / "scene_render.parquet")
+        cloud_rows = _rows(scene / "scene_cloud.parquet")
+    if not renders:
+        return {"case": case.name, "error": "no scene_render output"}, None
+    cid = sorted(renders)[0]
+    render, clip = renders[cid], clips[cid]
+    h, w = int(render["height"]), int(render["width"])
+    video = media.decode_rgb_video(render["scene_video"], h, w, f"{cid} scene")
+    visible = media.decode_lossless_video(render["visible"], f"{cid} visible") > 0
+    real = media.decode_rgb_video(clip["video"], h, w, f"{cid} video")
+    indices = clip.get("source_frame_indices")
+    indices = np.arange(len(video)) if indices is None else np.asarray(indices, dtype=np.int64)
+    truth = _fit(_video_frames(data / case.static_truth), indices, (h, w))
+    hands = _fit(_video_frames(data / case.hands_truth), indices, (h, w))
+    kernel = cv2.getStructuringElement(
+        cv2.MORPH_ELLIPSE, (2 * HAND_DILATE_PX + 1, 2 * HAND_DILATE_PX + 1)
+    )
+    hand = np.stack(
+        [
+            cv2.dilate((f.max(axis=2) > HAND_RENDER_THRESHOLD).astype(np.uint8), kernel)
+            for f in hands
+        ]
+    ).astype(bool)  # (T, H, W)
+    row = {"case": case.name, "clip": cid, **_cloud_figures(cloud_rows.get(cid), (h, w))}
+    row.update(coverage_figures(video, visible, truth, hand))
+    return row, sheet_row(real[0], video[0], visible[0], hand[0], video[-1])
+
+
+def sheet_row(
+    real: np.ndarray, first: np.ndarray, visible: np.ndarray, hand: np.ndarray, last: np.ndarray
+) -> np.ndarray:
+    """``real | render t=0 | visible t=0 (white; hands red; holes black) | render end``."""
+    vis = np.repeat(visible[..., None].astype(np.uint8) * 255, 3, axis=2)  # (H, W, 3)
+    vis[hand] = (vis[hand] * 0.4 + np.array([160, 0, 0])).astype(np.uint8)
+    return np.concatenate([real, first, vis, last], axis=1)
+
+
+def synthetic_case(
+    label: str, mode: str, seed: int, variant: str, work: Path, cloud_params: dict[str, Any]
+) -> dict[str, Any] | None:
+    """Figures of one synthetic clip with estimated (plane-sweep) depth; None if not available."""
+    from egosim.pipeline.clip_io import write_clips
+    from egosim.stages.world.clip import render_clip
+    from egosim.stages.world.config import WorldConfig
+
+    kwargs: dict[str, Any] = {"seed": seed, "mode": mode, "height": SYN_H, "width": SYN_W}
+    if variant:
+        if "variant" not in {f.name for f in dataclasses.fields(WorldConfig)}:
+            return None
+        kwargs["variant"] = variant
+    clip = render_clip(WorldConfig(num_frames=SYN_T, **kwargs))
+    truth, hand = clip.static_frames, clip.hand_mask.astype(bool)
+    clip = dataclasses.replace(clip, depth=None, static_depth=None, first_frame_clean=None)
+    work.mkdir(parents=True, exist_ok=True)
+    clips = work / "clips.parquet"
+    write_clips(clips, [clip])
+
+    cams = _step("depth_camera", {"clips": clips}, {"backend": "given"}, work)
+    cloud = _step("scene_cloud", {"clips": clips, "cameras": cams}, cloud_params, work)
+    render = _step(
+        "scene_render", {"clips": clips, "cameras": cams, "scene_cloud": cloud}, {}, work
+    )
+    rows = list(_rows(render).values())
+    if not rows:
+        return {"case": label, "error": "no scene_render output"}
+    row = rows[0]
+    h, w = clip.height, clip.width
+    scene = media.decode_rgb_video(row["scene_video"], h, w, label)
+    visible = media.decode_lossless_video(row["visible"], label) > 0
+    cloud_row = _rows(cloud).get(clip.clip_id)
+    out = {"case": label, "clip": clip.clip_id, **_cloud_figures(cloud_row, (h, w))}
+    out.update(coverage_figures(scene, visible, truth, hand))
+    return out
+
+
+def print_table(rows: list[dict[str, Any]]) -> None:
+    """One line per case."""
+    cols = ("measured", "cloud", "cov0", "cov", "covN", "dB0", "dB")
+    print(f"{'case':<16}" + "".join(f"{c:>9}" for c in cols) + f"{'s':>6}")
+    for r in rows:
+        if "error" in r:
+            print(f"{r['case']:<16} {r['error']}")
+            continue
+        cells = [f"{r[c]:>9.1f}" if c.startswith("dB") else f"{100 * r[c]:>8.1f}%" for c in cols]
+        print(f"{r['case']:<16}" + "".join(cells) + f"{r.get('seconds', 0.0):>6.0f}")
+
+
+def main() -> int:
+    """Run every case (or ``--only``), print the table, write the JSON and the contact sheet."""
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--data", type=Path, default=DEFAULT_DATA, help="the shared data folder")
+    parser.add_argument("--out", type=Path, default=ROOT / "runs" / "scene_coverage")
+    parser.add_argument("--only", default="", help="run the cases whose name contains this")
+    parser.add_argument("--workers", type=int, default=1, help="local Dask workers (real clips)")
+    parser.add_argument("--no-run", action="store_true", help="real clips: read existing runs")
+    parser.add_argument(
+        "--workflow-render",
+        action="store_true",
+        help="real clips: measure the run's own scene_render instead of re-rendering its inputs",
+    )
+    parser.add_argument(
+        "--cloud", action="append", default=[], help="scene_cloud param k=v (repeatable)"
+    )
+    args = parser.parse_args()
+    cloud_params = {k: yaml.safe_load(v) for k, v in (kv.split("=", 1) for kv in args.cloud)}
+    tag = "scene_bench" + "".join(f"-{k}={v}" for k, v in sorted(cloud_params.items()))
+    args.out.mkdir(parents=True, exist_ok=True)
+    rows: list[dict[str, Any]] = []
+    sheet: list[np.ndarray] = []
+    for case in CASES:
+        if not case.static_truth or (args.only and args.only not in case.name):
+            continue
+        if not (args.data / case.video).is_file():
+            print(f"{case.name}: {args.data / case.video} not found, skipped")
+            continue
+        run = args.out / case.name
+        start = time.perf_counter()
+        if not args.no_run:
+            run_case(case, args.data, run, args.workers)
+        scene = None if args.workflow_render else rerender(run, run / tag, cloud_params)
+        row, strip = real_case(case, args.data, run, scene)
+        row["seconds"] = time.perf_counter() - start
+        rows.append(row)
+        if strip is not None:
+            sheet.append(strip)
+    for label, mode, seed, variant in SYNTHETIC:
+        if args.only and args.only not in label:
+            continue
+        start = time.perf_counter()
+        with tempfile.TemporaryDirectory() as tmp:
+            row = synthetic_case(label, mode, seed, variant, Path(tmp), cloud_params)
+        if row is None:
+            print(f"{label}: WorldConfig has no variant {variant!r}, skipped")
+            continue
+        row["seconds"] = time.perf_counter() - start
+        rows.append(row)
+    (args.out / "scene_coverage.json").write_text(json.dumps(rows, indent=1))
+    if sheet:
+        path = args.out / "contact_sheet.png"
+        cv2.imwrite(str(path), cv2.cvtColor(np.concatenate(sheet, axis=0), cv2.COLOR_RGB2BGR))
+        print(f"contact sheet: {path}")
+    print_table(rows)
+    return 0 if rows and all("error" not in r for r in rows) else 1
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
