@@ -1,8 +1,8 @@
-"""Evaluation metrics: PSNR, SSIM, Plücker-ray camera error, and LPIPS when weights exist locally.
+"""Image metrics: PSNR, SSIM, and LPIPS when weights exist locally.
 
-Videos are uint8 arrays (..., H, W, 3) or float arrays in [0, data_range]. Cameras follow the
-project convention (OpenCV axes, ``world_from_cam`` 4x4, ``intrinsics = (fx, fy, cx, cy)``,
-pixel centres at integer + 0.5; see ``egosim.pipeline.geometry``).
+Videos are uint8 arrays (..., H, W, 3) or float arrays in [0, data_range]. The camera error
+(Cam-ERR, Plücker rays) is geometry, not a model piece: ``egosim.pipeline.geometry.camera_error``
+(``model/`` never imports ``pipeline/``).
 """
 
 from __future__ import annotations
@@ -14,7 +14,6 @@ import torch
 from torch.nn import functional as F  # noqa: N812 (the universal torch alias)
 
 from egosim.model.errors import ModelConfigError
-from egosim.pipeline.geometry import intrinsics_matrix, pixel_grid
 
 
 def _as_float(x: np.ndarray | torch.Tensor) -> torch.Tensor:
@@ -62,47 +61,6 @@ def ssim(
     num = (2 * mu_a * mu_b + c1) * (2 * s_ab + c2)
     den = (mu_a**2 + mu_b**2 + c1) * (s_aa + s_bb + c2)
     return float((num / den).mean())
-
-
-def plucker_rays(
-    intrinsics: np.ndarray, world_from_cam: np.ndarray, height: int, width: int
-) -> np.ndarray:
-    """Per-pixel Plücker coordinates (T, H, W, 6) = (d, c x d) with unit world direction d.
-
-    intrinsics: (4,) or (T, 4) ``(fx, fy, cx, cy)``; world_from_cam: (T, 4, 4).
-    ``d = normalise(R K^-1 [u, v, 1])`` at pixel centres, ``c`` the camera centre.
-    """
-    poses = np.asarray(world_from_cam, dtype=np.float64).reshape(-1, 4, 4)  # (T, 4, 4)
-    k = np.asarray(intrinsics, dtype=np.float64).reshape(-1, 4)
-    k = np.broadcast_to(k, (poses.shape[0], 4))  # (T, 4)
-    uv1 = np.concatenate([pixel_grid(height, width), np.ones((height, width, 1))], axis=-1)
-    rays = []
-    for kt, pose in zip(k, poses, strict=True):
-        d_cam = uv1 @ np.linalg.inv(intrinsics_matrix(kt)).T  # (H, W, 3)
-        d = d_cam @ pose[:3, :3].T  # (H, W, 3) world directions
-        d = d / np.linalg.norm(d, axis=-1, keepdims=True)
-        m = np.cross(np.broadcast_to(pose[:3, 3], d.shape), d)  # (H, W, 3) moment c x d
-        rays.append(np.concatenate([d, m], axis=-1))  # (H, W, 6)
-    return np.stack(rays)
-
-
-def camera_error(
-    intrinsics: np.ndarray,
-    world_from_cam_a: np.ndarray,
-    world_from_cam_b: np.ndarray,
-    height: int,
-    width: int,
-) -> float:
-    """Cam-ERR: mean over frames and pixels of the L2 distance between Plücker embeddings.
-
-    Both sequences use the same intrinsics; poses must be expressed in one world frame (align
-    and scale them first when they come from separate reconstructions).
-    """
-    a = plucker_rays(intrinsics, world_from_cam_a, height, width)
-    b = plucker_rays(intrinsics, world_from_cam_b, height, width)
-    if a.shape != b.shape:
-        raise ModelConfigError(f"camera_error: {a.shape[0]} vs {b.shape[0]} frames")
-    return float(np.linalg.norm(a - b, axis=-1).mean())
 
 
 def lpips_distance(

@@ -398,7 +398,7 @@ def simulate(
     Writes OUT/simulate/shard-*.parquet (with the run's manifest, rejects and summary) and
     OUT/videos/<clip_id>.mp4; a re-run skips the shards that are done.
     """
-    from egosim.stages.pack.dataset import find_pack_shards
+    from egosim.stages.common.pack_dataset import find_pack_shards
     from egosim.stages.simulate.videos import write_videos
 
     try:
@@ -448,8 +448,8 @@ def evaluate(
 
     Shard i of --data is paired with shard i of --simulation; prints per-clip and overall tables.
     """
+    from egosim.stages.common.pack_dataset import find_pack_shards
     from egosim.stages.evaluate.report import format_table, read_evaluations
-    from egosim.stages.pack.dataset import find_pack_shards
 
     try:
         wf = load_workflow(

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from egosim.model.metrics import camera_error, lpips_distance, plucker_rays, psnr, ssim
-from egosim.pipeline.geometry import look_at
+from egosim.model.metrics import lpips_distance, psnr, ssim
+from egosim.pipeline.geometry import camera_error, look_at, plucker_rays
 
 
 def test_psnr_known_value() -> None:

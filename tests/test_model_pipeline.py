@@ -22,9 +22,9 @@ from egosim.pipeline.execute import ShardTask, run_shard_task
 from egosim.pipeline.shards import ShardReader, ShardWriter
 from egosim.pipeline.stage import ClipRejected, ConfigError, get_stage
 from egosim.schemas.pack import EVALUATION, PACK, SIMULATION
+from egosim.stages.common.pack_dataset import PackDataset
 from egosim.stages.common.packed import PackRowError, sample_from_pack_row
 from egosim.stages.evaluate.report import format_table, overall
-from egosim.stages.pack.dataset import PackDataset
 from egosim.stages.pack.stage import PackStage
 from egosim.stages.train.run import TrainJob, run_training
 from egosim.stages.world import WorldConfig, render_clip

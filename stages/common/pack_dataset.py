@@ -4,6 +4,9 @@
 step folder is used). It indexes ``(shard, row group)`` pairs up front and decodes a sample when
 it is asked for, so memory holds one clip at a time unless ``cache=True`` (the default for small
 sets: ``tiny`` training revisits the same few clips hundreds of times).
+
+It lives in ``stages/common`` because several stages and commands read pack shards (``train``,
+``egosim simulate`` and ``evaluate``), and a stage never imports another stage.
 """
 
 from __future__ import annotations
@@ -12,29 +15,14 @@ from collections.abc import Iterable
 from pathlib import Path
 
 from egosim.model.conditioning import TrainingSample
-from egosim.pipeline.shards import ShardReader
+from egosim.pipeline.shards import ShardReader, find_shards
 from egosim.schemas.pack import PACK
 from egosim.stages.common.packed import sample_from_pack_row
 
 
 def find_pack_shards(paths: Iterable[str | Path]) -> list[Path]:
     """Pack shard files under ``paths``: files, folders of shards, or run folders with pack/."""
-    found: list[Path] = []
-    for raw in paths:
-        path = Path(raw)
-        if path.is_file():
-            found.append(path)
-            continue
-        if not path.is_dir():
-            raise FileNotFoundError(f"no pack shard or folder at {path}")
-        folder = path / "pack" if (path / "pack").is_dir() else path
-        found += sorted(folder.glob("shard-*.parquet"))
-    if not found:
-        raise FileNotFoundError(
-            f"no pack shards under {[str(p) for p in paths]} (expected shard-*.parquet files, "
-            "or a run folder with a pack/ step)"
-        )
-    return found
+    return find_shards(paths, "pack")
 
 
 class PackDataset:

@@ -1,6 +1,6 @@
 """Decode ``pack`` rows into the model's :class:`~egosim.model.TrainingSample` (shared reader).
 
-``pack`` writes the rows; ``train`` (through :class:`egosim.stages.pack.dataset.PackDataset`),
+``pack`` writes the rows; ``train`` (through :class:`~.pack_dataset.PackDataset`),
 ``simulate`` and ``evaluate`` read them with :func:`sample_from_pack_row`, so one function decides
 what a packed sample is. Every disagreement between the row's columns (frame counts, sizes,
 missing conditions) is reported at once in a :class:`PackRowError` naming the columns.

@@ -8,7 +8,7 @@
   backend estimates intrinsics, poses and frame-0 depth *from the generated frames*; the result
   is aligned to the pack's reference cameras at frame 0, scaled by the median depth ratio, and
   compared: Depth-ERR = AbsRel of frame-0 depth, Cam-ERR = mean per-pixel Plücker-ray distance
-  (:func:`egosim.model.metrics.camera_error`). ``sfm`` is the honest estimate (heavy, and it
+  (:func:`egosim.pipeline.geometry.camera_error`). ``sfm`` is the honest estimate (heavy, and it
   needs frames big enough to match features: on ``tiny``-sized clips it usually fails and the
   figures are null with the reason in ``note``). ``given`` hands the reference cameras and depth
   back, so its figures are 0 by construction: a plumbing check, not a measurement. ``none``
@@ -23,10 +23,10 @@ from typing import Any, ClassVar, Literal
 
 import numpy as np
 
-from egosim.model.metrics import camera_error, lpips_distance, psnr, ssim
+from egosim.model.metrics import lpips_distance, psnr, ssim
 from egosim.pipeline import media
 from egosim.pipeline.clip_io import row_from_clip
-from egosim.pipeline.geometry import invert_se3
+from egosim.pipeline.geometry import camera_error, invert_se3
 from egosim.pipeline.records import Clip
 from egosim.pipeline.stage import ClipRejected, ClipStage, ConfigError, StageConfig, get_stage
 from egosim.schemas import ShardSchema

@@ -26,7 +26,7 @@ import numpy as np
 from egosim.model.errors import ModelConfigError
 from egosim.model.train import TrainConfig, train
 from egosim.pipeline.media import write_video_file
-from egosim.stages.pack.dataset import PackDataset
+from egosim.stages.common.pack_dataset import PackDataset
 
 
 @dataclass(frozen=True)
