@@ -201,8 +201,11 @@ def test_stage_takes_depth_and_cameras_from_connected_roles(tmp_path: Path) -> N
         cam_row = next(reader.iter_rows())
     depth0 = media.decode_depth_video(cam_row["depth0"], cam_row["depth_unit_m"])[0]
     decoded = next(read_clips(clips))
+    cfg = InpaintConfig()
+    grow = cfg.dilate_px + round(cfg.dilate_fraction * float(np.hypot(*decoded.frames.shape[1:3])))
     expected = reproject_fill(
-        decoded.frames, gt.hand_mask, depth0, moved, gt.intrinsics, candidates=3
-    )
+        decoded.frames, gt.hand_mask, depth0, moved, gt.intrinsics, dilate_px=grow,
+        candidates=cfg.candidates,
+    )  # fmt: skip
     np.testing.assert_array_equal(media.decode_png(row["first_frame"]), expected.image)
     assert row["reprojected_fraction"] > 0.3

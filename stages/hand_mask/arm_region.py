@@ -49,6 +49,11 @@ class ArmParams:
     seed_end: float = 0.8  # ... and ends this many hand lengths past the wrist
     seed_width: float = 0.35  # strip half-width, times the forearm's half-width at the wrist
     band: float = 1.0  # probable-arm band half-width, times the average forearm half-width
+    walk: bool = True  # extend the certain-arm strip along the arm while its colour holds
+    walk_tolerance: float = 18.0  # Lab distance (OpenCV 8-bit units) of "the same colour"
+    walk_gap: float = 1.0  # misses in a row (in forearm half-widths) that end the walk
+    colour_region: float = 2.0  # pixels of the arm's colour connected to the strip and within
+    # this many forearm half-widths of its axis are certainly arm (0: off)
 
     def __post_init__(self) -> None:
         problems = []
@@ -62,6 +67,10 @@ class ArmParams:
             problems.append(f"seed_width must be in (0, 2], got {self.seed_width}")
         if not 0.1 <= self.band <= 5.0:
             problems.append(f"band must be in [0.1, 5], got {self.band}")
+        if not 1.0 <= self.walk_tolerance <= 200.0:
+            problems.append(f"walk_tolerance must be in [1, 200], got {self.walk_tolerance}")
+        if not 0.0 <= self.walk_gap <= 20.0:
+            problems.append(f"walk_gap must be in [0, 20], got {self.walk_gap}")
         if problems:
             raise ValueError("; ".join(problems))
 
@@ -97,39 +106,127 @@ def arm_direction(
     exclude: np.ndarray,
     max_turn_deg: float = 90.0,
     turn_cost: float = 0.15,
+    radius: float | None = None,
 ) -> np.ndarray:
-    """Unit image direction ``(2,)`` of the forearm from ``wrist``, chosen by colour uniformity.
+    """Unit image direction ``(2,)`` of the forearm from ``wrist``, chosen by colour.
 
-    Candidate directions within ``max_turn_deg`` of ``hand_dir`` (every 10 degrees) are scored by
-    how uniform the colour is along a strip from 0.3 to 1.5 hand lengths past the wrist (median
-    absolute deviation in Lab, over samples inside the image and outside ``exclude (H, W)``, the
-    hand's own mask), plus ``turn_cost`` per radian of turn: a forearm (skin or sleeve) is one
-    smooth colour, a strip across a table or objects is not. The hand's direction is kept when no
-    candidate has enough samples.
+    Candidate directions within ``max_turn_deg`` of ``hand_dir`` (every 5 degrees) are scored on
+    a strip from 0.3 to 1.5 hand lengths past the wrist (samples inside the image and outside
+    ``exclude (H, W)``, the hand's own mask): how uniform the colour is along its axis (median
+    absolute deviation in Lab) over how much it differs from two side strips ``2 * radius`` off
+    the axis (``radius``: the forearm's half-width in pixels, default a third of ``hand_len``),
+    times ``1 + turn_cost`` per radian of turn: a forearm (skin or sleeve) is one smooth colour
+    that stands out from what lies beside it; a strip across a table or objects is not. The hand's
+    direction is kept when no candidate has enough samples.
     """
     h, w = image.shape[:2]
     lab = cv2.cvtColor(image, cv2.COLOR_RGB2LAB).astype(np.float32)  # (H, W, 3)
+    radius = hand_len / 3.0 if radius is None else radius
     steps = np.linspace(0.3, 1.5, 24) * hand_len  # (S,)
-    offsets = np.array([-0.25, 0.0, 0.25]) * hand_len * 0.35  # across the strip
-    best, best_score = hand_dir, np.inf
-    for turn in np.arange(-max_turn_deg, max_turn_deg + 1e-6, 10.0):
-        d = _rotate(hand_dir, float(turn))
-        n = np.array([-d[1], d[0]])
-        pts = wrist + steps[:, None, None] * d + offsets[None, :, None] * n  # (S, 3, 2)
-        pts = pts.reshape(-1, 2) - 0.5
-        xi, yi = np.round(pts[:, 0]).astype(int), np.round(pts[:, 1]).astype(int)
+    offsets = np.array([-0.3, 0.0, 0.3]) * radius  # across the strip
+
+    def colours_at(pts: np.ndarray) -> np.ndarray:
+        """Lab colours ``(N, 3)`` at pixel-centre points ``(N, 2)`` in the image, off the hand."""
+        xi, yi = np.floor(pts[:, 0]).astype(int), np.floor(pts[:, 1]).astype(int)
         inside = (xi >= 0) & (xi < w) & (yi >= 0) & (yi < h)
         xi, yi = xi[inside], yi[inside]
         keep = exclude[yi, xi] == 0
-        if keep.sum() < 12:
+        return lab[yi[keep], xi[keep]]
+
+    best, best_score = hand_dir, np.inf
+    for turn in np.arange(-max_turn_deg, max_turn_deg + 1e-6, 5.0):
+        d = _rotate(hand_dir, float(turn))
+        n = np.array([-d[1], d[0]])
+        axis = wrist + steps[:, None, None] * d + offsets[None, :, None] * n  # (S, 3, 2)
+        colours = colours_at(axis.reshape(-1, 2))  # (N, 3)
+        if len(colours) < 12:
             continue
-        colours = lab[yi[keep], xi[keep]]  # (N, 3)
-        spread = float(np.median(np.abs(colours - np.median(colours, axis=0)).sum(axis=1)))
+        centre = np.median(colours, axis=0)  # (3,)
+        spread = float(np.median(np.abs(colours - centre).sum(axis=1)))
+        contrast = []
+        for off in (-2.0 * radius, 2.0 * radius):
+            side = colours_at(wrist + steps[:, None] * d + off * n)  # (N', 3)
+            if len(side) >= 4:
+                contrast.append(float(np.linalg.norm(np.median(side, axis=0) - centre)))
+        away = float(np.mean(contrast)) if contrast else 0.0
         # +1 Lab unit of noise floor, so that a perfectly uniform strip still prefers no turn
-        score = (spread + 1.0) * (1.0 + turn_cost * abs(np.radians(turn)))
+        score = (spread + 1.0) / (away + 1.0) * (1.0 + turn_cost * abs(np.radians(turn)))
         if score < best_score:
             best, best_score = d, score
     return best
+
+
+def arm_extent(
+    lab: np.ndarray,
+    wrist: np.ndarray,
+    d: np.ndarray,
+    radius: float,
+    start: float,
+    end: float,
+    exclude: np.ndarray,
+    tolerance: float,
+    gap: float,
+) -> tuple[float, np.ndarray | None]:
+    """Distance in pixels from ``wrist`` along ``d`` to which the arm's colour holds; that colour.
+
+    ``lab (H, W, 3)`` float32 Lab image; ``radius`` the forearm's half-width in pixels; the
+    reference colour is the median along the axis from ``start`` to ``end`` pixels past the wrist
+    (outside ``exclude (H, W)``, the hand). Walking on from ``end`` in steps of half a radius, a
+    step matches when the median colour across the axis (three samples within half a radius) is
+    within ``tolerance`` of the reference and at least one side, two radii off the axis, is not
+    (an arm stands out from what lies beside it; a strip of plain table does not). The walk ends
+    after ``gap`` radii of misses in a row or at the image border. Returns the last match (at
+    least ``end``) and the reference colour ``(3,)``, or ``(end, None)`` when the reference
+    cannot be measured.
+    """
+    h, w = lab.shape[:2]
+    n = np.array([-d[1], d[0]])  # (2,)
+    step = max(1.0, 0.5 * radius)
+
+    def sample(points: np.ndarray) -> np.ndarray:
+        """Lab colours ``(N, 3)`` at ``points (N, 2)`` (pixel centres), NaN outside the image."""
+        xi = np.floor(points[:, 0]).astype(int)
+        yi = np.floor(points[:, 1]).astype(int)
+        inside = (xi >= 0) & (xi < w) & (yi >= 0) & (yi < h)
+        out = np.full((len(points), 3), np.nan, np.float32)
+        out[inside] = lab[yi[inside], xi[inside]]
+        inside[inside] = exclude[yi[inside], xi[inside]] == 0
+        out[~inside] = np.nan
+        return out
+
+    across = np.array([-0.5, 0.0, 0.5]) * radius  # (3,)
+    ref_t = np.arange(start, end + 1e-6, step)  # (S,)
+    ref_pts = wrist + ref_t[:, None, None] * d + across[None, :, None] * n  # (S, 3, 2)
+    ref = sample(ref_pts.reshape(-1, 2))
+    ref = ref[np.all(np.isfinite(ref), axis=1)]
+    if len(ref) < 3:
+        return end, None
+    ref_colour = np.median(ref, axis=0)  # (3,)
+    reach = float(np.hypot(h, w))
+    ts = np.arange(end + step, end + reach, step)  # (S,)
+    centre = wrist + ts[:, None, None] * d + across[None, :, None] * n  # (S, 3, 2)
+    sides = wrist + ts[:, None, None] * d + np.array([-2.0, 2.0])[None, :, None] * radius * n
+    colours = sample(centre.reshape(-1, 2)).reshape(len(ts), 3, 3)  # (S, 3, 3) NaN outside
+    some = np.any(np.isfinite(colours[..., 0]), axis=1)  # (S,)
+    colour = np.full((len(ts), 3), np.nan, np.float32)
+    colour[some] = np.nanmedian(colours[some], axis=1)
+    side = sample(sides.reshape(-1, 2)).reshape(len(ts), 2, 3)  # (S, 2, 3)
+    dist = np.linalg.norm(colour - ref_colour, axis=1)  # (S,) NaN outside
+    side_dist = np.linalg.norm(side - ref_colour, axis=2)  # (S, 2)
+    contrast = np.nanmax(np.where(np.isfinite(side_dist), side_dist, -1.0), axis=1) > tolerance
+    in_image = np.isfinite(dist)
+    match = in_image & (dist <= tolerance) & contrast  # (S,)
+    last, misses = end, 0.0
+    for t, ok, inside in zip(ts, match, in_image, strict=True):
+        if not inside:
+            break
+        if ok:
+            last, misses = float(t), 0.0
+        else:
+            misses += step
+            if misses > gap * radius:
+                break
+    return last, ref_colour
 
 
 def _fixed(points: np.ndarray) -> np.ndarray:
@@ -169,7 +266,8 @@ def draw_arm_labels(
     if capsule.forearm and found is not None:
         wrist, d, hand_len = found
         if image is not None and arm.max_turn_deg > 0:
-            d = arm_direction(image, wrist, d, hand_len, mask, arm.max_turn_deg)
+            r_wrist = FOREARM_RADIUS_M[0] * scale * capsule.radius_scale
+            d = arm_direction(image, wrist, d, hand_len, mask, arm.max_turn_deg, radius=r_wrist)
         reach = float(np.hypot(h, w)) + float(np.hypot(*(wrist - [w / 2, h / 2])))
         r0 = FOREARM_RADIUS_M[0] * scale * capsule.radius_scale * arm.band
         r1 = FOREARM_RADIUS_M[1] * scale * capsule.radius_scale * arm.band
@@ -184,9 +282,25 @@ def draw_arm_labels(
         quad = np.stack([wrist + r0 * n, end + r_end * n, end - r_end * n, wrist - r0 * n])
         cv2.fillPoly(band, [_fixed(quad)], 1, cv2.LINE_8, _SHIFT)
         a = wrist + arm.seed_start * hand_len * d
-        b = wrist + arm.seed_end * hand_len * d
+        seed_end = arm.seed_end * hand_len
+        ref = None
+        if image is not None and arm.walk:
+            lab = cv2.cvtColor(image, cv2.COLOR_RGB2LAB).astype(np.float32)  # (H, W, 3)
+            seed_end, ref = arm_extent(lab, wrist, d, r0, arm.seed_start * hand_len, seed_end,
+                                       mask, arm.walk_tolerance, arm.walk_gap)  # fmt: skip
+        b = wrist + seed_end * d
         thickness = max(1, round(2 * arm.seed_width * FOREARM_RADIUS_M[0] * scale))
         cv2.line(seed, tuple(_fixed(a)), tuple(_fixed(b)), 1, thickness, cv2.LINE_8, _SHIFT)
+        if ref is not None and arm.colour_region > 0:
+            # The arm's colour near its axis, connected to the strip, is certainly arm.
+            wide = np.zeros((h, w), np.uint8)
+            k = arm.colour_region
+            quad = np.stack([wrist + k * r0 * n, end + k * r_end * n, end - k * r_end * n,
+                             wrist - k * r0 * n])  # fmt: skip
+            cv2.fillPoly(wide, [_fixed(quad)], 1, cv2.LINE_8, _SHIFT)
+            close = (np.linalg.norm(lab - ref, axis=2) <= arm.walk_tolerance) & (wide > 0)
+            close &= mask == 0
+            seed = seed | connected_to(close.astype(np.uint8) | seed, seed)
     # A probably-background ring round the hand lets the colour model trim fat capsules.
     ring = cv2.dilate(mask, np.ones((3, 3), np.uint8), iterations=max(1, round(0.03 * scale)))
     for region, label in (

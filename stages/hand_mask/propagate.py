@@ -35,6 +35,8 @@ class PropagationParams:
     min_pixels: int = 30  # warped masks smaller than this are dropped (noise)
     iterations: int = 2  # GrabCut iterations per frame
     max_side: int = 256  # GrabCut works at most at this longest side
+    max_frames: int = 1000  # a mask travels at most this many frames from where it was found
+    into_empty_only: bool = True  # only frames whose own mask is empty (their hands were missed)
 
     def __post_init__(self) -> None:
         problems = []
@@ -44,6 +46,8 @@ class PropagationParams:
             problems.append(
                 f"erode_px in [0, 50] and ring_px in [1, 200], got {self.erode_px}, {self.ring_px}"
             )
+        if self.max_frames < 1:
+            problems.append(f"max_frames must be >= 1, got {self.max_frames}")
         if self.min_pixels < 0 or self.iterations < 1 or self.max_side < 16:
             problems.append(
                 f"min_pixels >= 0, iterations >= 1, max_side >= 16, got {self.min_pixels}, "
@@ -74,18 +78,23 @@ def propagate_backwards(
 
     ``frames (T, H, W, 3)`` uint8 RGB; ``masks (T, H, W)`` uint8 (1 = hand or arm), each frame's
     own mask. Frame ``T - 1`` is returned as given; every earlier frame gains what the
-    (already propagated) next frame's mask shows of it (see the module docstring).
+    (already propagated) next frame's mask shows of it (see the module docstring), as long as
+    that mask was found at most ``max_frames`` frames later.
     """
     p = params or PropagationParams()
     out = masks.astype(np.uint8).copy()
     if len(frames) < 2:
         return out
+    # Frames since the mask at each frame was found (0: its own mask is not empty).
+    age = np.where(out.reshape(len(out), -1).any(axis=1), 0, p.max_frames + 1)  # (T,)
     grey = [cv2.cvtColor(f, cv2.COLOR_RGB2GRAY) for f in frames]
     dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_FAST)
     erode = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * p.erode_px + 1,) * 2)
     ring = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * p.ring_px + 1,) * 2)
     for t in range(len(frames) - 2, -1, -1):
-        if out[t + 1].sum() < p.min_pixels:
+        if out[t + 1].sum() < p.min_pixels or age[t + 1] >= p.max_frames:
+            continue
+        if p.into_empty_only and age[t] == 0:
             continue
         fwd = _flow(dis, grey[t], grey[t + 1])  # (H, W, 2) t -> t+1
         bwd = _flow(dis, grey[t + 1], grey[t])  # (H, W, 2) t+1 -> t
@@ -102,4 +111,17 @@ def propagate_backwards(
         labels[(core > 0) | (out[t] > 0)] = cv2.GC_FGD
         grown = grabcut_labels(frames[t], labels, p.iterations, p.max_side) & (warped | out[t])
         out[t] = connected_to(grown, labels == cv2.GC_FGD) | out[t]
+        age[t] = min(age[t], age[t + 1] + 1)
     return out
+
+
+def propagate_both_ways(
+    frames: np.ndarray, masks: np.ndarray, params: PropagationParams | None = None
+) -> np.ndarray:
+    """Masks ``(T, H, W)`` carried backwards and forwards in time (see :func:`propagate_backwards`).
+
+    Each direction starts from the frames' own ``masks``; the result is their union.
+    """
+    back = propagate_backwards(frames, masks, params)
+    forward = propagate_backwards(frames[::-1], masks[::-1], params)[::-1]
+    return back | forward

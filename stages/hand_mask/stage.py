@@ -41,7 +41,7 @@ from egosim.schemas.hands import HANDS
 from egosim.stages.common.cameras import CAMERA_ROLES, resolve_cameras
 from egosim.stages.hand_mask.arm_region import ArmParams, hand_arm_mask
 from egosim.stages.hand_mask.capsules import CapsuleParams, draw_hands
-from egosim.stages.hand_mask.propagate import PropagationParams, propagate_backwards
+from egosim.stages.hand_mask.propagate import PropagationParams, propagate_both_ways
 from egosim.stages.hand_mask.sam import SamSegmenter, mask_box
 
 # Columns of a clips row this stage does not read: left undecoded.
@@ -68,8 +68,8 @@ class HandMaskConfig(StageConfig):
     fan_half_angle_deg: float = 25.0  # probable-background fan either side of the arm direction
     grabcut_iterations: int = 3  # GrabCut iterations per frame
     grabcut_max_side: int = 256  # GrabCut works on a region downscaled to this longest side
-    propagate_back: bool = False  # carry masks backwards in time by optical flow (off: on the
-    # synthetic world it cost IoU, 0.55 -> 0.37 on tabletop seed 0, by carrying false arm pixels)
+    propagate_frames: int = 8  # carry masks this many frames backwards and forwards in time by
+    # optical flow, into frames whose hands were missed (0: off; see bench/hand_free_real.py)
     min_joint_confidence: float = 0.0  # joints with lower confidence are ignored
     sam_model_path: str = ""  # local folder of a SAM model (backend "sam")
     sam_device: str = "cpu"  # torch device of the SAM model
@@ -82,6 +82,8 @@ class HandMaskConfig(StageConfig):
             problems.append(f"fan_half_angle_deg must be in [0, 89], got {self.fan_half_angle_deg}")
         if self.grabcut_iterations < 1:
             problems.append(f"grabcut_iterations must be >= 1, got {self.grabcut_iterations}")
+        if not 0 <= self.propagate_frames <= 1000:
+            problems.append(f"propagate_frames must be in [0, 1000], got {self.propagate_frames}")
         if self.grabcut_max_side < 16:
             problems.append(f"grabcut_max_side must be >= 16, got {self.grabcut_max_side}")
         if not 0.0 <= self.min_joint_confidence <= 1.0:
@@ -119,10 +121,11 @@ def masks_from_keypoints(
             for t in range(len(frames))
         ]
     )  # (T, H, W)
-    if config.propagate_back and config.colour_refine:
-        masks = propagate_backwards(
-            frames, masks, PropagationParams(max_side=config.grabcut_max_side)
+    if config.propagate_frames > 0 and config.colour_refine:
+        params = PropagationParams(
+            max_side=config.grabcut_max_side, max_frames=config.propagate_frames
         )
+        masks = propagate_both_ways(frames, masks, params)
     return masks
 
 
@@ -169,7 +172,8 @@ class HandMaskStage(ClipStage):
     # cleaned joints and a replacement camera (see the module docstring)
     optional_inputs: ClassVar[Mapping[str, ShardSchema]] = {**CAMERA_ROLES, "hands": HANDS}
     output = HAND_MASK
-    version = 2  # 2: image-space arm masks (no world axis) and backward propagation
+    version = 3  # 2: image-space arm masks (no world axis). 3: arm found by a colour walk, masks
+    # carried into frames whose hands were missed
     backends = ("keypoints", "sam")
 
     def __init__(self, config: StageConfig | None = None) -> None:

@@ -6,7 +6,11 @@ outside the hand masks (ORB matches, RANSAC), or by the identity when the camera
 static. A masked pixel of frame 0 then takes the per-channel **median** of the colours that the
 first ``candidates`` aligned frames show there unoccluded (their own masks, dilated): with a still
 camera this is the plain temporal median, and a median over several frames leaves no ghost of a
-hand that one frame's mask missed. What no frame sees goes to :func:`unseen_fill`.
+hand that one frame's mask missed. A fitted homography is checked where it matters: round the
+hole (a ring of ``ring_px`` outside frame 0's mask, off both frames' hands) the aligned frame
+must match frame 0 to within ``max_residual`` grey levels (median absolute difference), else
+the frame is not used (a plane's homography does not align a 3D scene seen from far apart).
+What no frame sees goes to :func:`unseen_fill`.
 """
 
 from __future__ import annotations
@@ -54,12 +58,15 @@ def aligned_fill(
     candidates: int = 5,
     inpaint_radius: float = 5.0,
     unseen_method: str = "telea",
+    max_residual: float = 10.0,
+    ring_px: int = 15,
 ) -> FillResult:
     """Remove the hand from ``frames[0]``; see the module docstring.
 
     ``frames (T, H, W, 3)`` uint8 RGB, ``hand_mask (T, H, W)`` 1 = hand. ``static_camera``: use
     the identity instead of fitted homographies. ``candidates``: frames whose colours are
-    medianed per pixel (the earliest that see it).
+    medianed per pixel (the earliest that see it). ``max_residual``, ``ring_px``: the alignment
+    check of fitted homographies (see the module docstring).
     """
     t, h, w = frames.shape[:3]
     masks = dilate(hand_mask > 0, dilate_px)  # (T, H, W)
@@ -70,6 +77,8 @@ def aligned_fill(
     if not target.any():
         return FillResult(image, fill_source, source_frame, target)
     ys, xs = np.nonzero(target)  # (M,)
+    ring = (dilate(target, ring_px) > 0) & ~target  # (H, W) round the hole
+    grey0 = cv2.cvtColor(frames[0], cv2.COLOR_RGB2GRAY).astype(np.int16)  # (H, W)
     samples = np.zeros((candidates, len(ys), 3), np.float32)  # colours per candidate slot
     count = np.zeros(len(ys), np.int32)  # (M,) slots used per pixel
     first_frame = np.zeros(len(ys), np.uint16)  # (M,) earliest frame that filled the pixel
@@ -87,6 +96,12 @@ def aligned_fill(
                 (masks[k] == 0).astype(np.uint8), hom, (w, h), flags=cv2.INTER_NEAREST
             )  # (H, W) 1 = unoccluded and inside frame k
             free = seen > 0
+            check = ring & free  # (H, W)
+            if check.sum() < 20:
+                continue
+            grey = cv2.cvtColor(warped, cv2.COLOR_RGB2GRAY).astype(np.int16)
+            if float(np.median(np.abs(grey[check] - grey0[check]))) > max_residual:
+                continue
         ok = free[ys, xs] & (count < candidates)  # (M,)
         if not ok.any():
             continue

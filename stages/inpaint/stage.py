@@ -73,11 +73,13 @@ class InpaintConfig(StageConfig):
 
     backend: Literal["reproject", "opencv", "diffusers"] = "reproject"  # see module docstring
     dilate_px: int = 2  # hand masks grow by this many pixels before filling (soft edges)
+    dilate_fraction: float = 0.008  # ... plus this fraction of the image diagonal (motion blur,
+    # shadows and mask edges scale with the image: +4 px at 240x416, +7 px at 480x720)
     depth_tolerance: float = 0.0  # relative depth disagreement that rejects a fill; 0 = off
     # (off by default: the depth behind the hand is an inpainted guess, and a 5-30% test
     # rejected most good fills on the synthetic world, costing 2-4 dB)
     inpaint_radius: float = 5.0  # OpenCV inpainting neighbourhood radius, pixels
-    candidates: int = 3  # later frames whose colours are medianed per pixel (1: closest only)
+    candidates: int = 7  # later frames whose colours are medianed per pixel (1: closest only)
     unseen_method: str = "telea"  # OpenCV method for pixels no frame sees: "telea" or "ns"
     model_path: str = ""  # local folder of a diffusers inpainting pipeline (backend diffusers)
     device: str = "cpu"  # torch device of the diffusers pipeline
@@ -90,6 +92,8 @@ class InpaintConfig(StageConfig):
         problems = []
         if not 0 <= self.dilate_px <= 64:
             problems.append(f"dilate_px must be in [0, 64], got {self.dilate_px}")
+        if not 0.0 <= self.dilate_fraction <= 0.1:
+            problems.append(f"dilate_fraction must be in [0, 0.1], got {self.dilate_fraction}")
         if not 0.0 <= self.depth_tolerance <= 1.0:
             problems.append(f"depth_tolerance must be in [0, 1], got {self.depth_tolerance}")
         if not 0.0 < self.inpaint_radius <= 100.0:
@@ -112,7 +116,9 @@ class InpaintStage(ClipStage):
     """Remove hands from the first frame: reprojected later frames, then OpenCV inpainting."""
 
     name = "inpaint"
-    version = 3  # 3: median of several frames; clips without depth aligned in the image
+    version = 4  # 3: median of several frames; clips without depth aligned in the image. 4: more
+    # frames in the median, dilation with the image size
+
     description = "remove hands from the first frame (reprojected frames + OpenCV inpainting)"
     config_class = InpaintConfig
     inputs: ClassVar[Mapping[str, ShardSchema]] = {"clips": CLIPS, "hand_mask": HAND_MASK}
@@ -143,7 +149,8 @@ class InpaintStage(ClipStage):
         """
         cfg: InpaintConfig = self.config  # type: ignore[assignment]
         h, w = frames.shape[1:3]
-        target = dilate(hand_mask[0] > 0, cfg.dilate_px)  # (H, W)
+        grow = cfg.dilate_px + round(cfg.dilate_fraction * float(np.hypot(h, w)))
+        target = dilate(hand_mask[0] > 0, grow)  # (H, W)
         zeros16 = np.zeros((h, w), np.uint16)
         if cfg.backend == "opencv":
             image = opencv_fill(frames[0], target, cfg.inpaint_radius)
@@ -162,7 +169,7 @@ class InpaintStage(ClipStage):
                 frames,
                 hand_mask,
                 static_camera=still,
-                dilate_px=cfg.dilate_px,
+                dilate_px=grow,
                 candidates=cfg.candidates,
                 inpaint_radius=cfg.inpaint_radius,
                 unseen_method=cfg.unseen_method,
@@ -175,7 +182,7 @@ class InpaintStage(ClipStage):
                 world_from_cam,
                 intrinsics,
                 depth=depth if cfg.depth_tolerance > 0 else None,
-                dilate_px=cfg.dilate_px,
+                dilate_px=grow,
                 depth_tolerance=cfg.depth_tolerance,
                 inpaint_radius=cfg.inpaint_radius,
                 candidates=cfg.candidates,
