@@ -21,6 +21,7 @@ from egosim.schemas.pack import EVALUATION, PACK, SIMULATION
 from egosim.schemas.poses import POSES
 from egosim.schemas.rejects import REJECTS
 from egosim.schemas.scene import SCENE_CLOUD, SCENE_RENDER
+from egosim.schemas.state import STATE
 
 SCHEMAS: dict[str, ShardSchema] = {
     s.name: s
@@ -39,6 +40,7 @@ SCHEMAS: dict[str, ShardSchema] = {
         PACK,
         SIMULATION,
         EVALUATION,
+        STATE,
     )
 }
 

@@ -14,6 +14,7 @@ from egosim.stages.pose_clean.stage import PoseCleanStage
 from egosim.stages.scene_cloud.stage import SceneCloudStage
 from egosim.stages.scene_render.stage import SceneRenderStage
 from egosim.stages.simulate.stage import SimulateStage
+from egosim.stages.state_fusion.stage import StateFusionStage
 
 register_stage(IngestStage)
 register_stage(CaptionStage)
@@ -28,3 +29,4 @@ register_stage(DepthCameraStage)
 register_stage(PackStage)
 register_stage(SimulateStage)
 register_stage(EvaluateStage)
+register_stage(StateFusionStage)

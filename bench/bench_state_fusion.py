@@ -1,0 +1,252 @@
+"""State fusion on the synthetic world: the moved object's place, with and without the update.
+
+For one synthetic clip (oracle generator: the world's own interaction video and depth stand in
+for a generated clip), :func:`measure_state_update`
+
+1. fuses the clip's static video (no hands, objects at their first poses) into state 0, the
+   world before the interaction, through the ``state_fusion`` stage's ``process``;
+2. fuses the interaction video onto state 0 (``previous_state``) into state 1;
+3. compares both with the ground-truth scene after the interaction
+   (``egosim.stages.world.state_truth``). State 0 is the no-update baseline: what a simulator
+   that never updates its state would render next.
+
+Figures: centroid error of each moved object (state vs the object's truly visible surface, by
+the world's own object mask and depth, in the frame its geometry came from), Chamfer distance
+to the true post-interaction scene near the moved objects and over the whole table, hand/arm
+points left in the state (as a fraction of the interacted object's points), how much the
+background moved between the two states, and the seconds per update. Run
+``python -m bench.run --only state_fusion``.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+import numpy as np
+
+from egosim.pipeline import media
+from egosim.pipeline.clip_io import row_from_clip
+from egosim.pipeline.geometry import transform_points, unproject_depth
+from egosim.pipeline.records import Clip
+from egosim.stages.state_fusion.fusion import State
+from egosim.stages.state_fusion.metrics import (
+    centroid_error,
+    chamfer,
+    nearest_distance,
+    stray_points,
+)
+from egosim.stages.state_fusion.stage import StateFusionStage
+from egosim.stages.state_fusion.state_io import state_from_row
+from egosim.stages.world import WorldConfig, render_clip
+from egosim.stages.world.state_truth import moved_objects, scene_truth
+
+SMALL = {"height": 120, "width": 208, "num_frames": 17}  # bench size (2 shared cores)
+ROI_RADIUS = 0.12  # metres around a moved object's first and last place: the interacted region
+
+
+def clip_rows(clip: Clip, static: bool = False) -> dict[str, dict[str, Any]]:
+    """``clips``, ``hands`` and ``hand_mask`` rows of ``clip`` from its ground truth.
+
+    ``static``: the clip's static video and depth instead (no hands: empty masks, no valid hand).
+    """
+    t, h, w = clip.num_frames, clip.height, clip.width
+    if static:
+        clip = Clip(
+            **{
+                **clip.__dict__,
+                "clip_id": f"{clip.clip_id}-static",
+                "frames": clip.static_frames,
+                "depth": clip.static_depth,
+                "hand_mask": np.zeros((t, h, w), np.uint8),
+                "hand_valid": np.zeros((t, 2), bool),
+            }
+        )
+    valid = np.asarray(clip.hand_valid, bool)
+    joints = np.where(valid[:, :, None, None], clip.hand_joints, np.nan).astype(np.float32)
+    hands = {
+        "clip_id": clip.clip_id,
+        "num_frames": t,
+        "backend": "given",
+        "hand_joints": joints.reshape(t, -1).tolist(),
+        "hand_valid": valid.tolist(),
+        "hand_confidence": np.repeat(valid[:, :, None], 21, axis=2)
+        .astype(np.float32)
+        .reshape(t, -1)
+        .tolist(),
+        "num_duplicates_removed": 0,
+        "num_outliers_removed": 0,
+    }
+    mask = {
+        "clip_id": clip.clip_id,
+        "num_frames": t,
+        "width": w,
+        "height": h,
+        "hand_mask": media.encode_mask_video(clip.hand_mask),
+        "coverage": clip.hand_mask.reshape(t, -1).mean(1).tolist(),
+        "backend": "keypoints",
+    }
+    return {"clips": row_from_clip(clip), "hands": hands, "hand_mask": mask}
+
+
+def hand_points(clip: Clip) -> np.ndarray:
+    """World points ``(n, 3)`` of every hand/arm pixel of the clip (ground-truth depth)."""
+    out = []
+    for k in range(clip.num_frames):
+        sel = (clip.hand_mask[k] > 0) & (clip.depth[k] > 0)
+        pc = unproject_depth(clip.depth[k], clip.intrinsics)[sel]
+        out.append(transform_points(clip.world_from_cam[k], pc))
+    return np.concatenate(out) if out else np.zeros((0, 3))
+
+
+def visible_object_points(clip: Clip, frame: int, object_id: int) -> np.ndarray:
+    """World points ``(n, 3)`` of an object's pixels in one frame (ground-truth mask and depth).
+
+    The clip's ``object_mask`` leaves out pixels a hand covers, so this is the surface a fusion
+    of that frame can see.
+    """
+    sel = (clip.object_mask[frame] == object_id) & (clip.depth[frame] > 0)
+    pc = unproject_depth(clip.depth[frame], clip.intrinsics)[sel]
+    return transform_points(clip.world_from_cam[frame], pc)
+
+
+def _in_roi(points: np.ndarray, centres: np.ndarray) -> np.ndarray:
+    """``(N,)`` bool: within ``ROI_RADIUS`` (horizontally) of any of ``centres (C, 3)``."""
+    d = np.linalg.norm(points[:, None, :2] - centres[None, :, :2], axis=-1)  # (N, C)
+    return np.any(d <= ROI_RADIUS, axis=1)
+
+
+def measure_state_update(config: WorldConfig) -> dict[str, Any]:
+    """Fuse the static and the interaction video of one clip and compare with ground truth.
+
+    Returns a dict of figures (metres, seconds, counts); per moved object ``objects`` lists
+    ``id``, ``shift`` (true displacement), ``error`` (updated state) and ``baseline_error``
+    (state 0), ``interactive`` (the instance was flagged) and ``instance``.
+    """
+    clip = render_clip(config)
+    stage = StateFusionStage()
+    start = time.perf_counter()
+    row0 = stage.process(clip_rows(clip, static=True))
+    seconds_first = time.perf_counter() - start
+    rows = clip_rows(clip)
+    rows["previous_state"] = {**row0, "clip_id": clip.clip_id}  # keyed by the clip it starts
+    start = time.perf_counter()
+    row1 = stage.process(rows)
+    seconds_update = time.perf_counter() - start
+    s0, s1 = state_from_row(row0), state_from_row(row1)
+    poses = clip.object_poses  # (T, N, 4, 4)
+    truth = scene_truth(config, poses[-1], clip.world_from_cam)
+    moved = moved_objects(poses)
+    centres = np.concatenate([poses[0, moved - 1, :3, 3], poses[-1, moved - 1, :3, 3]])
+    objects = []
+    for oid in moved:
+        inst, frame = _instance_for(s1, truth.object_points(int(oid)))
+        target = visible_object_points(clip, max(frame, 0), int(oid))
+        objects.append(
+            {
+                "id": int(oid),
+                "shift": float(np.linalg.norm(np.diff(poses[[0, -1], oid - 1, :3, 3], axis=0))),
+                "instance": inst,
+                "interactive": any(i.id == inst and i.interactive for i in s1.instances),
+                "error": centroid_error(s1.instance_points(inst), target),
+                "baseline_error": centroid_error(s0.instance_points(inst), target),
+            }
+        )
+    table = _on_table(truth.points)
+    roi_truth = truth.points[_in_roi(truth.points, centres) & table]
+
+    def roi(state: State) -> np.ndarray:
+        return state.points[_in_roi(state.points, centres) & _on_table(state.points)]
+
+    stray = stray_points(s1.points, hand_points(clip), truth.points)
+    interacted = np.isin(s1.instance, [o["instance"] for o in objects]).sum()
+    bg1 = s1.points[(s1.instance == 0) & ~_in_roi(s1.points, centres)]
+    bg0 = s0.points[(s0.instance == 0) & ~_in_roi(s0.points, centres)]
+    return {
+        "objects": objects,
+        "chamfer_roi": chamfer(roi(s1), roi_truth),
+        "chamfer_roi_baseline": chamfer(roi(s0), roi_truth),
+        "chamfer_table": chamfer(s1.points[_on_table(s1.points)], truth.points[table]),
+        "chamfer_table_baseline": chamfer(s0.points[_on_table(s0.points)], truth.points[table]),
+        "hand_points": int(stray.sum()),
+        "hand_fraction": float(stray.sum() / max(1, interacted)),
+        "background_shift": float(np.mean(nearest_distance(bg1, bg0))) if len(bg1) else 0.0,
+        "seconds_first": seconds_first,
+        "seconds_update": seconds_update,
+        "num_points": len(s1.points),
+        "row": row1,
+    }
+
+
+def _on_table(points: np.ndarray) -> np.ndarray:
+    """``(N,)`` bool: over the synthetic table top, up to 0.4 m above it (world frame)."""
+    from egosim.stages.world.scene import TABLE_HI, TABLE_LO, TABLE_TOP_Z
+
+    inside = np.all((points[:, :2] >= TABLE_LO) & (points[:, :2] <= TABLE_HI), axis=1)
+    return inside & (points[:, 2] > TABLE_TOP_Z - 0.005) & (points[:, 2] < TABLE_TOP_Z + 0.4)
+
+
+def _instance_for(state: State, truth: np.ndarray) -> tuple[int, int]:
+    """``(instance id, last observed frame)`` of the state's instance covering most of ``truth``."""
+    best, best_count, frame = 0, 0, -1
+    for inst in state.instances:
+        pts = state.instance_points(inst.id)
+        count = int((nearest_distance(pts, truth) <= 0.01).sum())
+        if count > best_count:
+            best, best_count, frame = inst.id, count, inst.last_observed_frame
+    return best, frame
+
+
+def bench_state_fusion() -> list[dict[str, Any]]:
+    """Figures over three tabletop seeds at 120x208, 17 frames, against the no-update baseline."""
+    runs = [measure_state_update(WorldConfig(seed=s, **SMALL)) for s in (0, 1, 2)]
+    objs = [o for r in runs for o in r["objects"]]
+    base = "no update (state 0)"
+
+    def mean(key: str) -> float:
+        return float(np.mean([r[key] for r in runs]))
+
+    return [
+        {
+            "name": "state: moved-object centroid error",
+            "value": 1000 * float(np.mean([o["error"] for o in objs])),
+            "unit": "mm",
+            "baseline": base,
+            "baseline_value": 1000 * float(np.mean([o["baseline_error"] for o in objs])),
+        },
+        {
+            "name": "state: Chamfer near moved objects",
+            "value": 1000 * mean("chamfer_roi"),
+            "unit": "mm",
+            "baseline": base,
+            "baseline_value": 1000 * mean("chamfer_roi_baseline"),
+        },
+        {
+            "name": "state: Chamfer over the table",
+            "value": 1000 * mean("chamfer_table"),
+            "unit": "mm",
+            "baseline": base,
+            "baseline_value": 1000 * mean("chamfer_table_baseline"),
+        },
+        {
+            "name": "state: hand points left / interacted points",
+            "value": 100 * mean("hand_fraction"),
+            "unit": "%",
+            "baseline": "goal 1%",
+            "baseline_value": 1.0,
+        },
+        {
+            "name": "state: background shift vs previous state",
+            "value": 1000 * mean("background_shift"),
+            "unit": "mm",
+            "baseline": "-",
+            "baseline_value": None,
+        },
+        {
+            "name": "state: seconds per update (120x208x17)",
+            "value": mean("seconds_update"),
+            "unit": "s",
+            "baseline": "first state (no previous)",
+            "baseline_value": mean("seconds_first"),
+        },
+    ]

@@ -1,0 +1,1 @@
+"""``state_fusion``: interaction-aware world-state update after a clip (EgoSim section 3.3)."""

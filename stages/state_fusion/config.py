@@ -1,0 +1,135 @@
+"""Parameters of ``state_fusion``: every threshold of the paper's method, with its source.
+
+Values quoted as "paper" come from the EgoSim paper (section 3.3 and supplementary section 2) as
+restated by issue 13; the paper's TSDF voxel size, depth truncation and overlap depth threshold
+are not legible in our copy of the text, so those defaults are ours and say so.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from egosim.pipeline.stage import ConfigError, StageConfig
+
+SEGMENTATION_BACKENDS = ("geometric",)  # object instances without weights (plane + DBSCAN)
+
+
+@dataclasses.dataclass(frozen=True)
+class StateFusionConfig(StageConfig):
+    """Parameters of ``state_fusion`` (see the module docstring for where defaults come from)."""
+
+    backend: str = "geometric"  # object instances: "geometric" (RANSAC plane + DBSCAN), no weights
+    # Interaction test (paper, supp. 2.2)
+    hand_box_iou: float = 0.1  # object box vs hand box IoU above this: candidate (paper: 0.1)
+    depth_gap_m: float = (
+        0.15  # median object-hand depth gap below this: interacting (paper: 0.15 m)
+    )
+    hand_box_pad: float = 0.3  # hand keypoint box widened by this fraction of its size (ours)
+    hand_dilation_px: int = 4  # hand/arm masks dilated by this many pixels before fusion (ours)
+    # Support plane and object instances (geometric backend; ours)
+    plane_distance_m: float = 0.01  # RANSAC inlier distance of the support plane (segment_plane)
+    plane_iterations: int = 500  # RANSAC iterations of segment_plane
+    plane_min_fraction: float = 0.15  # a support plane holds at least this fraction of the points
+    plane_max_tilt_deg: float = 70.0  # support plane normal within this of the camera's up (-y)
+    object_min_height_m: float = 0.012  # points higher than this above the plane may be objects
+    object_max_height_m: float = 0.4  # ... and lower than this
+    cluster_eps_m: float = 0.02  # DBSCAN neighbourhood radius for object points
+    min_object_points: int = 20  # clusters with fewer points are not objects (per frame)
+    track_voxel_m: float = 0.02  # voxel size of the 3D overlap test that tracks objects
+    track_min_overlap: float = 0.2  # shared voxels / smaller voxel set to continue a track
+    track_max_jump_m: float = 0.08  # else: centroid within this of the track's last centroid
+    settled_distance_m: float = 0.02  # frames this close (median) to the last place: at rest
+    instance_match_m: float = 0.02  # new object point within this of a previous instance: match
+    instance_match_fraction: float = 0.3  # fraction of matching points to reuse an instance id
+    # TSDF fusion (open3d tensor VoxelBlockGrid; paper: "scalable TSDF", values not legible)
+    voxel_size_m: float = 0.01  # TSDF voxel size in metres (ours)
+    sdf_trunc_voxels: float = 4.0  # TSDF truncation in voxels (ours)
+    depth_max_m: float = 3.0  # depth beyond this is not fused (paper: "max depth truncation")
+    block_count: int = 16000  # voxel blocks preallocated (8^3 voxels each); grows when needed
+    # Incremental fusion with the previous state (paper, supp. 2.3)
+    overlap_depth_m: float = 0.03  # old point replaced where observed depth differs by more (ours)
+    overlap_colour: float = 0.25  # ... or mean |RGB| difference in [0, 1] is above this (ours)
+    min_agreement: float = 0.5  # previous points seen by the clip that must agree, else reject
+    min_seen_points: int = 200  # previous points the clip must see, else "no overlap" reject
+    overlap_max_distance_m: float = 0.5  # a clip camera this close to a state camera overlaps
+    overlap_max_angle_deg: float = 45.0  # ... and turned by at most this
+    min_overlap_cameras: int = 1  # overlapping cameras needed to fuse onto a previous state
+    min_centre_spread_m: float = 0.005  # below this camera spread the Sim3 scale is fixed to 1
+    max_registration_rms_m: float = 0.05  # Sim3 pose residual above this (reference units): reject
+    sim3_scale_range: tuple[float, float] = (0.2, 5.0)  # Sim3 scales outside this: reject
+    # Cleaning (paper, supp. 2.3)
+    outlier_neighbours: int = 20  # statistical outlier removal neighbours (paper: 20)
+    outlier_std_ratio: float = 2.0  # statistical outlier removal std ratio (paper: 2.0)
+    min_cluster_points: int = 30  # connected components (2 voxels) smaller than this are removed
+
+    def __post_init__(self) -> None:
+        problems: list[str] = []
+        if self.backend not in SEGMENTATION_BACKENDS:
+            problems.append(f"backend must be one of {SEGMENTATION_BACKENDS}, got {self.backend!r}")
+        positive = (
+            "depth_gap_m",
+            "plane_distance_m",
+            "object_max_height_m",
+            "cluster_eps_m",
+            "track_voxel_m",
+            "track_max_jump_m",
+            "instance_match_m",
+            "settled_distance_m",
+            "voxel_size_m",
+            "sdf_trunc_voxels",
+            "depth_max_m",
+            "overlap_depth_m",
+            "overlap_max_distance_m",
+            "min_centre_spread_m",
+            "max_registration_rms_m",
+            "outlier_std_ratio",
+        )
+        for name in positive:
+            value = getattr(self, name)
+            if not (np.isfinite(value) and value > 0):
+                problems.append(f"{name} must be finite and > 0, got {value}")
+        fractions = (
+            "hand_box_iou",
+            "plane_min_fraction",
+            "track_min_overlap",
+            "instance_match_fraction",
+            "overlap_colour",
+            "min_agreement",
+        )
+        for name in fractions:
+            value = getattr(self, name)
+            if not 0.0 <= value <= 1.0:
+                problems.append(f"{name} must be in [0, 1], got {value}")
+        if not 0.0 <= self.hand_box_pad <= 2.0:
+            problems.append(f"hand_box_pad must be in [0, 2], got {self.hand_box_pad}")
+        if not 0.0 <= self.object_min_height_m < self.object_max_height_m:
+            problems.append(
+                f"need 0 <= object_min_height_m < object_max_height_m, got "
+                f"{self.object_min_height_m} and {self.object_max_height_m}"
+            )
+        for name in ("plane_max_tilt_deg", "overlap_max_angle_deg"):
+            value = getattr(self, name)
+            if not 0.0 < value <= 180.0:
+                problems.append(f"{name} must be in (0, 180], got {value}")
+        counts = (
+            "hand_dilation_px",
+            "min_seen_points",
+            "min_overlap_cameras",
+            "min_cluster_points",
+        )
+        for name in counts:
+            if getattr(self, name) < 0:
+                problems.append(f"{name} must be >= 0, got {getattr(self, name)}")
+        for name in ("plane_iterations", "min_object_points", "block_count", "outlier_neighbours"):
+            if getattr(self, name) < 1:
+                problems.append(f"{name} must be >= 1, got {getattr(self, name)}")
+        lo, hi = self.sim3_scale_range if len(self.sim3_scale_range) == 2 else (0.0, -1.0)
+        if not 0.0 < lo < 1.0 < hi:
+            problems.append(
+                f"sim3_scale_range must be (lo, hi) with 0 < lo < 1 < hi, got "
+                f"{self.sim3_scale_range}"
+            )
+        if problems:
+            raise ConfigError("; ".join(problems))

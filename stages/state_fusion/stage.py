@@ -1,0 +1,148 @@
+"""The ``state_fusion`` stage: the world state after a clip, interaction-aware.
+
+Inputs (joined on ``clip_id``): ``clips`` (frames and per-frame ``depth``), ``hands`` (3D joints:
+the hand boxes of the interaction test are their projections), ``hand_mask`` (hands and arms,
+dilated and left out of the state); optional ``poses`` / ``cameras`` (the clip's cameras by the
+shared rule of :func:`egosim.stages.common.cameras.resolve_cameras`) and ``previous_state`` (the
+state the clip starts from, a ``state`` row keyed by this clip's id: in simulation, the state the
+clip was generated from).
+
+Depth: the clip's own per-frame ``depth`` column (the synthetic world, EgoDex, MCAP with depth,
+or a generated clip's depth when the simulator returns it). ``depth_camera`` gives depth for
+frame 0 only (its plane sweep is not a shared function), so a clip without per-frame depth is
+rejected with that reason rather than fused from one frame. When the cameras come from the
+``cameras`` role and it has ``depth0`` in another scale than the clip's depth, the clip's depth is
+brought to the cameras' scale by the median ratio over frame 0.
+
+Registration: when the cameras come from ``poses``/``cameras`` and the clip also carries its own
+``world_from_cam`` (the action's trajectory, in the previous state's world frame), the Sim3 from
+the former to the latter registers the clip (orientations and centres); otherwise the clip's
+cameras are taken to be in the state's frame already (identity, recorded).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any, ClassVar
+
+import numpy as np
+
+from egosim.pipeline import media
+from egosim.pipeline.geometry import project_world_points
+from egosim.pipeline.stage import ClipRejected, ClipStage
+from egosim.schemas import CLIPS, ShardSchema
+from egosim.schemas.hand_mask import HAND_MASK
+from egosim.schemas.hands import HANDS
+from egosim.schemas.state import STATE
+from egosim.stages.common.cameras import CAMERA_ROLES, resolve_cameras
+from egosim.stages.state_fusion.config import StateFusionConfig
+from egosim.stages.state_fusion.fusion import FusionError, Observation, fuse_state
+from egosim.stages.state_fusion.state_io import row_from_state, state_from_row
+
+
+def hand_boxes(
+    joints: np.ndarray, valid: np.ndarray, world_from_cam: np.ndarray, intrinsics: np.ndarray
+) -> np.ndarray:
+    """Hand boxes ``(T, 2, 4)`` ``x0, y0, x1, y1`` from joints ``(T, 2, 21, 3)`` (paper, supp. 3).
+
+    Each box is the bounding box of the hand's projected keypoints; NaN where the hand is not
+    valid or lies behind the camera.
+    """
+    t = joints.shape[0]
+    boxes = np.full((t, joints.shape[1], 4), np.nan)
+    for k in range(t):
+        for h in range(joints.shape[1]):
+            if not valid[k, h]:
+                continue
+            uv, z = project_world_points(joints[k, h], world_from_cam[k], intrinsics)  # (21, 2)
+            if not np.all(z > 0):
+                continue
+            boxes[k, h] = [*uv.min(0), *uv.max(0)]
+    return boxes
+
+
+def observation_from_rows(
+    rows: Mapping[str, Mapping[str, Any]], config: StateFusionConfig
+) -> Observation:
+    """Decode one clip's rows into an :class:`Observation`; raises ClipRejected when unusable."""
+    clip, hands_row, mask_row = rows["clips"], rows["hands"], rows["hand_mask"]
+    cid, t, h, w = clip["clip_id"], int(clip["num_frames"]), clip["height"], clip["width"]
+    if clip.get("depth") is None:
+        raise ClipRejected(
+            f"clip {cid!r}: no per-frame depth (the clip's depth column is null); state_fusion "
+            "needs depth for every frame and depth_camera gives frame 0 only"
+        )
+    cams = resolve_cameras(rows)
+    if cams.world_from_cam is None:
+        raise ClipRejected(f"clip {cid!r}: no camera poses (world_from_cam is null in every role)")
+    frames = media.decode_rgb_video(clip["video"], h, w, f"clip {cid} video")
+    depth = media.decode_depth_video(clip["depth"], clip["depth_unit_m"], f"clip {cid} depth")
+    masks = media.decode_lossless_video(mask_row["hand_mask"], f"clip {cid} hand_mask")
+    problems = [
+        f"{name} has {len(a)} frames of {a.shape[1:3]}, clip has {t} of {(h, w)}"
+        for name, a in (("video", frames), ("depth", depth), ("hand_mask", masks))
+        if a.shape[:3] != (t, h, w)
+    ]
+    if int(hands_row["num_frames"]) != t:
+        problems.append(f"hands has {hands_row['num_frames']} frames, clip has {t}")
+    if problems:
+        raise ClipRejected(f"clip {cid!r}: inputs disagree: " + "; ".join(problems))
+    cam_row = rows.get("cameras")
+    if cams.source != "clips" and cam_row is not None and cam_row.get("depth0") is not None:
+        depth0 = media.decode_depth_video(
+            cam_row["depth0"], cam_row["depth_unit_m"], f"clip {cid} depth0", max_frames=1
+        )[0]
+        both = (depth0 > 0) & (depth[0] > 0)
+        if both.sum() < 100:
+            raise ClipRejected(f"clip {cid!r}: depth0 and depth share {int(both.sum())} pixels")
+        depth = depth * np.float32(np.median(depth0[both] / depth[0][both]))
+    joints = np.asarray(hands_row["hand_joints"], np.float64).reshape(t, 2, 21, 3)
+    valid = np.asarray(hands_row["hand_valid"], bool).reshape(t, 2)
+    boxes = hand_boxes(joints, valid, cams.world_from_cam, cams.intrinsics)
+    reference = None
+    if cams.source != "clips" and clip.get("world_from_cam") is not None:
+        reference = np.asarray(clip["world_from_cam"], np.float64).reshape(t, 4, 4)
+    return Observation(
+        clip_id=cid,
+        frames=frames,
+        depth=depth.astype(np.float32),
+        hand_mask=masks > 0,
+        hand_boxes=boxes,
+        intrinsics=cams.intrinsics,
+        world_from_cam=cams.world_from_cam,
+        reference_world_from_cam=reference,
+    )
+
+
+class StateFusionStage(ClipStage):
+    """Fuse a clip into the world state: objects, interaction test, TSDF, Sim3, cleaning."""
+
+    name = "state_fusion"
+    description = "interaction-aware state update: TSDF background, moved objects, Sim3, cleaning"
+    config_class = StateFusionConfig
+    inputs: ClassVar[Mapping[str, ShardSchema]] = {
+        "clips": CLIPS,
+        "hands": HANDS,
+        "hand_mask": HAND_MASK,
+    }
+    optional_inputs: ClassVar[Mapping[str, ShardSchema]] = {
+        **CAMERA_ROLES,
+        "previous_state": STATE,
+    }
+    output = STATE
+    backends = ("geometric",)
+    config: StateFusionConfig
+
+    def process(self, rows: Mapping[str, Mapping[str, Any]]) -> dict[str, Any]:
+        """The ``state`` row of one clip (see the module docstring)."""
+        cid = rows["clips"]["clip_id"]
+        obs = observation_from_rows(rows, self.config)
+        prev_row = rows.get("previous_state")
+        previous = state_from_row(prev_row) if prev_row is not None else None
+        try:
+            state = fuse_state(obs, previous, self.config)
+        except FusionError as exc:
+            raise ClipRejected(f"clip {cid!r}: {exc}") from exc
+        row = row_from_state(state)
+        STATE.validate_row(row, f"clip {cid!r} state")
+        return row
