@@ -108,11 +108,13 @@ def _cloud_figures(cloud: dict | None, hw: tuple[int, int]) -> dict[str, float]:
 def _step(
     stage: str, inputs: dict[str, Path], params: dict[str, Any], out: Path, name: str = ""
 ) -> Path:
-    """Run one stage on one shard (skipped when already complete); returns the output path."""
+    """Run one stage on one shard (its old output removed first); returns the output path."""
     from egosim.pipeline.execute import ShardTask, run_shard_task
 
     name = name or stage
     path = out / f"{name}.parquet"
+    for old in out.glob(f"{name}*.parquet*"):  # always recompute: the code is what is measured
+        old.unlink()
     run_shard_task(
         ShardTask(
             step=name,

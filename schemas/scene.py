@@ -5,8 +5,9 @@ Point arrays are little-endian binary blobs (``np.ndarray.tobytes()``; read them
 ``np.frombuffer``): compact, and one Parquet value per clip however many points it has.
 
 ``scene_render`` holds that cloud rendered along the clip's trajectory: an RGB scene video and
-a visibility mask video (1 = a scene point landed on the pixel). The model's inpainting mask is
-derived from ``visible`` by ``egosim.stages.scene_render.splat.inpaint_mask_from_visible`` only.
+a visibility mask video (1 = a scene point landed on the pixel, or a small crack was closed).
+The model's inpainting mask is derived from ``visible`` by
+``egosim.stages.scene_render.splat.inpaint_mask_from_visible`` only.
 """
 
 from __future__ import annotations
@@ -114,7 +115,7 @@ def _check_render(row: Mapping[str, Any]) -> list[str]:
 
 SCENE_RENDER = ShardSchema(
     name="scene_render",
-    version=1,
+    version=2,  # 2: visible also marks the small cracks the renderer closed
     doc="The scene cloud rendered along each clip's trajectory: scene video and visibility mask.",
     columns=(
         Column("clip_id", pa.string(), "Clip id, joins with the clips shard."),
@@ -131,7 +132,8 @@ SCENE_RENDER = ShardSchema(
         Column(
             "visible",
             pa.binary(),
-            "(T, H, W) uint8 visibility mask, 1 = a scene point landed on the pixel, 0 = none; "
+            "(T, H, W) uint8 visibility mask, 1 = a scene point landed on the pixel or the "
+            "pixel is in a small crack between landed points that the renderer closed, 0 = none; "
             "lossless FFV1 video.",
         ),
         Column("visible_fraction", pa.list_(pa.float32()), "(T,) fraction of pixels visible."),

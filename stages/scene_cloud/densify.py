@@ -52,6 +52,7 @@ class DensifyParams:
     speckle_rel: float = 0.03  # ... differ from their surround by more (relative 1/z) go
     segment_px: int = 20  # superpixel seed spacing in pixels (watershed on colour)
     plane_tolerance: float = 0.03  # plane inlier: |1/z - plane| / (1/z) at most this
+    snap_to_planes: bool = False  # measured plane inliers take the plane's depth (denoising)
     min_plane_support: int = 12  # a segment plane needs at least this many inlier pixels ...
     min_plane_fraction: float = 0.05  # ... and this share of the segment's pixels
     inpaint_radius: float = 5.0  # Navier-Stokes inpainting radius (pixels) for the rest
@@ -275,6 +276,9 @@ def densify_depth(
         plausible = (pred >= 0.5 * lo) & (pred <= 2.0 * hi)  # (P,) in front, not far out
     by_plane = (todo.ravel() & good[labels] & plausible).reshape(h, w)  # (H, W)
     inv = np.where(by_plane, pred.reshape(h, w), inv)
+    if p.snap_to_planes:  # measured inliers take their plane's value: matching noise goes
+        snap = ((inlier > 0) & good[labels] & plausible).reshape(h, w)  # (H, W)
+        inv = np.where(snap, pred.reshape(h, w), inv)
     source[by_plane] = PLANE
     share = np.minimum(support / np.maximum(size, 1.0), 1.0)  # (S,) inlier share of the segment
     out_conf = np.where(by_plane, PLANE_CONFIDENCE * share[labels].reshape(h, w), out_conf)

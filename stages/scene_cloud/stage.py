@@ -197,13 +197,14 @@ class SceneCloudConfig(StageConfig):
     speckle_rel: float = 0.03  # ... with their surround by more than this (relative 1/z) go
     segment_px: int = 20  # colour superpixel seed spacing (pixels) for the plane fill
     plane_tolerance: float = 0.03  # plane inlier: |1/z - plane| / (1/z) at most this
+    snap_to_planes: bool = False  # measured plane inliers take the plane's depth (denoising)
     min_plane_support: int = 12  # a superpixel plane needs this many inlier pixels ...
     min_plane_fraction: float = 0.05  # ... and this share of the superpixel
     inpaint_radius: float = 5.0  # radius (pixels) of the inpainting fill for what planes miss
 
     def __post_init__(self) -> None:
         problems: list[str] = []
-        for name in ("fill", "drop_edges"):
+        for name in ("fill", "drop_edges", "snap_to_planes"):
             if not isinstance(getattr(self, name), bool):
                 problems.append(f"{name} must be a bool, got {getattr(self, name)!r}")
         for name in ("min_confidence", "min_plane_fraction"):
@@ -237,6 +238,7 @@ class SceneCloudConfig(StageConfig):
             speckle_rel=self.speckle_rel,
             segment_px=self.segment_px,
             plane_tolerance=self.plane_tolerance,
+            snap_to_planes=self.snap_to_planes,
             min_plane_support=self.min_plane_support,
             min_plane_fraction=self.min_plane_fraction,
             inpaint_radius=self.inpaint_radius,

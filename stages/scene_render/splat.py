@@ -14,12 +14,20 @@ every point whose footprint ``fx * size / depth`` is about a pixel or more over 
 radius ``min(max_splat_radius, ceil((footprint - 0.9) / 2))``, and pixels that the one-pixel pass
 left empty take the nearest of those: the cracks that appear when the camera moves towards the
 surface close, while pixels with a direct hit keep it.
+
+Cracks that remain (the camera much closer than frame 0, beyond the widest splat, or a surface
+seen more obliquely than from frame 0) are closed in image space by :func:`close_cracks`: every
+connected hole of at most ``max_crack_px`` pixels that does not touch the image border takes the
+colour of its surround (OpenCV Telea inpainting) and the nearest depth around it, and counts as
+visible. Larger holes (disocclusions, the unseen world beyond frame 0) stay empty for the model
+to synthesise.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 import torch
 
@@ -223,6 +231,44 @@ def shade(
     return rgb, hit, depth
 
 
+def close_cracks(
+    rgb: np.ndarray, visible: np.ndarray, depth: np.ndarray, max_crack_px: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Fill the small holes of one rendered frame; returns new ``(rgb, visible, depth)``.
+
+    ``rgb (H, W, 3)`` uint8, ``visible (H, W)`` uint8 1 = a point landed, ``depth (H, W)``
+    float32. A hole is a 4-connected set of invisible pixels; one of at most ``max_crack_px``
+    pixels that does not touch the image border is a crack: its colour is inpainted from the
+    pixels around it (``cv2.INPAINT_TELEA``), its depth is the largest depth of its 3x3
+    neighbours (the farther surface, so a crack never pulls a foreground edge outward) and it
+    becomes visible.
+    """
+    holes = (visible == 0).astype(np.uint8)  # (H, W)
+    if max_crack_px < 1 or not holes.any():
+        return rgb, visible, depth
+    _, labels, stats, _ = cv2.connectedComponentsWithStats(holes, connectivity=4)
+    x, y, w, h, area = (stats[:, i] for i in range(5))  # (components,) each
+    width, height = holes.shape[1], holes.shape[0]
+    inside = (x > 0) & (y > 0) & (x + w < width) & (y + h < height)  # (count,)
+    small = (area <= max_crack_px) & inside
+    small[0] = False  # label 0 is the visible pixels
+    if not small[1:].any():
+        return rgb, visible, depth
+    crack = small[labels]  # (H, W)
+    mask = crack.astype(np.uint8)
+    filled = cv2.inpaint(np.ascontiguousarray(rgb), mask, 2, cv2.INPAINT_TELEA)  # (H, W, 3)
+    grown = cv2.dilate(np.where(visible > 0, depth, 0).astype(np.float32), np.ones((3, 3)))
+    for _ in range(int(np.ceil(np.sqrt(max_crack_px)))):  # spread inward over the crack
+        if not (crack & (grown <= 0)).any():
+            break
+        grown = np.where(grown > 0, grown, cv2.dilate(grown, np.ones((3, 3))))
+    return (
+        np.where(crack[..., None], filled, rgb),
+        np.where(crack, np.uint8(1), visible).astype(np.uint8),
+        np.where(crack, grown, depth).astype(np.float32),
+    )
+
+
 def render_point_cloud(
     points_world: np.ndarray,
     colours: np.ndarray,
@@ -234,14 +280,16 @@ def render_point_cloud(
     max_splat_radius: int = 0,
     near: float = 1e-3,
     device: str = "cpu",
+    max_crack_px: int = 0,
 ) -> SplatResult:
     """Render a coloured cloud along a trajectory by z-buffered splatting.
 
     ``points_world (N, 3)`` metres, ``colours (N, 3)`` uint8 RGB, ``world_from_cam (T, 4, 4)``,
     ``intrinsics (fx, fy, cx, cy)``, ``point_size (N,)`` metres (needed only for splats wider
     than one pixel), ``device`` any torch device string ("cpu", "cuda", "cuda:1"). Points at or
-    behind ``near`` metres of camera z are skipped. Raises :class:`SplatError` for an empty cloud,
-    non-finite points, non-rigid or NaN poses and shapes that disagree.
+    behind ``near`` metres of camera z are skipped; holes of at most ``max_crack_px`` pixels
+    inside the render are closed by :func:`close_cracks` (0 = off). Raises :class:`SplatError`
+    for an empty cloud, non-finite points, non-rigid or NaN poses and shapes that disagree.
     """
     points_world = np.asarray(points_world)
     colours = np.asarray(colours)
@@ -263,11 +311,13 @@ def render_point_cloud(
             cloud, cam_from_world[i], intrinsics, height, width, max_splat_radius, near
         )
         out_rgb[i], out_vis[i], out_depth[i] = shade(cloud, keys)  # (H*W, 3), (H*W,), (H*W,)
-    return SplatResult(
-        rgb=out_rgb.reshape(t, height, width, 3).cpu().numpy(),
-        visible=out_vis.reshape(t, height, width).cpu().numpy(),
-        depth=out_depth.reshape(t, height, width).cpu().numpy(),
-    )
+    rgb = out_rgb.reshape(t, height, width, 3).cpu().numpy()
+    visible = out_vis.reshape(t, height, width).cpu().numpy()
+    depth = out_depth.reshape(t, height, width).cpu().numpy()
+    if max_crack_px > 0:
+        for i in range(t):
+            rgb[i], visible[i], depth[i] = close_cracks(rgb[i], visible[i], depth[i], max_crack_px)
+    return SplatResult(rgb=rgb, visible=visible, depth=depth)
 
 
 def inpaint_mask_from_visible(visible: np.ndarray, dilate: int = 0) -> np.ndarray:
