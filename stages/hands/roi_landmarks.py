@@ -148,10 +148,20 @@ class TrackParams:
     """Knobs of :func:`track_through_misses`."""
 
     min_presence: float = 0.2  # landmark model's hand-presence score needed to keep a tracked hand
+    good_presence: float = 0.5  # a hand this present ends the search over ROIs early (speed)
     refine: bool = True  # re-run the model on the ROI of its own best first answer (hand moved)
     scales: tuple[float, ...] = (1.0, 1.3)  # ROI sides tried, relative to the predicted one
     shifts: tuple[float, ...] = (0.0, 0.15)  # ROI moves tried, down the image, in ROI sides
     unmoved: bool = True  # also try the predicted ROI without the optical flow's shift
+    # tried when none of the above finds the hand: (scale, right, down) ROI changes, shifts in sides
+    wider: tuple[tuple[float, float, float], ...] = (
+        (1.6, 0.0, 0.0),
+        (1.6, 0.3, 0.0),
+        (1.6, -0.3, 0.0),
+        (1.0, 0.3, 0.0),
+        (1.0, -0.3, 0.0),
+        (1.0, 0.0, -0.15),
+    )
     max_size_change: float = 1.6  # a tracked hand's size may change at most this factor per frame
     max_jump: float = 1.0  # ... and its centre move at most this many hand sizes per frame
     duplicate_distance: float = 0.5  # a hand this near (in hand sizes) one already there is it
@@ -249,7 +259,9 @@ def _search(
 
     Tried: the predicted ROI moved by the optical flow (when ``params.flow``) at every scale and
     downward shift of ``params`` (head-mounted cameras tilt up and down, so hands move mostly
-    vertically in the image), and unmoved; the best answer is refined once on its own ROI.
+    vertically in the image), and unmoved; when none holds a hand, the ``wider`` set (larger and
+    sideways-shifted ROIs: fast hands). The search stops at the first answer with
+    ``good_presence``. The best answer is refined once on its own ROI.
     """
     base = roi_from_landmarks(src)
     moves = [np.zeros(2)]
@@ -261,7 +273,20 @@ def _search(
         for scale in (params.scales if i == 0 else (1.0,))
         for shift in (params.shifts if i == 0 else (0.0,))
     ]
-    best = max((model.run(frame, roi) for roi in rois), key=lambda r: r.presence)
+    start = base.centre + moves[0]  # (2,)
+    wider = [
+        Roi(start + base.side * np.array([right, down]), base.side * scale, base.up)
+        for scale, right, down in params.wider
+    ]
+    best = None
+    for i, roi in enumerate(rois + wider):
+        if i == len(rois) and best is not None and best.presence >= params.min_presence:
+            break  # the wider set only when the others found nothing
+        res = model.run(frame, roi)
+        if best is None or res.presence > best.presence:
+            best = res
+        if best.presence >= params.good_presence:
+            break  # clearly found: the remaining ROIs cannot matter much
     if params.refine and best.presence >= params.min_presence:
         again = model.run(frame, roi_from_landmarks(best.uv))
         if again.presence >= best.presence:
