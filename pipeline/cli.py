@@ -25,7 +25,7 @@ from egosim.pipeline.check import check_paths
 from egosim.pipeline.media import MediaError
 from egosim.pipeline.records import ClipValueError
 from egosim.pipeline.runner import IN_PROCESS, RunError, plan_stage, run_tasks_here, run_workflow
-from egosim.pipeline.shards import ShardError, ShardReader, find_shards, shard_file_name
+from egosim.pipeline.shards import ShardError, ShardReader, find_shards
 from egosim.pipeline.stage import SourceStage, StageError, get_stage, registered_stages
 from egosim.pipeline.summary import (
     FinalStepEmptyError,
@@ -283,7 +283,7 @@ def synth(
     per_shard: Annotated[int, typer.Option(help="Clips per shard (shards format).")] = 4,
 ) -> None:
     """Render clips from the synthetic world as clips shards or EgoDex HDF5+MP4 files."""
-    from egosim.pipeline.clip_io import write_clips
+    from egosim.pipeline.clip_io import write_clip_shards
     from egosim.stages.world import WorldConfig, render_clip
     from egosim.stages.world.egodex_export import write_egodex
 
@@ -303,10 +303,9 @@ def synth(
                 hdf5, _ = write_egodex(render_clip(cfg), out / f"synthetic_{mode}", stem=str(i))
                 typer.echo(f"wrote {hdf5}")
             return
-        for start in range(0, n, per_shard):
-            path = out / shard_file_name(start // per_shard)
-            clips = (render_clip(c) for c in configs[start : start + per_shard])
-            count = write_clips(path, clips, stage="synth", params={"mode": mode, "seed": seed})
+        clips = (render_clip(c) for c in configs)
+        params = {"mode": mode, "seed": seed}
+        for path, count in write_clip_shards(out, clips, per_shard, "synth", params):
             typer.echo(f"wrote {path} ({count} clips)")
     except (*USER_ERRORS, ValueError) as exc:
         raise _fail(exc) from exc

@@ -6,6 +6,7 @@ one at a time, and :func:`write_clips` writes clips back as a shard.
 
 from __future__ import annotations
 
+import itertools
 from collections.abc import Iterable, Iterator, Mapping
 from pathlib import Path
 from typing import Any
@@ -14,7 +15,7 @@ import numpy as np
 
 from egosim.pipeline import media
 from egosim.pipeline.records import NUM_HAND_JOINTS, Clip
-from egosim.pipeline.shards import ShardWriter, open_shard
+from egosim.pipeline.shards import ShardWriter, open_shard, shard_file_name
 from egosim.schemas import CLIPS
 
 
@@ -136,6 +137,28 @@ def write_clips(
             writer.write_row(row_from_clip(clip))
             count += 1
     return count
+
+
+def write_clip_shards(
+    folder: Path,
+    clips: Iterable[Clip],
+    per_shard: int,
+    stage: str = "api",
+    params: Mapping[str, Any] | None = None,
+) -> list[tuple[Path, int]]:
+    """Write clips as ``folder/shard-NNNNN.parquet``, ``per_shard`` clips each (``egosim synth``).
+
+    Clips are consumed lazily, one at a time; returns ``(path, clips written)`` per shard.
+    """
+    if per_shard < 1:
+        raise ValueError(f"per_shard must be >= 1, got {per_shard}")
+    written: list[tuple[Path, int]] = []
+    remaining = iter(clips)
+    while (first := next(remaining, None)) is not None:
+        path = Path(folder) / shard_file_name(len(written))
+        batch = itertools.chain([first], itertools.islice(remaining, per_shard - 1))
+        written.append((path, write_clips(path, batch, stage=stage, params=params)))
+    return written
 
 
 def _opt(value: Any, fn: Any) -> Any:

@@ -122,3 +122,15 @@ def test_cli_reports_errors_without_tracebacks(tmp_path: Path) -> None:
     assert result.exit_code == 1 and "junk.parquet" in result.output
     result = cli.invoke(app, ["stages"])
     assert result.exit_code == 0 and "ingest" in result.output
+
+
+def test_synth_writes_shards_of_per_shard_clips(tmp_path: Path) -> None:
+    out = tmp_path / "synth"
+    args = ["synth", "--out", str(out), "--n", "3", "--per-shard", "2"]
+    args += ["--height", "24", "--width", "32", "--frames", "5", "--fps", "8"]
+    result = CliRunner().invoke(app, args)
+    assert result.exit_code == 0, result.output
+    shards = sorted(out.glob("shard-*.parquet"))
+    assert [s.name for s in shards] == ["shard-00000.parquet", "shard-00001.parquet"]
+    assert [pq.read_metadata(s).num_rows for s in shards] == [2, 1]
+    assert "(2 clips)" in result.output and "(1 clips)" in result.output
