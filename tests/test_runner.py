@@ -11,12 +11,12 @@ from typer.testing import CliRunner
 
 from egosim.pipeline.check import check_shard
 from egosim.pipeline.cli import app
-from egosim.pipeline.clip_io import read_clips
+from egosim.pipeline.clip_io import read_clips, write_clips
 from egosim.pipeline.media import write_video_file
 from egosim.pipeline.runner import run_workflow
-from egosim.pipeline.shards import read_shard_meta
+from egosim.pipeline.shards import ShardReader, read_shard_meta
 from egosim.pipeline.workflow import load_workflow, parse_workflow
-from tests.conftest import smooth_frames
+from tests.conftest import make_clip, smooth_frames
 
 SMALL = {"height": 48, "width": 80, "num_frames": 8, "fps": 8.0}
 SMALL_SET = [f"ingest.{k}={v}" for k, v in SMALL.items()]
@@ -134,3 +134,21 @@ def test_synth_writes_shards_of_per_shard_clips(tmp_path: Path) -> None:
     assert [s.name for s in shards] == ["shard-00000.parquet", "shard-00001.parquet"]
     assert [pq.read_metadata(s).num_rows for s in shards] == [2, 1]
     assert "(2 clips)" in result.output and "(1 clips)" in result.output
+
+
+def test_stage_takes_set_and_the_deprecated_param_alias(tmp_path: Path) -> None:
+    shard = tmp_path / "clips.parquet"
+    write_clips(shard, [make_clip("c0")], stage="test")
+    cli = CliRunner()
+    for flag in ("--set", "--param"):
+        out = tmp_path / f"captions{flag}.parquet"
+        args = ["stage", "caption", "--input", str(shard), "--output", str(out)]
+        result = cli.invoke(app, [*args, flag, "prefix=Hi", flag, "prefer_source=no"])
+        assert result.exit_code == 0, result.output
+        assert ("deprecated" in result.output) == (flag == "--param")
+        with ShardReader(out) as reader:
+            (row,) = list(reader.iter_rows())
+            assert reader.meta.params["prefer_source"] is False
+        assert row["text"].startswith("Hi ") and row["origin"] == "template"
+    result = cli.invoke(app, [*args, "--set", "prefer_source=maybe"])
+    assert result.exit_code == 2 and "expected a boolean, got 'maybe'" in result.output
