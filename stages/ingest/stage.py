@@ -7,7 +7,14 @@ Sources (``source`` parameter; ``auto`` picks per input path):
 - ``egodex``: EgoDex ``.hdf5`` + ``.mp4`` pairs (a file or a folder searched recursively);
 - ``mcap``: Foxglove MCAP recordings (``.mcap``: images, calibration, frame transforms; see
   :mod:`egosim.stages.ingest.mcap_source`);
-- ``synthetic``: the built-in synthetic world, ``synthetic_count`` clips (no input needed).
+- ``synthetic``: the built-in synthetic world, ``synthetic_count`` clips (no input needed);
+- ``agibot``: AgiBot World episodes (``proprio_stats.h5`` + head video + camera JSON + task info;
+  see :mod:`egosim.stages.ingest.agibot_source`), one unit per episode;
+- ``lerobot``: LeRobot datasets (``meta/info.json``, v3.0 or v2.x; see
+  :mod:`egosim.stages.ingest.lerobot_source`), one unit per episode.
+
+Robot episodes become clips whose hand columns hold the gripper skeleton
+(:mod:`egosim.stages.common.gripper`; geometry preset ``robot``).
 
 Units are the input files (or folders of frames, or synthetic seeds); ``units_per_shard`` of them
 make one shard. A unit that cannot be read goes to the rejects table with the reason.
@@ -34,11 +41,18 @@ from egosim.pipeline.records import Clip
 from egosim.pipeline.stage import ClipRejected, ConfigError, SourceStage, StageConfig
 from egosim.schemas import CLIPS
 from egosim.schemas.ids import sanitize_id, short_hash
-from egosim.stages.ingest import frames_source, synthetic_source, video_source
+from egosim.stages.common.gripper import GRIPPER_PRESETS, gripper_geometry
+from egosim.stages.ingest import (
+    agibot_source,
+    frames_source,
+    lerobot_source,
+    synthetic_source,
+    video_source,
+)
 from egosim.stages.ingest.egodex import read_egodex_clip
 from egosim.stages.ingest.mcap_source import read_mcap_clip
 
-SourceKind = Literal["auto", "video", "frames", "egodex", "mcap", "synthetic"]
+SourceKind = Literal["auto", "video", "frames", "egodex", "mcap", "synthetic", "agibot", "lerobot"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -85,9 +99,20 @@ class IngestConfig(StageConfig):
     synthetic_articulated_every: int = 3  # every k-th synthetic clip has a hinged lid; 0 = none
     synthetic_variant: Literal["default", "alt"] = "default"  # world variant (WorldConfig.variant)
     seed: int = 0  # first seed of the synthetic source
+    robot: str = ""  # gripper geometry preset (gripper.GRIPPER_PRESETS); "" = the source's own
+    robot_camera: str = ""  # AgiBot camera name / LeRobot video key; "" = the head camera
+    robot_camera_pose: tuple[float, ...] = ()  # LeRobot fixed world_from_cam, 16 values row-major
+    robot_camera_axes: Literal["opencv", "opengl", "ros_body"] = "opencv"  # robot camera axes
 
     def __post_init__(self) -> None:
         problems = []
+        if self.robot and self.robot not in GRIPPER_PRESETS:
+            problems.append(f"robot must be one of {sorted(GRIPPER_PRESETS)}, got {self.robot!r}")
+        if self.robot_camera_pose and len(self.robot_camera_pose) != 16:
+            problems.append(
+                f"robot_camera_pose must be 16 values (a row-major 4x4), got "
+                f"{len(self.robot_camera_pose)}: {self.robot_camera_pose}"
+            )
         if self.preset not in CLIP_PRESETS:
             problems.append(f"preset must be one of {sorted(CLIP_PRESETS)}, got {self.preset!r}")
         preset = CLIP_PRESETS.get(self.preset, CLIP_PRESETS["egosim"])
@@ -121,7 +146,7 @@ class IngestStage(SourceStage):
     description = "standardise videos, frame folders, EgoDex or the synthetic world into clips"
     config_class = IngestConfig
     output = CLIPS
-    backends = ("video", "frames", "egodex", "mcap", "synthetic")
+    backends = ("video", "frames", "egodex", "mcap", "synthetic", "agibot", "lerobot")
     # 2: clip policy (short and tail clips, source rate kept), clips v2 columns;
     # 3: clip ids sanitised to the identifier rule and unique across a run (schemas.ids).
     version = 3
@@ -147,12 +172,18 @@ class IngestStage(SourceStage):
         if not path.exists():
             raise ConfigError(f"ingest input {path} does not exist")
         units: list[str] = []
+        if cfg.source in ("auto", "agibot"):
+            units += [f"agibot:{p}" for p in agibot_source.find_episodes(path)]
+        if cfg.source in ("auto", "lerobot"):
+            for root in lerobot_source.find_datasets(path):
+                units += [f"lerobot:{root}#{i}" for i in lerobot_source.list_episodes(root)]
         if cfg.source in ("auto", "egodex"):
-            units += [f"egodex:{p}" for p in _find(path, {".hdf5", ".h5"})]
+            files = _find(path, {".hdf5", ".h5"})
+            units += [f"egodex:{p}" for p in files if cfg.source != "auto" or not _robot_file(p)]
         if cfg.source in ("auto", "video"):
             videos = _find(path, video_source.VIDEO_SUFFIXES)
             if cfg.source == "auto":  # an EgoDex episode's video belongs to its .hdf5
-                videos = [v for v in videos if not _egodex_video(v)]
+                videos = [v for v in videos if not _egodex_video(v) and not _robot_file(v)]
             units += [f"video:{p}" for p in videos]
         if cfg.source in ("auto", "mcap"):
             units += [f"mcap:{p}" for p in _find(path, {".mcap"})]
@@ -166,7 +197,15 @@ class IngestStage(SourceStage):
         kind = kind.partition("#")[0]
         if kind == "synthetic":
             return unit
+        if kind == "lerobot":  # the dataset's meta and data files (videos by size and time too)
+            rest = rest.rpartition("#")[0]
         path = Path(rest)
+        if path.is_dir() and kind == "lerobot":
+            files = sorted(p for p in path.rglob("*") if p.is_file())
+            stats = [
+                (str(f.relative_to(path)), f.stat().st_size, f.stat().st_mtime_ns) for f in files
+            ]
+            return f"{unit}|{fingerprint({'files': stats})}"
         files = sorted(path.iterdir()) if path.is_dir() else [path]
         stats = [(f.name, f.stat().st_size, f.stat().st_mtime_ns) for f in files if f.is_file()]
         return f"{unit}|{fingerprint({'files': stats})}"
@@ -195,6 +234,24 @@ class IngestStage(SourceStage):
             yield from video_source.standardise_clip(read_mcap_clip(Path(rest)), cfg)
         elif kind == "synthetic":
             yield synthetic_source.render_unit(rest, cfg)
+        elif kind == "agibot":
+            geometry = gripper_geometry(cfg.robot or agibot_source.DEFAULT_ROBOT)
+            clip = agibot_source.read_agibot_episode(
+                Path(rest), cfg.robot_camera or "head", cfg.robot_camera_axes, geometry
+            )
+            yield from video_source.standardise_clip(clip, cfg)
+        elif kind == "lerobot":
+            root, _, episode = rest.rpartition("#")
+            options = lerobot_source.LeRobotOptions(
+                video_key=cfg.robot_camera,
+                camera_pose=cfg.robot_camera_pose,
+                camera_axes=cfg.robot_camera_axes,
+                intrinsics=cfg.intrinsics,
+                horizontal_fov_deg=cfg.horizontal_fov_deg,
+            )
+            geometry = gripper_geometry(cfg.robot or lerobot_source.DEFAULT_ROBOT)
+            clip = lerobot_source.read_lerobot_episode(Path(root), int(episode), options, geometry)
+            yield from video_source.standardise_clip(clip, cfg)
         else:
             raise ClipRejected(f"unknown ingest unit {unit!r}")
 
@@ -207,6 +264,11 @@ def unit_name(unit: str) -> str:
         return unit
     if kind == "egodex":  # egodex.read_egodex_clip: <task folder>_<stem>
         return sanitize_id(f"{path.parent.name}_{path.stem}")
+    if kind == "agibot":  # agibot_source: agibot_<task>_<episode>
+        return sanitize_id(agibot_source.paths_of(path).name)
+    if kind == "lerobot":  # lerobot_source: <dataset folder>_ep<episode>
+        root, _, episode = rest.rpartition("#")
+        return sanitize_id(f"{Path(root).name}_ep{int(episode):06d}")
     if kind == "frames":  # frames_source: the folder's name
         return sanitize_id(path.name)
     return sanitize_id(path.stem)  # video files and MCAP recordings: the file's stem
@@ -226,6 +288,11 @@ def disambiguate_units(units: list[str]) -> list[str]:
             unit = f"{kind}#{short_hash(rest)}:{rest}"
         out.append(unit)
     return out
+
+
+def _robot_file(path: Path) -> bool:
+    """A file of an AgiBot or LeRobot layout (read by those sources, not as video or EgoDex)."""
+    return agibot_source.owns(path) or lerobot_source.owns(path)
 
 
 def _egodex_video(video: Path) -> bool:

@@ -1,0 +1,253 @@
+"""Write robot episodes in AgiBot World's and LeRobot's on-disk layouts from known arrays.
+
+The inverse of :mod:`~egosim.stages.ingest.agibot_source` and
+:mod:`~egosim.stages.ingest.lerobot_source`, so that those readers are tested against ground
+truth (tests render the frames with the synthetic world and script the end-effector path). The
+layouts are the ones documented in the readers' module docstrings; what a real dataset would
+hold beyond what the readers use (depth, other cameras, actions' own streams, statistics) is
+written only where the format requires it. ``drop_keys`` and ``state_rows`` make malformed
+episodes on purpose.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+
+from egosim.pipeline.geometry import quat_from_matrix
+from egosim.pipeline.media import write_video_file
+
+
+def xyzw_from_matrix(rotation: np.ndarray) -> np.ndarray:
+    """Rotations ``(..., 3, 3)`` -> quaternions ``(..., 4)`` in ``(x, y, z, w)``; NaN stays NaN."""
+    rot = np.asarray(rotation, dtype=np.float64)
+    ok = np.isfinite(rot).all(axis=(-2, -1))  # (...)
+    out = np.full((*rot.shape[:-2], 4), np.nan)
+    out[ok] = quat_from_matrix(rot[ok])[..., [1, 2, 3, 0]]
+    return out
+
+
+@dataclass
+class RobotEpisodeArrays:
+    """Ground truth of one episode, in egosim's conventions (OpenCV axes, metres, seconds)."""
+
+    frames: np.ndarray  # (T, H, W, 3) uint8 RGB of the head camera
+    fps: float  # frames per second
+    intrinsics: np.ndarray  # (4,) fx, fy, cx, cy in pixels of the frames
+    world_from_cam: np.ndarray  # (T, 4, 4) camera-to-world
+    world_from_ee: np.ndarray  # (T, G, 4, 4) end-effector poses (G = 2 for AgiBot, 1 LeRobot)
+    gripper_state: np.ndarray  # (T, G) raw gripper readings
+    task: str = "pick up the cube"  # task name / instruction
+    actions: list[str] = field(default_factory=list)  # AgiBot action texts (sub-steps)
+
+
+def write_agibot_episode(
+    root: Path,
+    task: str,
+    episode: str,
+    ep: RobotEpisodeArrays,
+    camera: str = "head",
+    drop_keys: tuple[str, ...] = (),
+    state_rows: int | None = None,
+) -> Path:
+    """Write ``ep`` as AgiBot World task ``task`` episode ``episode`` under ``root``.
+
+    Returns the ``proprio_stats.h5`` path. ``drop_keys`` leaves those proprio keys out;
+    ``state_rows`` keeps only that many state rows (a length mismatch with the video).
+    """
+    root = Path(root)
+    t = len(ep.frames) if state_rows is None else state_rows
+    video = root / "observations" / task / episode / "videos" / f"{camera}_color.mp4"
+    video.parent.mkdir(parents=True, exist_ok=True)
+    write_video_file(video, ep.frames, ep.fps)
+    cam_dir = root / "parameters" / task / episode / "parameters" / "camera"
+    cam_dir.mkdir(parents=True, exist_ok=True)
+    fx, fy, cx, cy = (float(v) for v in ep.intrinsics)
+    h, w = ep.frames.shape[1:3]
+    intr = {"intrinsic": {"fx": fx, "fy": fy, "ppx": cx, "ppy": cy, "width": w, "height": h}}
+    (cam_dir / f"{camera}_intrinsic_params.json").write_text(json.dumps(intr))
+    extr = [
+        {
+            "extrinsic": {
+                "rotation_matrix": pose[:3, :3].tolist(),
+                "translation_vector": pose[:3, 3].tolist(),
+            }
+        }
+        for pose in ep.world_from_cam
+    ]
+    (cam_dir / f"{camera}_extrinsic_params_aligned.json").write_text(json.dumps(extr))
+    proprio = root / "proprio_stats" / task / episode / "proprio_stats.h5"
+    proprio.parent.mkdir(parents=True, exist_ok=True)
+    stamps = np.round(1.7e18 + np.arange(len(ep.frames)) / ep.fps * 1e9).astype(np.int64)
+    data = {
+        "timestamp": stamps,
+        "state/end/position": ep.world_from_ee[:, :, :3, 3],  # (T, 2, 3)
+        "state/end/orientation": xyzw_from_matrix(ep.world_from_ee[:, :, :3, :3]),  # (T, 2, 4)
+        "state/effector/position": ep.gripper_state,  # (T, 2)
+        "state/joint/position": np.zeros((len(ep.frames), 14)),
+    }
+    with h5py.File(proprio, "w") as f:
+        for key, value in data.items():
+            if key not in drop_keys:
+                f.create_dataset(key, data=np.asarray(value)[:t])
+    info_path = root / "task_info" / f"task_{task}.json"
+    info_path.parent.mkdir(parents=True, exist_ok=True)
+    entries = json.loads(info_path.read_text()) if info_path.is_file() else []
+    actions = [
+        {"start_frame": 0, "end_frame": len(ep.frames) - 1, "action_text": a, "skill": "Pick"}
+        for a in ep.actions
+    ]
+    entries.append(
+        {
+            "episode_id": int(episode),
+            "task_name": ep.task,
+            "init_scene_text": "",
+            "label_info": {"action_config": actions},
+        }
+    )
+    info_path.write_text(json.dumps(entries))
+    return proprio
+
+
+STATE_NAMES = ["x", "y", "z", "qx", "qy", "qz", "qw", "gripper"]  # observation.state layout
+CAMERA_POSE_NAMES = ["x", "y", "z", "qx", "qy", "qz", "qw"]  # observation.camera_pose layout
+
+
+def write_lerobot_dataset(
+    root: Path,
+    episodes: list[RobotEpisodeArrays],
+    version: str = "v3.0",
+    video_key: str = "observation.images.head",
+    camera_pose: bool = True,
+    state_names: list[str] | None = None,
+) -> Path:
+    """Write ``episodes`` (one gripper each) as a LeRobot dataset under ``root``; returns ``root``.
+
+    ``version`` ``"v3.0"`` packs every episode in one data file and one video file (located by
+    ``from_timestamp``); ``"v2.1"`` writes one of each per episode. ``observation.state`` holds
+    ``x, y, z, qx, qy, qz, qw, gripper`` (``state_names`` renames them: a joint-space dataset);
+    ``camera_pose`` adds the per-frame ``observation.camera_pose`` (world_from_cam).
+    """
+    root = Path(root)
+    names = state_names or STATE_NAMES
+    fps = float(episodes[0].fps)
+    h, w = episodes[0].frames.shape[1:3]
+    tasks = sorted({e.task for e in episodes})
+    tables, offset, video_offset, ep_rows = [], 0, 0, []
+    for index, ep in enumerate(episodes):
+        t, n_video = len(ep.world_from_ee), len(ep.frames)  # states, video frames
+        pose = ep.world_from_ee[:, 0]  # (T, 4, 4)
+        state = np.concatenate(
+            [pose[:, :3, 3], xyzw_from_matrix(pose[:, :3, :3]), ep.gripper_state[:, :1]], axis=1
+        ).astype(np.float32)  # (T, 8)
+        columns = {
+            "observation.state": pa.array(state.tolist(), pa.list_(pa.float32(), 8)),
+            "action": pa.array(state.tolist(), pa.list_(pa.float32(), 8)),
+            "timestamp": pa.array((np.arange(t) / fps).astype(np.float32)),
+            "frame_index": pa.array(np.arange(t, dtype=np.int64)),
+            "episode_index": pa.array(np.full(t, index, dtype=np.int64)),
+            "index": pa.array(np.arange(offset, offset + t, dtype=np.int64)),
+            "task_index": pa.array(np.full(t, tasks.index(ep.task), dtype=np.int64)),
+        }
+        if camera_pose:
+            cam = ep.world_from_cam
+            cam7 = np.concatenate([cam[:, :3, 3], xyzw_from_matrix(cam[:, :3, :3])], axis=1)
+            columns["observation.camera_pose"] = pa.array(
+                cam7.astype(np.float32).tolist(), pa.list_(pa.float32(), 7)
+            )
+        tables.append(pa.table(columns))
+        ep_rows.append(
+            {
+                "episode_index": index,
+                "tasks": [ep.task],
+                "length": t,
+                "data/chunk_index": 0,
+                "data/file_index": 0,
+                "dataset_from_index": offset,
+                "dataset_to_index": offset + t,
+                f"videos/{video_key}/chunk_index": 0,
+                f"videos/{video_key}/file_index": 0,
+                f"videos/{video_key}/from_timestamp": video_offset / fps,
+                f"videos/{video_key}/to_timestamp": (video_offset + n_video) / fps,
+            }
+        )
+        offset += t
+        video_offset += n_video
+    features: dict[str, object] = {
+        video_key: {
+            "dtype": "video",
+            "shape": [h, w, 3],
+            "names": ["height", "width", "channels"],
+            "info": {"video.fps": fps, "video.height": h, "video.width": w, "video.codec": "h264"},
+        },
+        "observation.state": {"dtype": "float32", "shape": [8], "names": names},
+        "action": {"dtype": "float32", "shape": [8], "names": names},
+        "timestamp": {"dtype": "float32", "shape": [1], "names": None},
+        "frame_index": {"dtype": "int64", "shape": [1], "names": None},
+        "episode_index": {"dtype": "int64", "shape": [1], "names": None},
+        "index": {"dtype": "int64", "shape": [1], "names": None},
+        "task_index": {"dtype": "int64", "shape": [1], "names": None},
+    }
+    if camera_pose:
+        features["observation.camera_pose"] = {
+            "dtype": "float32",
+            "shape": [7],
+            "names": CAMERA_POSE_NAMES,
+        }
+    info = {
+        "codebase_version": version,
+        "robot_type": "synthetic",
+        "total_episodes": len(episodes),
+        "total_frames": offset,
+        "total_tasks": len(tasks),
+        "chunks_size": 1000,
+        "fps": fps,
+        "splits": {"train": f"0:{len(episodes)}"},
+        "features": features,
+    }
+    meta = root / "meta"
+    meta.mkdir(parents=True, exist_ok=True)
+    if version.startswith("v3"):
+        info["data_path"] = "data/chunk-{chunk_index:03d}/file-{file_index:03d}.parquet"
+        info["video_path"] = "videos/{video_key}/chunk-{chunk_index:03d}/file-{file_index:03d}.mp4"
+        data = root / info["data_path"].format(chunk_index=0, file_index=0)
+        data.parent.mkdir(parents=True, exist_ok=True)
+        pq.write_table(pa.concat_tables(tables), data)
+        video = root / info["video_path"].format(video_key=video_key, chunk_index=0, file_index=0)
+        video.parent.mkdir(parents=True, exist_ok=True)
+        write_video_file(video, np.concatenate([e.frames for e in episodes]), fps)
+        (meta / "episodes" / "chunk-000").mkdir(parents=True, exist_ok=True)
+        pq.write_table(pa.Table.from_pylist(ep_rows), meta / "episodes/chunk-000/file-000.parquet")
+        task_table = {"task_index": list(range(len(tasks))), "task": tasks}
+        pq.write_table(pa.table(task_table), meta / "tasks.parquet")
+    else:
+        info["data_path"] = "data/chunk-{episode_chunk:03d}/episode_{episode_index:06d}.parquet"
+        info["video_path"] = (
+            "videos/chunk-{episode_chunk:03d}/{video_key}/episode_{episode_index:06d}.mp4"
+        )
+        for index, (ep, table) in enumerate(zip(episodes, tables, strict=True)):
+            data = root / info["data_path"].format(episode_chunk=0, episode_index=index)
+            data.parent.mkdir(parents=True, exist_ok=True)
+            pq.write_table(table, data)
+            video = root / info["video_path"].format(
+                episode_chunk=0, video_key=video_key, episode_index=index
+            )
+            video.parent.mkdir(parents=True, exist_ok=True)
+            write_video_file(video, ep.frames, fps)
+        lines = [
+            json.dumps(
+                {"episode_index": r["episode_index"], "tasks": r["tasks"], "length": r["length"]}
+            )
+            for r in ep_rows
+        ]
+        (meta / "episodes.jsonl").write_text("\n".join(lines) + "\n")
+        task_lines = [json.dumps({"task_index": i, "task": s}) for i, s in enumerate(tasks)]
+        (meta / "tasks.jsonl").write_text("\n".join(task_lines) + "\n")
+    (meta / "info.json").write_text(json.dumps(info, indent=2))
+    return root
