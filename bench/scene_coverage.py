@@ -25,7 +25,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import tempfile
 import time
 from pathlib import Path
 from typing import Any
@@ -106,14 +105,18 @@ def _cloud_figures(cloud: dict | None, hw: tuple[int, int]) -> dict[str, float]:
 
 
 def _step(
-    stage: str, inputs: dict[str, Path], params: dict[str, Any], out: Path, name: str = ""
+    stage: str, inputs: dict[str, Path], params: dict[str, Any], out: Path, fresh: bool = True
 ) -> Path:
-    """Run one stage on one shard (its old output removed first); returns the output path."""
+    """Run one stage on one shard; returns the output path.
+
+    ``fresh``: remove its old output first (the code is what is measured, and a finished shard
+    with the same parameters would be skipped); else a finished shard is kept.
+    """
     from egosim.pipeline.execute import ShardTask, run_shard_task
 
-    name = name or stage
+    name = stage
     path = out / f"{name}.parquet"
-    for old in out.glob(f"{name}*.parquet*"):  # always recompute: the code is what is measured
+    for old in out.glob(f"{name}*.parquet*") if fresh else ():
         old.unlink()
     run_shard_task(
         ShardTask(
@@ -130,7 +133,9 @@ def _step(
     return path
 
 
-def rerender(run: Path, out: Path, cloud_params: dict[str, Any]) -> Path:
+def rerender(
+    run: Path, out: Path, cloud_params: dict[str, Any], render_params: dict[str, Any]
+) -> Path:
     """``scene_cloud`` + ``scene_render`` with the current code on a run's upstream shards.
 
     Reads the run's ``ingest``, ``cameras``, ``poses`` and ``inpaint`` shard 0 (the dataset
@@ -152,7 +157,7 @@ def rerender(run: Path, out: Path, cloud_params: dict[str, Any]) -> Path:
     out.mkdir(parents=True, exist_ok=True)
     cloud = _step("scene_cloud", inputs, cloud_params, out)
     render_in = {k: inputs[k] for k in ("clips", "cameras", "poses")}
-    _step("scene_render", {**render_in, "scene_cloud": cloud}, {}, out)
+    _step("scene_render", {**render_in, "scene_cloud": cloud}, render_params, out)
     return out
 
 
@@ -207,7 +212,13 @@ def sheet_row(
 
 
 def synthetic_case(
-    label: str, mode: str, seed: int, variant: str, work: Path, cloud_params: dict[str, Any]
+    label: str,
+    mode: str,
+    seed: int,
+    variant: str,
+    work: Path,
+    cloud_params: dict[str, Any],
+    render_params: dict[str, Any],
 ) -> dict[str, Any] | None:
     """Figures of one synthetic clip with estimated (plane-sweep) depth; None if not available."""
     from egosim.pipeline.clip_io import write_clips
@@ -224,12 +235,16 @@ def synthetic_case(
     clip = dataclasses.replace(clip, depth=None, static_depth=None, first_frame_clean=None)
     work.mkdir(parents=True, exist_ok=True)
     clips = work / "clips.parquet"
-    write_clips(clips, [clip])
+    if not clips.is_file():
+        write_clips(clips, [clip])
 
-    cams = _step("depth_camera", {"clips": clips}, {"backend": "given"}, work)
+    cams = _step("depth_camera", {"clips": clips}, {"backend": "given"}, work, fresh=False)
     cloud = _step("scene_cloud", {"clips": clips, "cameras": cams}, cloud_params, work)
     render = _step(
-        "scene_render", {"clips": clips, "cameras": cams, "scene_cloud": cloud}, {}, work
+        "scene_render",
+        {"clips": clips, "cameras": cams, "scene_cloud": cloud},
+        render_params,
+        work,
     )
     rows = list(_rows(render).values())
     if not rows:
@@ -272,9 +287,14 @@ def main() -> int:
     parser.add_argument(
         "--cloud", action="append", default=[], help="scene_cloud param k=v (repeatable)"
     )
+    parser.add_argument(
+        "--render", action="append", default=[], help="scene_render param k=v (repeatable)"
+    )
     args = parser.parse_args()
     cloud_params = {k: yaml.safe_load(v) for k, v in (kv.split("=", 1) for kv in args.cloud)}
-    tag = "scene_bench" + "".join(f"-{k}={v}" for k, v in sorted(cloud_params.items()))
+    render_params = {k: yaml.safe_load(v) for k, v in (kv.split("=", 1) for kv in args.render)}
+    params = {**cloud_params, **{f"render.{k}": v for k, v in render_params.items()}}
+    tag = "scene_bench" + "".join(f"-{k}={v}" for k, v in sorted(params.items()))
     args.out.mkdir(parents=True, exist_ok=True)
     rows: list[dict[str, Any]] = []
     sheet: list[np.ndarray] = []
@@ -288,7 +308,9 @@ def main() -> int:
         start = time.perf_counter()
         if not args.no_run:
             run_case(case, args.data, run, args.workers)
-        scene = None if args.workflow_render else rerender(run, run / tag, cloud_params)
+        scene = (
+            None if args.workflow_render else rerender(run, run / tag, cloud_params, render_params)
+        )
         row, strip = real_case(case, args.data, run, scene)
         row["seconds"] = time.perf_counter() - start
         rows.append(row)
@@ -298,8 +320,8 @@ def main() -> int:
         if args.only and args.only not in label:
             continue
         start = time.perf_counter()
-        with tempfile.TemporaryDirectory() as tmp:
-            row = synthetic_case(label, mode, seed, variant, Path(tmp), cloud_params)
+        work = args.out / label  # clips and cameras kept: only the scene steps are recomputed
+        row = synthetic_case(label, mode, seed, variant, work, cloud_params, render_params)
         if row is None:
             print(f"{label}: WorldConfig has no variant {variant!r}, skipped")
             continue

@@ -10,9 +10,10 @@ full of streaks. :func:`densify_depth` does neither:
 2. **Flying pixels at depth edges only**: among measured pixels, those where inverse depth breaks
    planarity (:func:`flying_pixel_mask`) are left out (``drop_edges``: both sides of the edge,
    whose colours mix the two surfaces; rendering closes the two-pixel seam at t=0) or, without
-   ``drop_edges``, only the pixels between the sides become unmeasured and are filled. Small
-   isolated blobs of estimated depth that disagree with everything around them
-   (``cv2.filterSpeckles``) become unmeasured too. Nothing else is dropped.
+   ``drop_edges``, only the pixels between the sides become unmeasured and are filled.
+   Optionally (``speckle_px``, off by default: it cannot tell a right island of estimated depth
+   from a wrong one) small islands of estimated depth (``cv2.filterSpeckles``) become unmeasured
+   too. Nothing else is dropped.
 3. **Segment planes**: the colour image is cut into superpixels that follow colour edges
    (``cv2.watershed`` flooded from a grid of seeds). In each segment a plane is fitted to the
    measured inverse depth (``1/z`` is affine in normalised image coordinates on any plane:
@@ -48,8 +49,8 @@ class DensifyParams:
     min_confidence: float = 0.5  # depth confidence at or above = measured (0..1)
     edge_threshold: float = 0.05  # flying pixel: |2nd difference of 1/z| / (1/z) above this
     drop_edges: bool = True  # True: both sides of a depth edge are left out, not filled
-    speckle_px: int = 200  # measured blobs of at most this many pixels that ...
-    speckle_rel: float = 0.03  # ... differ from their surround by more (relative 1/z) go
+    speckle_px: int = 0  # measured blobs of at most this many pixels that ... (0 = off)
+    speckle_rel: float = 0.03  # ... whose neighbours differ by at most this (relative 1/z) go
     segment_px: int = 20  # superpixel seed spacing in pixels (watershed on colour)
     plane_tolerance: float = 0.03  # plane inlier: |1/z - plane| / (1/z) at most this
     snap_to_planes: bool = False  # measured plane inliers take the plane's depth (denoising)

@@ -21,7 +21,7 @@ true depth. Negative or non-finite depth rejects the clip.
 Depth is made dense by :func:`egosim.stages.scene_cloud.densify.densify_depth`: pixels whose
 depth was measured (the ``cameras`` row's ``confidence0`` at or above ``min_confidence``; every
 known pixel of a source's own depth) are kept, flying pixels at depth edges (inverse depth breaks
-planarity: both sides of an occlusion edge) and isolated speckles among them are dropped, and
+planarity: both sides of an occlusion edge) and, optionally, small islands are dropped, and
 every other pixel (unconfident, flying, under the inpainted hands) is filled edge-aware: by the
 plane of its colour superpixel fitted to the measured inverse depth, else by inpainting the
 inverse depth. Each point records whether its depth was measured or filled
@@ -193,8 +193,8 @@ class SceneCloudConfig(StageConfig):
     min_confidence: float = 0.5  # depth_camera confidence at or above = measured depth (0..1)
     edge_threshold: float = 0.05  # flying pixel: |2nd difference of 1/z| / (1/z) above; 0 = off
     drop_edges: bool = True  # True: both sides of a depth edge left out; False: refill them
-    speckle_px: int = 200  # measured blobs up to this many pixels that disagree ... (0 = off)
-    speckle_rel: float = 0.03  # ... with their surround by more than this (relative 1/z) go
+    speckle_px: int = 0  # measured blobs up to this many pixels (4-connected) ... (0 = off)
+    speckle_rel: float = 0.03  # ... whose neighbours differ by at most this (relative 1/z) go
     segment_px: int = 20  # colour superpixel seed spacing (pixels) for the plane fill
     plane_tolerance: float = 0.03  # plane inlier: |1/z - plane| / (1/z) at most this
     snap_to_planes: bool = False  # measured plane inliers take the plane's depth (denoising)

@@ -17,10 +17,10 @@ surface close, while pixels with a direct hit keep it.
 
 Cracks that remain (the camera much closer than frame 0, beyond the widest splat, or a surface
 seen more obliquely than from frame 0) are closed in image space by :func:`close_cracks`: every
-connected hole of at most ``max_crack_px`` pixels that does not touch the image border takes the
-colour of its surround (OpenCV Telea inpainting) and the nearest depth around it, and counts as
-visible. Larger holes (disocclusions, the unseen world beyond frame 0) stay empty for the model
-to synthesise.
+hole of at most ``max_crack_px`` pixels that does not touch the image border, and every gap of at
+most ``max_crack_width`` pixels between visible pixels, takes the colour of its surround (OpenCV
+Telea inpainting) and the farther depth around it, and counts as visible. Larger holes
+(disocclusions, the unseen world beyond frame 0) stay empty for the model to synthesise.
 """
 
 from __future__ import annotations
@@ -232,36 +232,48 @@ def shade(
 
 
 def close_cracks(
-    rgb: np.ndarray, visible: np.ndarray, depth: np.ndarray, max_crack_px: int
+    rgb: np.ndarray,
+    visible: np.ndarray,
+    depth: np.ndarray,
+    max_crack_px: int,
+    max_crack_width: int = 0,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Fill the small holes of one rendered frame; returns new ``(rgb, visible, depth)``.
+    """Fill the cracks of one rendered frame; returns new ``(rgb, visible, depth)``.
 
     ``rgb (H, W, 3)`` uint8, ``visible (H, W)`` uint8 1 = a point landed, ``depth (H, W)``
-    float32. A hole is a 4-connected set of invisible pixels; one of at most ``max_crack_px``
-    pixels that does not touch the image border is a crack: its colour is inpainted from the
-    pixels around it (``cv2.INPAINT_TELEA``), its depth is the largest depth of its 3x3
-    neighbours (the farther surface, so a crack never pulls a foreground edge outward) and it
-    becomes visible.
+    float32. A crack pixel is invisible and either in a hole (4-connected invisible pixels) of at
+    most ``max_crack_px`` pixels that does not touch the image border, or in a gap of at most
+    ``max_crack_width`` pixels between visible pixels (morphological closing of ``visible``; it
+    catches the connected grid of cracks that a surface magnified beyond the widest splat
+    leaves). Its colour is inpainted from the pixels around it (``cv2.INPAINT_TELEA``), its depth
+    is the largest depth among its visible neighbours (the farther surface, so a crack never pulls
+    a foreground edge outward) and it becomes visible.
     """
     holes = (visible == 0).astype(np.uint8)  # (H, W)
-    if max_crack_px < 1 or not holes.any():
+    if (max_crack_px < 1 and max_crack_width < 1) or not holes.any():
         return rgb, visible, depth
-    _, labels, stats, _ = cv2.connectedComponentsWithStats(holes, connectivity=4)
-    x, y, w, h, area = (stats[:, i] for i in range(5))  # (components,) each
-    width, height = holes.shape[1], holes.shape[0]
-    inside = (x > 0) & (y > 0) & (x + w < width) & (y + h < height)  # (count,)
-    small = (area <= max_crack_px) & inside
-    small[0] = False  # label 0 is the visible pixels
-    if not small[1:].any():
+    crack = np.zeros(holes.shape, bool)  # (H, W)
+    if max_crack_px > 0:
+        _, labels, stats, _ = cv2.connectedComponentsWithStats(holes, connectivity=4)
+        x, y, w, h, area = (stats[:, i] for i in range(5))  # (components,) each
+        width, height = holes.shape[1], holes.shape[0]
+        inside = (x > 0) & (y > 0) & (x + w < width) & (y + h < height)  # (components,)
+        small = (area <= max_crack_px) & inside
+        small[0] = False  # label 0 is the visible pixels
+        crack |= small[labels]
+    if max_crack_width > 0:
+        side = 2 * ((max_crack_width + 1) // 2) + 1  # closes gaps up to side - 1 pixels wide
+        kernel = np.ones((side, side), np.uint8)
+        closed = cv2.morphologyEx(visible.astype(np.uint8), cv2.MORPH_CLOSE, kernel)  # (H, W)
+        crack |= (closed > 0) & (holes > 0)
+    if not crack.any():
         return rgb, visible, depth
-    crack = small[labels]  # (H, W)
-    mask = crack.astype(np.uint8)
-    filled = cv2.inpaint(np.ascontiguousarray(rgb), mask, 2, cv2.INPAINT_TELEA)  # (H, W, 3)
-    grown = cv2.dilate(np.where(visible > 0, depth, 0).astype(np.float32), np.ones((3, 3)))
-    for _ in range(int(np.ceil(np.sqrt(max_crack_px)))):  # spread inward over the crack
-        if not (crack & (grown <= 0)).any():
+    filled = cv2.inpaint(np.ascontiguousarray(rgb), crack.astype(np.uint8), 2, cv2.INPAINT_TELEA)
+    grown = np.where(visible > 0, depth, 0).astype(np.float32)  # (H, W)
+    for _ in range(max(4, int(np.ceil(np.sqrt(max_crack_px))), max_crack_width)):
+        if not (crack & (grown <= 0)).any():  # spread the farther neighbour inward
             break
-        grown = np.where(grown > 0, grown, cv2.dilate(grown, np.ones((3, 3))))
+        grown = np.where(grown > 0, grown, cv2.dilate(grown, np.ones((3, 3), np.uint8)))
     return (
         np.where(crack[..., None], filled, rgb),
         np.where(crack, np.uint8(1), visible).astype(np.uint8),
@@ -281,6 +293,7 @@ def render_point_cloud(
     near: float = 1e-3,
     device: str = "cpu",
     max_crack_px: int = 0,
+    max_crack_width: int = 0,
 ) -> SplatResult:
     """Render a coloured cloud along a trajectory by z-buffered splatting.
 
@@ -288,7 +301,8 @@ def render_point_cloud(
     ``intrinsics (fx, fy, cx, cy)``, ``point_size (N,)`` metres (needed only for splats wider
     than one pixel), ``device`` any torch device string ("cpu", "cuda", "cuda:1"). Points at or
     behind ``near`` metres of camera z are skipped; holes of at most ``max_crack_px`` pixels
-    inside the render are closed by :func:`close_cracks` (0 = off). Raises :class:`SplatError`
+    inside the render and gaps up to ``max_crack_width`` pixels wide are closed by
+    :func:`close_cracks` (0 = off). Raises :class:`SplatError`
     for an empty cloud, non-finite points, non-rigid or NaN poses and shapes that disagree.
     """
     points_world = np.asarray(points_world)
@@ -314,9 +328,11 @@ def render_point_cloud(
     rgb = out_rgb.reshape(t, height, width, 3).cpu().numpy()
     visible = out_vis.reshape(t, height, width).cpu().numpy()
     depth = out_depth.reshape(t, height, width).cpu().numpy()
-    if max_crack_px > 0:
+    if max_crack_px > 0 or max_crack_width > 0:
         for i in range(t):
-            rgb[i], visible[i], depth[i] = close_cracks(rgb[i], visible[i], depth[i], max_crack_px)
+            rgb[i], visible[i], depth[i] = close_cracks(
+                rgb[i], visible[i], depth[i], max_crack_px, max_crack_width
+            )
     return SplatResult(rgb=rgb, visible=visible, depth=depth)
 
 

@@ -2,8 +2,8 @@
 
 Reads the ``clips`` row (size, fps) and the clip's ``scene_cloud`` row; writes a scene video and
 a visibility mask video (1 = a scene point landed, or a small crack between landed points was
-closed: ``max_crack_px``) made by :func:`egosim.stages.scene_render.splat.render_point_cloud`, the
-same torch code on CPU and GPU.
+closed: ``max_crack_px``, ``max_crack_width``) made by
+:func:`egosim.stages.scene_render.splat.render_point_cloud`, the same torch code on CPU and GPU.
 Intrinsics and poses come from :func:`egosim.stages.common.cameras.resolve_cameras` (the optional
 ``poses`` or ``cameras`` inputs when connected, else the clip's own), the same rule as
 ``keypoint_render``, so scene and hand conditions share one camera.
@@ -34,6 +34,7 @@ class SceneRenderConfig(StageConfig):
     max_splat_radius: int = 2  # widest square splat (pixels each side) for near points; 0 = off
     near: float = 0.01  # points closer than this camera z (metres) are skipped
     max_crack_px: int = 64  # holes inside the render up to this many pixels are closed; 0 = off
+    max_crack_width: int = 2  # gaps between rendered pixels up to this wide are closed; 0 = off
     crf: int = 18  # H.264 quality of the scene video (lower = better, bigger)
 
     def __post_init__(self) -> None:
@@ -42,6 +43,8 @@ class SceneRenderConfig(StageConfig):
             problems.append(f"device must be a torch device string like 'cpu', got {self.device!r}")
         if not 0 <= self.max_splat_radius <= 8:
             problems.append(f"max_splat_radius must be in [0, 8], got {self.max_splat_radius}")
+        if not 0 <= self.max_crack_width <= 16:
+            problems.append(f"max_crack_width must be in [0, 16], got {self.max_crack_width}")
         if not 0 <= self.max_crack_px <= 10_000:
             problems.append(f"max_crack_px must be in [0, 10000], got {self.max_crack_px}")
         if not (np.isfinite(self.near) and self.near > 0):
@@ -88,6 +91,7 @@ class SceneRenderStage(ClipStage):
                 near=cfg.near,
                 device=cfg.device,
                 max_crack_px=cfg.max_crack_px,
+                max_crack_width=cfg.max_crack_width,
             )
         except SplatError as exc:
             raise ClipRejected(f"clip {cid!r}: {exc}") from exc
