@@ -143,7 +143,10 @@ class IngestStage(SourceStage):
     """Standardise videos, frame folders, EgoDex files or synthetic clips into clips."""
 
     name = "ingest"
-    description = "standardise videos, frame folders, EgoDex or the synthetic world into clips"
+    description = (
+        "standardise videos, frame folders, EgoDex, MCAP, robot episodes (AgiBot, LeRobot) or "
+        "the synthetic world into clips"
+    )
     config_class = IngestConfig
     output = CLIPS
     backends = ("video", "frames", "egodex", "mcap", "synthetic", "agibot", "lerobot")
