@@ -146,7 +146,13 @@ STATE = ShardSchema(
     version=1,
     doc="World state after each clip: points with instances, instance table, cameras, Sim3.",
     columns=(
-        Column("clip_id", pa.string(), "Clip the state was fused from; joins with its clips."),
+        Column(
+            "clip_id",
+            pa.string(),
+            "Clip the row joins with: the clip the state was fused from, or, for a state given "
+            "as a next clip's previous_state (state_for_clip), that next clip.",
+        ),
+        Column("state_clip_id", pa.string(), "Clip the state was fused from."),
         Column(
             "previous_clip_id",
             pa.string(),
@@ -253,6 +259,16 @@ STATE = ShardSchema(
 )
 
 
+def state_for_clip(row: Mapping[str, Any], clip_id: str) -> dict[str, Any]:
+    """``row`` keyed by ``clip_id``: the state a next clip starts from, joinable with it.
+
+    Rows join on ``clip_id`` in a run, so the state a clip was generated from is given to
+    ``state_fusion`` keyed by that clip; ``state_clip_id`` still names the clip it was fused
+    from.
+    """
+    return {**row, "clip_id": clip_id}
+
+
 def scene_cloud_row_from_state(
     row: Mapping[str, Any], clip_id: str | None = None
 ) -> dict[str, Any]:
@@ -273,7 +289,7 @@ def scene_cloud_row_from_state(
         "points_rgb": row["points_rgb"],
         "point_size": row["point_size"],
         "source_frame": -1,
-        "image_source": f"state:{row['clip_id']}",
+        "image_source": f"state:{row['state_clip_id']}",
         "kept_fraction": 1.0,
         "num_flying_removed": 0,
     }

@@ -10,12 +10,16 @@ import numpy as np
 from egosim.stages.state_fusion.fusion import Instance, State
 
 
-def row_from_state(state: State) -> dict[str, Any]:
-    """One ``state`` row holding ``state`` (point arrays as little-endian bytes)."""
+def row_from_state(state: State, clip_id: str | None = None) -> dict[str, Any]:
+    """One ``state`` row holding ``state`` (point arrays as little-endian bytes).
+
+    ``clip_id`` keys the row (default: the clip the state was fused from).
+    """
     t = state.num_frames
     insts = state.instances
     return {
-        "clip_id": state.clip_id,
+        "clip_id": state.clip_id if clip_id is None else clip_id,
+        "state_clip_id": state.clip_id,
         "previous_clip_id": state.previous_clip_id,
         "world_frame": state.world_frame,
         "num_frames": t,
@@ -73,7 +77,7 @@ def state_from_row(row: Mapping[str, Any]) -> State:
     ]
     scale = float(row["sim3_scale"])
     return State(
-        clip_id=row["clip_id"],
+        clip_id=row["state_clip_id"],
         previous_clip_id=row["previous_clip_id"],
         world_frame=row["world_frame"],
         num_frames=t,

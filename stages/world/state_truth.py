@@ -75,3 +75,33 @@ def moved_objects(object_poses: np.ndarray, min_shift: float = 0.005) -> np.ndar
         b = transform_points(last[n], probes)
         shift[n] = np.linalg.norm(a - b, axis=1).max()
     return np.flatnonzero(shift > min_shift) + 1
+
+
+def render_views(
+    config: WorldConfig, object_poses: np.ndarray, world_from_cam: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Static renders (no hands) with objects at ``object_poses (N, 4, 4)`` from cameras.
+
+    Returns ``rgb (K, H, W, 3)`` uint8 and ``depth (K, H, W)`` float32 metres (0 = no hit), the
+    ground truth a scene render of the state along those cameras is compared with.
+    """
+    scene, intrinsics, _ = _setup(config)
+    renderer = WorldRenderer(scene, intrinsics, config.height, config.width)
+    k = len(world_from_cam)
+    rgb = np.zeros((k, config.height, config.width, 3), np.uint8)
+    depth = np.zeros((k, config.height, config.width), np.float32)
+    for i, cam in enumerate(np.asarray(world_from_cam, dtype=np.float64)):
+        layer = renderer.render_static(cam, object_poses)
+        rgb[i] = to_uint8(layer.rgb)
+        depth[i] = np.where(np.isfinite(layer.depth), layer.depth, 0.0)
+    return rgb, depth
+
+
+def look_back_path(config: WorldConfig, offset: int = 1000) -> np.ndarray:
+    """``(T, 4, 4)`` a second head path over the same table (another seed's path, same mode).
+
+    Stands in for segment 2 of a task: the camera comes back to the table after the
+    interaction of ``config``'s clip, along a different path.
+    """
+    other = WorldConfig(**{**config.__dict__, "seed": config.seed + offset})
+    return _setup(other)[2]
