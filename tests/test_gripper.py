@@ -10,6 +10,7 @@ from egosim.stages.common.gripper import (
     GRIPPER_JOINTS,
     GripperError,
     GripperGeometry,
+    gripper_box_masks,
     gripper_geometry,
     gripper_hand_arrays,
     gripper_skeleton,
@@ -94,3 +95,22 @@ def test_bad_geometry_is_refused_quoting_the_values() -> None:
         gripper_geometry("r2d2")
     with pytest.raises(GripperError, match=r"got \(4, 4\) and \(2,\)"):
         gripper_skeleton(np.eye(4), np.zeros(2), GEOM)
+
+
+def test_box_mask_around_the_projected_gripper_by_hand() -> None:
+    """Camera at the origin (fx = fy = 100, c = (50, 40)), EE 0.5 m ahead, opening 0.04 m.
+
+    Joints project to u = 50 and v from 40 - 100 * 0.02 / 0.6 = 36.67 to 40 + 3.33 = 43.33; the
+    2 cm margin at the nearest depth (the wrist, 0.5 m) is 4 px: the box is u in [46, 54],
+    v in [32.67, 47.33], i.e. pixel columns 46..53 and rows 33..46 (centres at +0.5).
+    """
+    ee = make_se3(np.eye(3), np.array([0.0, 0.0, 0.5]))[None, None]  # (T=1, G=1, 4, 4)
+    joints, valid, conf = gripper_hand_arrays(ee, np.array([[0.04]]), GEOM, hands=(1,))
+    k = np.array([100.0, 100.0, 50.0, 40.0])
+    mask = gripper_box_masks(joints, conf, valid, np.eye(4)[None], k, 80, 100, margin_m=0.02)
+    expected = np.zeros((1, 80, 100), dtype=np.uint8)
+    expected[0, 33:47, 46:54] = 1
+    np.testing.assert_array_equal(mask, expected)
+    behind = gripper_box_masks(joints, conf, valid, np.diag([1.0, -1, -1, 1])[None], k, 80, 100)
+    assert not behind.any()  # camera turned round: the gripper is behind it
+    assert not gripper_box_masks(joints, conf, ~valid, np.eye(4)[None], k, 80, 100).any()

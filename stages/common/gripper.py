@@ -227,3 +227,56 @@ def gripper_geometry(name: str) -> GripperGeometry:
     if name not in GRIPPER_PRESETS:
         raise GripperError(f"robot must be one of {sorted(GRIPPER_PRESETS)}, got {name!r}")
     return GRIPPER_PRESETS[name]
+
+
+def gripper_box_masks(
+    joints: np.ndarray,
+    confidence: np.ndarray,
+    valid: np.ndarray,
+    world_from_cam: np.ndarray,
+    intrinsics: np.ndarray,
+    height: int,
+    width: int,
+    margin_m: float = 0.02,
+) -> np.ndarray:
+    """Embodiment masks ``(T, H, W)`` uint8 (1 = gripper) without a robot model: one box per hand.
+
+    The fallback when no URDF and joint states are available: per frame and valid hand, the
+    axis-aligned box around the projections of its joints with confidence > 0 that lie in front
+    of the camera, grown on every side by ``margin_m`` seen at the nearest such joint's depth
+    (``fx * margin_m / z``, ``fy * margin_m / z``): finger thickness and the part of the arm
+    next to the wrist. A pixel is in the mask when its centre (integer + 0.5) lies in the box.
+    ``joints (T, 2, 21, 3)`` world metres, ``confidence (T, 2, 21)``, ``valid (T, 2)``,
+    ``world_from_cam (T, 4, 4)``, ``intrinsics (4,)`` fx, fy, cx, cy.
+    """
+    j = np.asarray(joints, dtype=np.float64)
+    t = j.shape[0]
+    if j.shape[1:] != (2, NUM_JOINTS, 3) or np.shape(world_from_cam) != (t, 4, 4):
+        raise GripperError(
+            f"joints must be (T, 2, 21, 3) and world_from_cam (T, 4, 4), got {j.shape} and "
+            f"{np.shape(world_from_cam)}"
+        )
+    if not (np.isfinite(margin_m) and margin_m >= 0):
+        raise GripperError(f"margin_m must be finite and >= 0, got {margin_m}")
+    fx, fy, cx, cy = np.asarray(intrinsics, dtype=np.float64)
+    pose = np.asarray(world_from_cam, dtype=np.float64)
+    rot, trans = pose[:, :3, :3], pose[:, :3, 3]  # (T, 3, 3), (T, 3)
+    cam = np.einsum("tji,thkj->thki", rot, j - trans[:, None, None, :])  # (T, 2, 21, 3)
+    centre_u = np.arange(width) + 0.5  # (W,)
+    centre_v = np.arange(height) + 0.5  # (H,)
+    masks = np.zeros((t, height, width), dtype=np.uint8)
+    use = (np.asarray(confidence) > 0) & np.asarray(valid, dtype=bool)[..., None]  # (T, 2, 21)
+    use &= np.isfinite(cam).all(axis=-1) & (cam[..., 2] > 1e-6)
+    for f in range(t):
+        for hand in range(2):
+            pts = cam[f, hand][use[f, hand]]  # (N, 3)
+            if not len(pts):
+                continue
+            u = fx * pts[:, 0] / pts[:, 2] + cx  # (N,)
+            v = fy * pts[:, 1] / pts[:, 2] + cy  # (N,)
+            z = pts[:, 2].min()
+            mu, mv = fx * margin_m / z, fy * margin_m / z
+            cols = (centre_u >= u.min() - mu) & (centre_u <= u.max() + mu)  # (W,)
+            rows = (centre_v >= v.min() - mv) & (centre_v <= v.max() + mv)  # (H,)
+            masks[f] |= (rows[:, None] & cols[None, :]).astype(np.uint8)
+    return masks
