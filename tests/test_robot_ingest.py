@@ -23,7 +23,7 @@ from egosim.stages.common.gripper import (
     gripper_skeleton,
     opening_from_joints,
 )
-from egosim.stages.ingest.agibot_source import read_agibot_episode
+from egosim.stages.ingest.agibot_source import _seconds, find_episodes, read_agibot_episode
 from egosim.stages.ingest.lerobot_source import LeRobotOptions, read_lerobot_episode
 from egosim.stages.ingest.robot_writers import (
     RobotEpisodeArrays,
@@ -200,6 +200,12 @@ def test_agibot_malformed_episodes_are_rejected(tmp_path: Path) -> None:
     (h5.parents[3] / "observations/350/3/videos/head_color.mp4").unlink()
     with pytest.raises(ClipRejected, match=r"agibot_350_3: video .*head_color.mp4 is missing"):
         read_agibot_episode(h5)
+    stray = tmp_path / "d" / "proprio_stats.h5"  # not in the layout: not found, and refused
+    stray.parent.mkdir()
+    stray.write_bytes(h5.read_bytes())
+    assert find_episodes(tmp_path / "d") == []
+    with pytest.raises(ClipRejected, match=r"is not at ROOT/proprio_stats/TASK/EPISODE/"):
+        read_agibot_episode(stray)
     # Through the stage: a unit that fails raises ClipRejected (the executor's rejects table).
     stage = IngestStage(
         IngestConfig(source="agibot", num_frames=5, min_frames=5, height=32, width=48)
@@ -239,3 +245,10 @@ def test_lerobot_malformed_episodes_are_rejected(tmp_path: Path) -> None:
         read_lerobot_episode(root, 0)
     with pytest.raises(ClipRejected, match="no such episode"):
         read_lerobot_episode(root, 7)
+
+
+def test_agibot_timestamps_in_nanoseconds_or_seconds() -> None:
+    ns = np.array([1_700_000_000_000_000_000, 1_700_000_000_100_000_000], dtype=np.int64)
+    np.testing.assert_allclose(_seconds(ns), [0.0, 0.1], atol=1e-12)
+    np.testing.assert_allclose(_seconds(np.array([12.5, 12.6, 12.7])), [0.0, 0.1, 0.2], atol=1e-9)
+    np.testing.assert_allclose(_seconds(ns.astype(np.float64)), [0.0, 0.1], atol=1e-6)

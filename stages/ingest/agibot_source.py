@@ -102,9 +102,22 @@ class AgibotPaths:
         return self.root / "task_info" / f"task_{self.task}.json"
 
 
+def in_layout(proprio: Path) -> bool:
+    """True when ``proprio`` sits at ``ROOT/proprio_stats/TASK/EPISODE/proprio_stats.h5``."""
+    parts = Path(proprio).parts
+    return len(parts) >= 5 and parts[-1] == PROPRIO_FILE and parts[-4] == "proprio_stats"
+
+
 def paths_of(proprio: Path, camera: str = DEFAULT_CAMERA) -> AgibotPaths:
-    """The episode paths from its ``proprio_stats.h5`` (``ROOT/proprio_stats/TASK/EP/...``)."""
+    """The episode paths from its ``proprio_stats.h5`` (``ROOT/proprio_stats/TASK/EP/...``).
+
+    Raises :class:`ClipRejected` for a file outside that layout.
+    """
     proprio = Path(proprio)
+    if not in_layout(proprio):
+        raise ClipRejected(
+            f"agibot: {proprio} is not at ROOT/proprio_stats/TASK/EPISODE/{PROPRIO_FILE}"
+        )
     return AgibotPaths(proprio.parents[3], proprio.parent.parent.name, proprio.parent.name, camera)
 
 
@@ -112,8 +125,8 @@ def find_episodes(path: Path) -> list[Path]:
     """The ``proprio_stats.h5`` files of the AgiBot episodes at or under ``path``, sorted."""
     path = Path(path)
     if path.is_file():
-        return [path] if path.name == PROPRIO_FILE else []
-    return sorted(p for p in path.rglob(PROPRIO_FILE) if p.is_file())
+        return [path] if in_layout(path) else []
+    return sorted(p for p in path.rglob(PROPRIO_FILE) if p.is_file() and in_layout(p))
 
 
 def owns(path: Path) -> bool:
@@ -192,6 +205,19 @@ def _extrinsics(paths: AgibotPaths, camera_axes: str) -> np.ndarray:
     return world_from_rec @ CAM_FROM_OURS[camera_axes]  # (N, 4, 4) world_from_cam, OpenCV
 
 
+def _seconds(stamps: np.ndarray) -> np.ndarray:
+    """Timestamps -> seconds from the first: integers are nanoseconds (AgiBot's), floats are
+    taken as seconds unless their steps exceed 1000 (nanoseconds stored as floats)."""
+    if not len(stamps):
+        return stamps.astype(np.float64)
+    rel = stamps - stamps[0]  # integer subtraction first: epoch nanoseconds exceed float64's
+    if np.issubdtype(stamps.dtype, np.integer):
+        return rel.astype(np.float64) * 1e-9
+    steps = np.diff(rel.astype(np.float64))
+    scale = 1e-9 if len(steps) and np.nanmedian(np.abs(steps)) > 1e3 else 1.0
+    return rel.astype(np.float64) * scale
+
+
 def task_text(task_info: object, episode: str) -> str | None:
     """``"task_name: action 1; action 2"`` of ``episode`` in a ``task_{task}.json`` list."""
     if not isinstance(task_info, list):
@@ -237,8 +263,7 @@ def read_agibot_episode(
     t = len(frames)
     if len(world_from_cam) == 1:  # a fixed camera
         world_from_cam = np.repeat(world_from_cam, t, axis=0)
-    stamps = np.asarray(data["timestamp"])
-    seconds = (stamps - stamps[0]).astype(np.float64) * 1e-9 if len(stamps) else stamps
+    seconds = _seconds(np.asarray(data["timestamp"]))
     info = _load_json(paths.task_info, "task info", paths.name) if paths.task_info.is_file() else []
     episode = RobotEpisode(
         name=paths.name,
