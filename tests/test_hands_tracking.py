@@ -121,3 +121,27 @@ def test_hands_followed_back_to_frame_zero(egodex) -> None:
     ]
     # Of the hand's size (landmark box diagonal); measured 2-6%, the 6% with the wrist off-frame.
     assert max(errors) < 0.08 and np.mean(errors) < 0.04, errors
+
+
+def test_isolated_detection_contradicting_a_track_is_dropped() -> None:
+    """A one-frame "right hand" at the image corner while the right hand's track is elsewhere
+    (the false right hand of the kitchen clip, confidence 0.88) gets no side; with the rule off
+    it takes the right side in that frame and pushes the real right hand to the left."""
+    from egosim.stages.hands.mediapipe_backend import MediaPipeParams, RawLandmarks, assign_sides
+
+    t, w = 20, 400
+    rng = np.random.default_rng(1)
+    shape = rng.normal(0.0, 15.0, (21, 2))  # (21, 2) a blob of landmarks about 60 px across
+    uv = np.full((t, 3, 21, 2), np.nan)
+    present = np.zeros((t, 3), dtype=bool)
+    label = np.full((t, 3), 0.5)
+    for f in range(t):
+        uv[f, 0] = shape + np.array([300.0 - f, 250.0])  # the right hand, tracked all along
+        present[f, 0], label[f, 0] = True, 0.9
+    uv[12, 1] = shape * 0.7 + [385.0, 20.0]  # the corner detection
+    present[12, 1], label[12, 1] = True, 0.88
+    raw = RawLandmarks(uv=uv, world=np.zeros((t, 3, 21, 3)), label_right=label, present=present)
+    side = assign_sides(raw, w)
+    assert (side[:, 0] == 1).all() and side[12, 1] == -1
+    kept = assign_sides(raw, w, MediaPipeParams(min_track_frames=1))
+    assert kept[12, 1] == 1 and kept[12, 0] == 0  # the old behaviour: sides swapped in frame 12

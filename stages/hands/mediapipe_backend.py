@@ -21,7 +21,9 @@ Steps, for one clip:
    egocentric video its "Left" is the real right hand, and the labels flip now and then. Detections
    are linked into tracks (nearest centroid frame to frame); each track takes one side from its
    swapped labels' summed scores plus an image-position vote (left half = left hand); two tracks
-   at the same time never share a side (the one further right becomes the right hand).
+   at the same time never share a side (the one further right becomes the right hand). A track
+   shorter than ``min_track_frames`` whose vote wants a side a longer track holds at that time
+   is dropped rather than given the other side (an isolated false hand would otherwise take it).
 3. **Bridge and smooth** (:func:`bridge_and_smooth`): gaps of up to ``max_gap`` frames inside a
    track are filled by linear interpolation (lower confidence), then image and world landmarks
    are smoothed over time with a Gaussian of ``smooth_sigma`` frames (landmarks jitter by a few
@@ -98,6 +100,7 @@ class MediaPipeParams:
     prefer_fingers_away: bool = True  # palm PnP: of its two poses take knuckles beyond the wrist
     track_misses: bool = True  # follow found hands through misses (needs ai-edge-litert)
     track: TrackParams = TrackParams()  # noqa: RUF009 (frozen) how hands are followed
+    min_track_frames: int = 3  # a shorter track wanting a side a longer one holds then is dropped
 
 
 @dataclass
@@ -345,6 +348,8 @@ def assign_sides(
         f, k = np.array(tracks[ti]).T
         want = RIGHT if votes[ti] > 0 else LEFT
         other = 1 - want
+        if len(tracks[ti]) < params.min_track_frames and taken[f, want].any():
+            continue  # an isolated detection contradicting a longer track of its side: dropped
         for s in (want, other):
             if not taken[f, s].any():
                 side[f, k] = s
