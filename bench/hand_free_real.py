@@ -217,6 +217,45 @@ def dwm_case(cid: str, data: Path, out: Path) -> dict:
     }
 
 
+def fixed_case(path: Path, out: Path, fps: float = 8.0, frames: int = 49, width: int = 640) -> dict:
+    """Figures of one real fixed-camera video (no truth: what the default fill does with it).
+
+    The video is taken at ``fps`` (nearest frames), ``frames`` long, scaled to ``width``; masks
+    from MediaPipe landmarks; frame 0 filled by the ``inpaint`` stage's default backend with no
+    depth and no poses, told the camera is static (as ``depth_camera`` would say). Reported:
+    frame-0 mask area, the fraction of it filled from other frames (the temporal median) and
+    the largest mask area in any frame; the contact sheet shows frame 0, its mask, the fill and
+    the frame where the mask is largest.
+    """
+    video, stamps = media.read_video_file(path)
+    pick = [int(np.argmin(np.abs(stamps - k / fps))) for k in range(frames)]
+    pick = [i for i in pick if stamps[i] <= stamps[-1]][:frames]
+    h = round(video.shape[1] * width / video.shape[2])
+    clip = np.stack([cv2.resize(video[i], (width, h), interpolation=cv2.INTER_AREA) for i in pick])
+    start = time.perf_counter()
+    uv, present = mediapipe_keypoints(clip)
+    masks = masks_from_keypoints(clip, uv, present, HandMaskConfig())  # (T, H, W)
+    mask_s = time.perf_counter() - start
+    start = time.perf_counter()
+    result = InpaintStage().fill(clip, masks, None, np.zeros(4), None, static_camera=True)
+    fill_s = time.perf_counter() - start
+    areas = masks.reshape(len(masks), -1).sum(axis=1)  # (T,)
+    big = int(np.argmax(areas))
+    contact_sheet(
+        out / f"fixed_{path.stem}.png", [clip[0], masks[0], result.image, clip[big], masks[big]]
+    )
+    filled = max(int(result.filled.sum()), 1)
+    return {
+        "case": path.stem,
+        "mask0_px": int(areas[0]),
+        "from_frames": float((result.fill_source == 1).sum() / filled),
+        "max_mask_px": int(areas[big]),
+        "max_mask_frame": big,
+        "mask_s": mask_s,
+        "fill_s": fill_s,
+    }
+
+
 def main() -> int:
     """Run the synthetic and (when present) the real cases; print and write the figures."""
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -230,11 +269,14 @@ def main() -> int:
     parser.add_argument("--size", default="240x416", help="synthetic HxW")
     parser.add_argument("--frames", type=int, default=25, help="synthetic frames")
     parser.add_argument("--skip-real", action="store_true", help="synthetic cases only")
+    parser.add_argument("--fixed-only", action="store_true", help="the fixed-camera videos only")
     args = parser.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
     size = tuple(int(v) for v in args.size.split("x"))
     rows: dict[str, list[dict[str, Any]]] = {"world": [], "dwm": []}
-    for item in args.world.split(","):
+    if args.fixed_only:
+        args.world = ""
+    for item in filter(None, args.world.split(",")):
         parts = item.split(":")
         variant, mode, seed = parts if len(parts) == 3 else ["default", *parts]
         rows["world"].append(world_case(variant, mode, int(seed), size, args.frames, args.out))  # type: ignore[arg-type]
@@ -245,7 +287,7 @@ def main() -> int:
             f"{r['telea']:.2f} | {r['mask_s']:.1f}+{r['fill_s']:.1f} s",
             flush=True,
         )
-    if not args.skip_real and (args.data / DWM).is_dir():
+    if not args.skip_real and not args.fixed_only and (args.data / DWM).is_dir():
         for cid in ("00013", "00017"):
             r = dwm_case(cid, args.data, args.out)
             rows["dwm"].append(r)
@@ -255,6 +297,19 @@ def main() -> int:
                 f"(max {r['far_px_max']:.0f} at t={r['far_px_frame']}) | start {r['start']}: "
                 f"hand {r['psnr_hand']:.2f} vs Telea {r['telea_hand']:.2f} dB, frame "
                 f"{r['psnr_frame']:.2f} vs {r['telea_frame']:.2f} | "
+                f"{r['mask_s']:.1f}+{r['fill_s']:.1f} s",
+                flush=True,
+            )
+    fixed = args.data / "dwm_realworld" / "realworld_fixed"
+    rows["fixed"] = []
+    if not args.skip_real and fixed.is_dir():
+        for path in sorted(fixed.glob("*.mp4")):
+            r = fixed_case(path, args.out)
+            rows["fixed"].append(r)
+            print(
+                f"fixed {r['case']:<14} frame-0 mask {r['mask0_px']} px, "
+                f"{100 * r['from_frames']:.1f}% filled from other frames | largest mask "
+                f"{r['max_mask_px']} px at t={r['max_mask_frame']} | "
                 f"{r['mask_s']:.1f}+{r['fill_s']:.1f} s",
                 flush=True,
             )

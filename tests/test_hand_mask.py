@@ -50,10 +50,9 @@ def test_mean_iou_on_synthetic_world() -> None:
     per_seed = {seed: mean_iou(stage.masks_for_clip(world_clip(seed)), world_clip(seed).hand_mask)
                 for seed in SEEDS}  # fmt: skip
     mean = float(np.mean(list(per_seed.values())))
-    # Image-space arms (no world axis). Measured at 96x160: see the assertion message; the old
-    # world-z elbow guess reached 0.88 here only because the world's arms use the same z-up model.
-    # Tolerance: 0.4 (issue 9's goal is 0.8; not reached, see bench/hand_free_real.py).
-    assert mean >= 0.4, f"mean IoU {mean:.3f} per seed {per_seed}"
+    # Image-space arms (no world axis), at 96x160 x 12 frames. Measured: seed 0 0.734, 1 0.713,
+    # 2 0.692, 3 0.812 (mean 0.738); tuned on this world. Tolerance 0.65 (issue 9's goal: 0.8).
+    assert mean >= 0.65, f"mean IoU {mean:.3f} per seed {per_seed}"
 
 
 def test_colour_model_beats_capsules_alone() -> None:
@@ -114,6 +113,55 @@ def test_arm_found_beyond_the_wrist() -> None:
     table = np.ones((h, w), bool)
     table[:, 55:106] = False
     assert mask[table].mean() < 0.01, f"table masked {mask[table].mean():.3f}"
+
+
+def test_arm_walk_follows_a_bar_and_stops_at_its_end() -> None:
+    """The colour walk reaches a sleeve's end; on plain table it finds no arm to follow."""
+    from egosim.stages.hand_mask.arm_region import arm_extent
+
+    h, w = 100, 200
+    image = np.full((h, w, 3), (40, 120, 40), np.uint8)
+    image[45:56, 20:150] = (150, 40, 160)  # a purple bar from x = 20 to 150, 11 px high
+    lab = cv2.cvtColor(image, cv2.COLOR_RGB2LAB).astype(np.float32)
+    none = np.zeros((h, w), np.uint8)
+    wrist, d = np.array([20.5, 50.5]), np.array([1.0, 0.0])
+    extent, ref = arm_extent(lab, wrist, d, 5.0, 5.0, 20.0, none, 18.0, 1.0)
+    assert ref is not None and 125.0 <= extent <= 130.0, extent  # the bar ends 129.5 px on
+    plain = cv2.cvtColor(np.full((h, w, 3), (40, 120, 40), np.uint8), cv2.COLOR_RGB2LAB)
+    extent, ref = arm_extent(plain.astype(np.float32), wrist, d, 5.0, 5.0, 20.0, none, 18.0, 1.0)
+    assert ref is None and extent == 20.0
+
+
+def test_region_direction_of_a_ray_and_of_a_blob() -> None:
+    """A ray from the wrist gives its direction (to 2 degrees); a round patch gives none."""
+    from egosim.stages.hand_mask.arm_region import region_direction
+
+    region = np.zeros((200, 200), np.uint8)
+    wrist = np.array([20.5, 20.5])
+    cv2.line(region, (20, 20), (160, 100), 1, 9)  # 29.7 degrees below the x axis
+    got = region_direction(region, wrist, np.array([1.0, 0.0]))
+    assert got is not None
+    angle = np.degrees(np.arctan2(got[1], got[0]))
+    assert abs(angle - np.degrees(np.arctan2(80, 140))) < 2.0, angle
+    blob = np.zeros((200, 200), np.uint8)
+    cv2.circle(blob, (40, 40), 50, 1, -1)  # a patch of table round the wrist
+    assert region_direction(blob, wrist, np.array([1.0, 0.0])) is None
+
+
+@pytest.mark.slow
+def test_mean_iou_on_held_out_world() -> None:
+    """The 'alt' world (sleeves, upper arms, other hands and cameras) was not tuned on."""
+    stage = HandMaskStage()
+    per_case = {}
+    for mode, seed in (("tabletop", 1), ("wild", 2)):
+        clip = render_clip(
+            WorldConfig(seed=seed, mode=mode, height=96, width=160, num_frames=8, variant="alt")
+        )
+        per_case[(mode, seed)] = mean_iou(stage.masks_for_clip(clip), clip.hand_mask)
+    mean = float(np.mean(list(per_case.values())))
+    # Measured at 96x160 x 8 frames: tabletop 1 0.381, wild 2 0.373 (mean 0.377): the alt arms'
+    # sleeves and upper arms are found only in part. Tolerance 0.3 (issue 9's goal: 0.8).
+    assert mean >= 0.3, f"held-out mean IoU {mean:.3f} per case {per_case}"
 
 
 def test_backward_propagation_masks_an_arm_before_its_keypoints() -> None:

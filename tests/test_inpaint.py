@@ -7,6 +7,7 @@ from functools import cache
 from pathlib import Path
 from types import SimpleNamespace
 
+import cv2
 import numpy as np
 import pytest
 from PIL import Image
@@ -90,6 +91,27 @@ def test_static_camera_without_depth_fills_by_temporal_median() -> None:
     np.testing.assert_array_equal(result.image[hole], scene[hole])  # exact: the median of truth
     assert np.all(result.fill_source[hole] == 1)
     assert not np.any(np.all(result.image == (220, 170, 140), axis=2))  # no ghost
+
+
+def test_aligned_fill_skips_a_frame_that_does_not_match_round_the_hole() -> None:
+    """A frame whose homography fits but whose colours do not (here 60 grey levels brighter) is
+    not used; a shifted clean frame is, and fills the hole to within 3 grey levels (RMS)."""
+    from egosim.stages.inpaint.aligned_fill import aligned_fill
+
+    rng = np.random.default_rng(3)
+    scene = cv2.GaussianBlur(rng.integers(0, 255, (140, 200, 3), dtype=np.uint8), (3, 3), 0)
+    frames = np.stack([scene[10:130, 10:190]] * 3)  # (3, 120, 180, 3)
+    frames[1] = np.clip(frames[1].astype(int) + 60, 0, 255).astype(np.uint8)
+    frames[2] = scene[14:134, 7:187]  # the camera moved: (dx, dy) = (-3, 4) pixels
+    clean = frames[0].copy()
+    masks = np.zeros(frames.shape[:3], np.uint8)
+    masks[0, 40:80, 60:110] = 1
+    frames[0, 40:80, 60:110] = (220, 170, 140)  # the hand
+    result = aligned_fill(frames, masks, dilate_px=0, candidates=3)
+    hole = masks[0] > 0
+    assert np.all(result.source_frame[hole] == 2)
+    rms = np.sqrt(np.mean((result.image[hole].astype(float) - clean[hole]) ** 2))
+    assert rms < 3.0, f"RMS {rms:.2f}"
 
 
 def test_clip_without_depth_is_filled_not_rejected() -> None:

@@ -54,6 +54,9 @@ class ArmParams:
     walk_gap: float = 1.0  # misses in a row (in forearm half-widths) that end the walk
     colour_region: float = 2.0  # pixels of the arm's colour connected to the strip and within
     # this many forearm half-widths of its axis are certainly arm (0: off)
+    fan_width: float = 3.0  # the fan ends this many forearm half-widths from the axis (0: no end)
+    refine_direction: bool = True  # re-aim the arm along the arm-coloured region's main axis
+    refine_half_angle_deg: float = 60.0  # that region is looked for this far either side
 
     def __post_init__(self) -> None:
         problems = []
@@ -69,6 +72,10 @@ class ArmParams:
             problems.append(f"band must be in [0.1, 5], got {self.band}")
         if not 1.0 <= self.walk_tolerance <= 200.0:
             problems.append(f"walk_tolerance must be in [1, 200], got {self.walk_tolerance}")
+        if not 0.0 < self.refine_half_angle_deg < 90.0:
+            problems.append(
+                f"refine_half_angle_deg must be in (0, 90), got {self.refine_half_angle_deg}"
+            )
         if not 0.0 <= self.walk_gap <= 20.0:
             problems.append(f"walk_gap must be in [0, 20], got {self.walk_gap}")
         if problems:
@@ -177,7 +184,7 @@ def arm_extent(
     (an arm stands out from what lies beside it; a strip of plain table does not). The walk ends
     after ``gap`` radii of misses in a row or at the image border. Returns the last match (at
     least ``end``) and the reference colour ``(3,)``, or ``(end, None)`` when the reference
-    cannot be measured.
+    cannot be measured or does not stand out from both sides (no arm there to follow).
     """
     h, w = lab.shape[:2]
     n = np.array([-d[1], d[0]])  # (2,)
@@ -202,6 +209,17 @@ def arm_extent(
     if len(ref) < 3:
         return end, None
     ref_colour = np.median(ref, axis=0)  # (3,)
+    # The strip must stand out from what lies beside it, or it is background, not an arm.
+    ref_sides = [
+        sample(wrist + ref_t[:, None] * d + off * radius * n) for off in (-2.0, 2.0)
+    ]  # 2 x (S, 3)
+    away = [
+        float(np.linalg.norm(np.nanmedian(c, axis=0) - ref_colour))
+        for c in ref_sides
+        if np.isfinite(c[:, 0]).sum() >= 2
+    ]
+    if not away or max(away) <= tolerance:
+        return end, None
     reach = float(np.hypot(h, w))
     ts = np.arange(end + step, end + reach, step)  # (S,)
     centre = wrist + ts[:, None, None] * d + across[None, :, None] * n  # (S, 3, 2)
@@ -265,42 +283,19 @@ def draw_arm_labels(
     found = hand_direction(keypoints)
     if capsule.forearm and found is not None:
         wrist, d, hand_len = found
-        if image is not None and arm.max_turn_deg > 0:
-            r_wrist = FOREARM_RADIUS_M[0] * scale * capsule.radius_scale
-            d = arm_direction(image, wrist, d, hand_len, mask, arm.max_turn_deg, radius=r_wrist)
-        reach = float(np.hypot(h, w)) + float(np.hypot(*(wrist - [w / 2, h / 2])))
-        r0 = FOREARM_RADIUS_M[0] * scale * capsule.radius_scale * arm.band
-        r1 = FOREARM_RADIUS_M[1] * scale * capsule.radius_scale * arm.band
-        r_end = min(r0 + (r1 - r0) * reach / max(0.26 * scale, 1e-6), 2.0 * r1)
-        n = np.array([-d[1], d[0]])  # (2,) normal
-        # Fan: the wrist's neighbourhood plus every direction within the half-angle.
-        half = arm.fan_half_angle_deg
-        rays = [wrist + reach * _rotate(d, a) for a in np.linspace(-half, half, 9)]
-        fan_poly = np.stack([wrist + r0 * n, *rays, wrist - r0 * n])  # (11, 2)
-        cv2.fillPoly(fan, [_fixed(fan_poly)], 1, cv2.LINE_8, _SHIFT)
-        end = wrist + reach * d
-        quad = np.stack([wrist + r0 * n, end + r_end * n, end - r_end * n, wrist - r0 * n])
-        cv2.fillPoly(band, [_fixed(quad)], 1, cv2.LINE_8, _SHIFT)
-        a = wrist + arm.seed_start * hand_len * d
-        seed_end = arm.seed_end * hand_len
-        ref = None
-        if image is not None and arm.walk:
+        r_wrist = FOREARM_RADIUS_M[0] * scale * capsule.radius_scale
+        lab = None
+        if image is not None:
             lab = cv2.cvtColor(image, cv2.COLOR_RGB2LAB).astype(np.float32)  # (H, W, 3)
-            seed_end, ref = arm_extent(lab, wrist, d, r0, arm.seed_start * hand_len, seed_end,
-                                       mask, arm.walk_tolerance, arm.walk_gap)  # fmt: skip
-        b = wrist + seed_end * d
-        thickness = max(1, round(2 * arm.seed_width * FOREARM_RADIUS_M[0] * scale))
-        cv2.line(seed, tuple(_fixed(a)), tuple(_fixed(b)), 1, thickness, cv2.LINE_8, _SHIFT)
-        if ref is not None and arm.colour_region > 0:
-            # The arm's colour near its axis, connected to the strip, is certainly arm.
-            wide = np.zeros((h, w), np.uint8)
-            k = arm.colour_region
-            quad = np.stack([wrist + k * r0 * n, end + k * r_end * n, end - k * r_end * n,
-                             wrist - k * r0 * n])  # fmt: skip
-            cv2.fillPoly(wide, [_fixed(quad)], 1, cv2.LINE_8, _SHIFT)
-            close = (np.linalg.norm(lab - ref, axis=2) <= arm.walk_tolerance) & (wide > 0)
-            close &= mask == 0
-            seed = seed | connected_to(close.astype(np.uint8) | seed, seed)
+            if arm.max_turn_deg > 0:
+                d = arm_direction(image, wrist, d, hand_len, mask, arm.max_turn_deg, r_wrist)
+        fan, band, seed, region = _arm_regions(lab, mask, wrist, d, hand_len, scale, capsule, arm)
+        if region is not None and arm.refine_direction:
+            better = region_direction(region, wrist, d)
+            if better is not None:
+                fan, band, seed, _ = _arm_regions(
+                    lab, mask, wrist, better, hand_len, scale, capsule, arm
+                )
     # A probably-background ring round the hand lets the colour model trim fat capsules.
     ring = cv2.dilate(mask, np.ones((3, 3), np.uint8), iterations=max(1, round(0.03 * scale)))
     for region, label in (
@@ -309,6 +304,98 @@ def draw_arm_labels(
         (seed | core, cv2.GC_FGD),
     ):
         _raise_labels(labels, region > 0, label)
+
+
+def _arm_regions(
+    lab: np.ndarray | None,
+    mask: np.ndarray,
+    wrist: np.ndarray,
+    d: np.ndarray,
+    hand_len: float,
+    scale: float,
+    capsule: CapsuleParams,
+    arm: ArmParams,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
+    """``(fan, band, seed, region)`` ``(H, W)`` uint8 of an arm leaving ``wrist`` along ``d``.
+
+    ``fan``: probably background; ``band``: probably arm; ``seed``: certainly arm (the strip,
+    extended by :func:`arm_extent`, plus the arm-coloured pixels near the axis connected to it);
+    ``region``: the pixels of the arm's colour connected to the strip within
+    ``refine_half_angle_deg`` of ``d`` (None without ``lab`` or a measurable arm colour), for
+    :func:`region_direction`.
+    """
+    h, w = mask.shape
+    fan = np.zeros((h, w), np.uint8)
+    band = np.zeros((h, w), np.uint8)
+    seed = np.zeros((h, w), np.uint8)
+    reach = float(np.hypot(h, w)) + float(np.hypot(*(wrist - [w / 2, h / 2])))
+    r0 = FOREARM_RADIUS_M[0] * scale * capsule.radius_scale * arm.band
+    r1 = FOREARM_RADIUS_M[1] * scale * capsule.radius_scale * arm.band
+    r_end = min(r0 + (r1 - r0) * reach / max(0.26 * scale, 1e-6), 2.0 * r1)
+    n = np.array([-d[1], d[0]])  # (2,) normal
+    # Fan: the wrist's neighbourhood plus every direction within the half-angle, at most
+    # ``fan_width`` forearm half-widths from the axis (so a false arm stays a bounded band).
+    half = arm.fan_half_angle_deg
+    rays = [wrist + reach * _rotate(d, a) for a in np.linspace(-half, half, 9)]
+    fan_poly = np.stack([wrist + r0 * n, *rays, wrist - r0 * n])  # (11, 2)
+    cv2.fillPoly(fan, [_fixed(fan_poly)], 1, cv2.LINE_8, _SHIFT)
+    end = wrist + reach * d
+    if arm.fan_width > 0:
+        k = arm.fan_width
+        strip = np.zeros((h, w), np.uint8)
+        quad = np.stack([wrist + k * r0 * n, end + k * r_end * n, end - k * r_end * n,
+                         wrist - k * r0 * n])  # fmt: skip
+        cv2.fillPoly(strip, [_fixed(quad)], 1, cv2.LINE_8, _SHIFT)
+        fan &= strip
+    quad = np.stack([wrist + r0 * n, end + r_end * n, end - r_end * n, wrist - r0 * n])
+    cv2.fillPoly(band, [_fixed(quad)], 1, cv2.LINE_8, _SHIFT)
+    a = wrist + arm.seed_start * hand_len * d
+    seed_end = arm.seed_end * hand_len
+    ref = None
+    if lab is not None and arm.walk:
+        seed_end, ref = arm_extent(lab, wrist, d, r0, arm.seed_start * hand_len, seed_end,
+                                   mask, arm.walk_tolerance, arm.walk_gap)  # fmt: skip
+    b = wrist + seed_end * d
+    thickness = max(1, round(2 * arm.seed_width * FOREARM_RADIUS_M[0] * scale))
+    cv2.line(seed, tuple(_fixed(a)), tuple(_fixed(b)), 1, thickness, cv2.LINE_8, _SHIFT)
+    if lab is None or ref is None:
+        return fan, band, seed, None
+    close = (np.linalg.norm(lab - ref, axis=2) <= arm.walk_tolerance) & (mask == 0)  # (H, W)
+    wide_fan = np.zeros((h, w), np.uint8)
+    half = arm.refine_half_angle_deg
+    rays = [wrist + reach * _rotate(d, a) for a in np.linspace(-half, half, 13)]
+    cv2.fillPoly(wide_fan, [_fixed(np.stack([wrist, *rays]))], 1, cv2.LINE_8, _SHIFT)
+    region = connected_to((close & (wide_fan > 0)).astype(np.uint8) | seed, seed)
+    if arm.colour_region > 0:
+        # The arm's colour near its axis, connected to the strip, is certainly arm.
+        wide = np.zeros((h, w), np.uint8)
+        k = arm.colour_region
+        quad = np.stack([wrist + k * r0 * n, end + k * r_end * n, end - k * r_end * n,
+                         wrist - k * r0 * n])  # fmt: skip
+        cv2.fillPoly(wide, [_fixed(quad)], 1, cv2.LINE_8, _SHIFT)
+        seed = seed | connected_to((close & (wide > 0)).astype(np.uint8) | seed, seed)
+    return fan, band, seed, region
+
+
+def region_direction(
+    region: np.ndarray, wrist: np.ndarray, d: np.ndarray, max_spread: float = 0.35
+) -> np.ndarray | None:
+    """Unit direction ``(2,)`` from ``wrist`` along which ``region (H, W)`` mostly lies, or None.
+
+    The principal axis of the region's pixels about the wrist (not about their centroid: an arm
+    is a ray from the wrist), turned to agree with ``d``. None for a region of fewer than 20
+    pixels or one that is not ray-like (second over first singular value above ``max_spread``:
+    a patch of table in the arm's colour, not an arm).
+    """
+    ys, xs = np.nonzero(region)
+    if len(ys) < 20:
+        return None
+    v = np.stack([xs + 0.5, ys + 0.5], axis=1) - wrist  # (N, 2)
+    _, sv, vt = np.linalg.svd(v, full_matrices=False)
+    if sv[1] > max_spread * sv[0]:
+        return None
+    axis = vt[0]
+    return axis if float(axis @ d) >= 0 else -axis
 
 
 _CERTAINTY = {cv2.GC_BGD: 0, cv2.GC_PR_BGD: 1, cv2.GC_PR_FGD: 2, cv2.GC_FGD: 3}

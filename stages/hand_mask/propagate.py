@@ -7,7 +7,9 @@ dense optical flow from ``t`` to ``t + 1`` (OpenCV DIS):
 ``warped_t(x) = mask_{t+1}(x + flow_{t->t+1}(x))``.
 
 Background that the arm covers at ``t + 1`` but not at ``t`` also maps into the arm, so the
-warped mask is only a proposal: pixels whose forward-backward flow agrees within
+warped mask keeps only pixels whose grey level at ``t`` is within ``photo_tolerance`` of frame
+``t + 1``'s at the flow's target (the table the arm is about to cover has no flow but not the
+arm's colour), and it is only a proposal: pixels whose forward-backward flow agrees within
 ``consistency_px`` and lie inside the eroded proposal are certainly arm, the rest of it probably
 arm, a ring round it probably background, and GrabCut on frame ``t`` decides which of the
 warped pixels stay (it never adds pixels outside the warped mask, so errors do not grow) (see
@@ -35,6 +37,7 @@ class PropagationParams:
     min_pixels: int = 30  # warped masks smaller than this are dropped (noise)
     iterations: int = 2  # GrabCut iterations per frame
     max_side: int = 256  # GrabCut works at most at this longest side
+    photo_tolerance: float = 12.0  # grey levels frame t may differ from t+1 along the flow
     max_frames: int = 1000  # a mask travels at most this many frames from where it was found
     into_empty_only: bool = True  # only frames whose own mask is empty (their hands were missed)
 
@@ -46,6 +49,8 @@ class PropagationParams:
             problems.append(
                 f"erode_px in [0, 50] and ring_px in [1, 200], got {self.erode_px}, {self.ring_px}"
             )
+        if not 0.0 < self.photo_tolerance <= 255.0:
+            problems.append(f"photo_tolerance must be in (0, 255], got {self.photo_tolerance}")
         if self.max_frames < 1:
             problems.append(f"max_frames must be >= 1, got {self.max_frames}")
         if self.min_pixels < 0 or self.iterations < 1 or self.max_side < 16:
@@ -99,6 +104,11 @@ def propagate_backwards(
         fwd = _flow(dis, grey[t], grey[t + 1])  # (H, W, 2) t -> t+1
         bwd = _flow(dis, grey[t + 1], grey[t])  # (H, W, 2) t+1 -> t
         warped = _pull(out[t + 1], fwd, cv2.INTER_NEAREST)  # (H, W) proposal at t
+        # A pixel is carried only where frame t looks like frame t+1 at the flow's target: the
+        # table that the arm will cover next has zero flow but not the arm's colour.
+        seen_next = _pull(grey[t + 1], fwd, cv2.INTER_LINEAR).astype(np.int16)  # (H, W)
+        same = np.abs(seen_next - grey[t].astype(np.int16)) <= p.photo_tolerance
+        warped &= same.astype(np.uint8)
         new = (warped > 0) & (out[t] == 0)
         if new.sum() < p.min_pixels:
             continue
