@@ -37,6 +37,7 @@ T, H, W, FPS = 9, 64, 112, 16.0
 POSE_TOL = 1e-6  # pose entries, metres and rotation-matrix entries
 PIXEL_TOL = 1e-3  # projected gripper joints, pixels
 OPENING_TOL = 1e-6  # metres
+FRAME_TOL = 9.0  # mean |difference| of a decoded frame (0..255): writer + clip codec losses
 
 
 @pytest.fixture(scope="module")
@@ -130,20 +131,27 @@ def test_agibot_episode_round_trips_through_ingest(world: Clip, tmp_path: Path) 
     assert [c.source for c in ingest("auto", tmp_path)] == ["agibot"]
 
 
-@pytest.mark.parametrize("version", ["v3.0", "v2.1"])
+@pytest.mark.parametrize(
+    ("version", "codec"), [("v3.0", "h264"), ("v3.0", "av1"), ("v2.1", "h264")]
+)
 def test_lerobot_dataset_round_trips_through_ingest(
-    world: Clip, tmp_path: Path, version: str
+    world: Clip, tmp_path: Path, version: str, codec: str
 ) -> None:
     ep0, open0 = scripted(world, grippers=1, robot="franka")
     ep1 = RobotEpisodeArrays(**{**ep0.__dict__, "task": "open the drawer"})
+    ep1.frames = ep0.frames[::-1].copy()  # tells the episodes' frames apart in a shared file
     ep1.world_from_ee = ep0.world_from_ee[::-1].copy()  # the same path backwards
     ep1.gripper_state = ep0.gripper_state[::-1].copy()
-    root = write_lerobot_dataset(tmp_path / "so_robot", [ep0, ep1], version=version)
+    root = write_lerobot_dataset(tmp_path / "so_robot", [ep0, ep1], version=version, codec=codec)
     clips = ingest("lerobot", root, robot="franka", intrinsics=tuple(world.intrinsics))
     assert [c.clip_id for c in clips] == ["so_robot_ep000000-w000", "so_robot_ep000001-w000"]
     assert [c.text for c in clips] == ["put the cup on the plate", "open the drawer"]
     check_against_truth(clips[0], ep0, open0, hands=(1,), robot="franka")
     check_against_truth(clips[1], ep1, open0[::-1], hands=(1,), robot="franka")
+    for clip, ep in zip(clips, (ep0, ep1), strict=True):  # each episode's own frames (lossy)
+        err = np.abs(clip.frames.astype(np.float64) - ep.frames).mean(axis=(1, 2, 3))  # (T,)
+        other = np.abs(clip.frames.astype(np.float64) - ep.frames[::-1]).mean(axis=(1, 2, 3))
+        assert err.max() < FRAME_TOL and other.max() > err.max() + 5.0  # measured ~7 vs ~16
     assert not clips[0].hand_valid[:, 0].any()  # one gripper: the left hand slot stays empty
     assert {c.source for c in ingest("auto", tmp_path, robot="franka")} == {"lerobot"}
 

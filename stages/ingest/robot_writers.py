@@ -15,6 +15,7 @@ import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import av
 import h5py
 import numpy as np
 import pyarrow as pa
@@ -115,6 +116,17 @@ def write_agibot_episode(
     return proprio
 
 
+def write_av1_file(path: Path, frames: np.ndarray, fps: float) -> None:
+    """Write ``(T, H, W, 3)`` uint8 RGB frames as an AV1 MP4 (SVT-AV1, LeRobot's default codec)."""
+    with av.open(str(path), "w", format="mp4") as container:
+        stream = container.add_stream("libsvtav1", rate=round(fps))
+        stream.width, stream.height = int(frames.shape[2]), int(frames.shape[1])
+        stream.pix_fmt = "yuv420p"
+        for frame in frames:
+            container.mux(stream.encode(av.VideoFrame.from_ndarray(frame, format="rgb24")))
+        container.mux(stream.encode())
+
+
 STATE_NAMES = ["x", "y", "z", "qx", "qy", "qz", "qw", "gripper"]  # observation.state layout
 CAMERA_POSE_NAMES = ["x", "y", "z", "qx", "qy", "qz", "qw"]  # observation.camera_pose layout
 
@@ -126,6 +138,7 @@ def write_lerobot_dataset(
     video_key: str = "observation.images.head",
     camera_pose: bool = True,
     state_names: list[str] | None = None,
+    codec: str = "h264",
 ) -> Path:
     """Write ``episodes`` (one gripper each) as a LeRobot dataset under ``root``; returns ``root``.
 
@@ -133,7 +146,11 @@ def write_lerobot_dataset(
     ``from_timestamp``); ``"v2.1"`` writes one of each per episode. ``observation.state`` holds
     ``x, y, z, qx, qy, qz, qw, gripper`` (``state_names`` renames them: a joint-space dataset);
     ``camera_pose`` adds the per-frame ``observation.camera_pose`` (world_from_cam).
+    ``codec`` is ``"h264"`` or ``"av1"`` (LeRobot's default; integer fps only).
     """
+    if codec not in ("h264", "av1"):
+        raise ValueError(f"codec must be 'h264' or 'av1', got {codec!r}")
+    write_video = write_av1_file if codec == "av1" else write_video_file
     root = Path(root)
     names = state_names or STATE_NAMES
     fps = float(episodes[0].fps)
@@ -184,7 +201,7 @@ def write_lerobot_dataset(
             "dtype": "video",
             "shape": [h, w, 3],
             "names": ["height", "width", "channels"],
-            "info": {"video.fps": fps, "video.height": h, "video.width": w, "video.codec": "h264"},
+            "info": {"video.fps": fps, "video.height": h, "video.width": w, "video.codec": codec},
         },
         "observation.state": {"dtype": "float32", "shape": [8], "names": names},
         "action": {"dtype": "float32", "shape": [8], "names": names},
@@ -221,7 +238,7 @@ def write_lerobot_dataset(
         pq.write_table(pa.concat_tables(tables), data)
         video = root / info["video_path"].format(video_key=video_key, chunk_index=0, file_index=0)
         video.parent.mkdir(parents=True, exist_ok=True)
-        write_video_file(video, np.concatenate([e.frames for e in episodes]), fps)
+        write_video(video, np.concatenate([e.frames for e in episodes]), fps)
         (meta / "episodes" / "chunk-000").mkdir(parents=True, exist_ok=True)
         pq.write_table(pa.Table.from_pylist(ep_rows), meta / "episodes/chunk-000/file-000.parquet")
         task_table = {"task_index": list(range(len(tasks))), "task": tasks}
@@ -239,7 +256,7 @@ def write_lerobot_dataset(
                 episode_chunk=0, video_key=video_key, episode_index=index
             )
             video.parent.mkdir(parents=True, exist_ok=True)
-            write_video_file(video, ep.frames, fps)
+            write_video(video, ep.frames, fps)
         lines = [
             json.dumps(
                 {"episode_index": r["episode_index"], "tasks": r["tasks"], "length": r["length"]}
