@@ -1,13 +1,19 @@
 """Scene-cloud density and scene-render coverage on real DWM clips and the synthetic world.
 
 ``python -m bench.scene_coverage [--data ../shared/data] [--out runs/scene_coverage] [--only NAME]
-[--no-run]`` prints one table and writes ``OUT/scene_coverage.json`` and ``OUT/contact_sheet.png``
-(per real clip: real frame 0 | render at t=0 | visible at t=0, hands in red | render at the end).
+[--no-run] [--cloud k=v] [--render k=v]`` prints one table and writes ``OUT/scene_coverage.json``
+and ``OUT/contact_sheet.png`` (per real clip: real frame 0 | render at t=0 | visible at t=0, hands
+in red | render at the end); with ``--cloud``/``--render`` settings both names carry them.
 
 - **Real** (``dwm_*``): the dataset workflow (``workflows/dataset.yaml``, ``ingest.preset=dwm``,
-  through :func:`bench.real_video.run_case`; finished steps are skipped) on each DWM dynamic clip;
-  the scene render is compared with ``videos_static`` (the true static scene along the true
-  trajectory). Hand pixels are ``videos_hands`` dilated by ``HAND_DILATE_PX``.
+  through :func:`bench.real_video.run_case`; finished steps are skipped; ``--no-run`` reuses the
+  run folder) on each DWM dynamic clip; then ``scene_cloud`` + ``scene_render`` are run again with
+  the current code (and ``--cloud``/``--render`` settings) on that run's ``ingest``, ``cameras``,
+  ``poses`` and ``inpaint`` shards (:func:`rerender`; ``--workflow-render`` measures the run's own
+  render instead), and the render is compared with ``videos_static`` (the true static scene along
+  the true trajectory). Hand pixels are ``videos_hands`` dilated by ``HAND_DILATE_PX``. The
+  depth-fill settings before this module's change are reproduced by ``--cloud min_confidence=0
+  --cloud fill=false --render max_crack_px=0 --render max_crack_width=0``.
 - **Synthetic** (``world_*``): a small synthetic clip whose depth is removed, so ``depth_camera``
   (backend ``given``: the world's poses) estimates it by plane sweep like on real video; then
   ``scene_cloud`` (hands left out by the world's hand mask) and ``scene_render``; compared with
@@ -327,9 +333,11 @@ def main() -> int:
             continue
         row["seconds"] = time.perf_counter() - start
         rows.append(row)
-    (args.out / "scene_coverage.json").write_text(json.dumps(rows, indent=1))
+    (args.out / f"scene_coverage{tag.removeprefix('scene_bench')}.json").write_text(
+        json.dumps(rows, indent=1)
+    )
     if sheet:
-        path = args.out / "contact_sheet.png"
+        path = args.out / f"contact_sheet{tag.removeprefix('scene_bench')}.png"
         cv2.imwrite(str(path), cv2.cvtColor(np.concatenate(sheet, axis=0), cv2.COLOR_RGB2BGR))
         print(f"contact sheet: {path}")
     print_table(rows)

@@ -15,11 +15,14 @@ full of streaks. :func:`densify_depth` does neither:
    from a wrong one) small islands of estimated depth (``cv2.filterSpeckles``) become unmeasured
    too. Nothing else is dropped.
 3. **Segment planes**: the colour image is cut into superpixels that follow colour edges
-   (``cv2.watershed`` flooded from a grid of seeds). In each segment a plane is fitted to the
+   (``cv2.watershed`` flooded from a grid of seeds; fine superpixels first, then coarser ones
+   for what the fine ones could not fill). In each segment a plane is fitted to the
    measured inverse depth (``1/z`` is affine in normalised image coordinates on any plane:
    least squares, then again on the inliers within ``plane_tolerance``); a segment whose inliers
    are enough (``min_plane_support`` pixels and ``min_plane_fraction`` of the segment) fills its
-   unmeasured pixels with the plane, so a fill never crosses a colour edge.
+   unmeasured pixels with the plane, so a fill never crosses a colour edge. Measured pixels off
+   such a plane by more than ``outlier_factor`` tolerances (confident matching errors) take the
+   plane's depth too.
 4. **Everything else** (segments with too little measured depth) is filled by OpenCV
    Navier-Stokes inpainting of inverse depth from all pixels known so far.
 
@@ -51,9 +54,11 @@ class DensifyParams:
     drop_edges: bool = True  # True: both sides of a depth edge are left out, not filled
     speckle_px: int = 0  # measured blobs of at most this many pixels that ... (0 = off)
     speckle_rel: float = 0.03  # ... whose neighbours differ by at most this (relative 1/z) go
-    segment_px: int = 20  # superpixel seed spacing in pixels (watershed on colour)
+    segment_px: tuple[int, ...] = (20,)  # superpixel seed spacings, fine to coarse (pixels)
     plane_tolerance: float = 0.03  # plane inlier: |1/z - plane| / (1/z) at most this
     snap_to_planes: bool = False  # measured plane inliers take the plane's depth (denoising)
+    outlier_factor: float = 3.0  # measured pixels off their superpixel's plane by more than this
+    # x plane_tolerance are matching errors: they take the plane's depth (0 = keep them)
     min_plane_support: int = 12  # a segment plane needs at least this many inlier pixels ...
     min_plane_fraction: float = 0.05  # ... and this share of the segment's pixels
     inpaint_radius: float = 5.0  # Navier-Stokes inpainting radius (pixels) for the rest
@@ -67,6 +72,7 @@ class DenseDepth:
     source: np.ndarray  # (H, W) uint8 EXCLUDED / MEASURED / PLANE / INPAINTED
     confidence: np.ndarray  # (H, W) float32 in [0, 1]; 0 where excluded
     num_flying: int  # measured pixels dropped as flying pixels (left out or filled) or speckles
+    num_outliers: int = 0  # measured pixels replaced by their superpixel's plane (outliers)
 
 
 def flying_pixel_mask(
@@ -266,23 +272,36 @@ def densify_depth(
     fx, fy, cx, cy = np.asarray(intrinsics, dtype=np.float64)
     vv, uu = np.mgrid[0:h, 0:w]
     coords = np.stack([(uu.ravel() + 0.5 - cx) / fx, (vv.ravel() + 0.5 - cy) / fy], 1)  # (P, 2)
-    labels = superpixels(image, p.segment_px).ravel()  # (P,)
-    num = int(labels.max()) + 1
-    pred, inlier = _robust_planes(coords, inv.ravel(), labels, measured.ravel(), num, p)
-    support = np.bincount(labels, inlier, minlength=num)  # (S,)
-    size = np.bincount(labels, minlength=num).astype(np.float64)  # (S,)
-    good = (support >= p.min_plane_support) & (support >= p.min_plane_fraction * size)  # (S,)
     lo, hi = inv[measured].min(), inv[measured].max()
-    with np.errstate(invalid="ignore"):
-        plausible = (pred >= 0.5 * lo) & (pred <= 2.0 * hi)  # (P,) in front, not far out
-    by_plane = (todo.ravel() & good[labels] & plausible).reshape(h, w)  # (H, W)
-    inv = np.where(by_plane, pred.reshape(h, w), inv)
-    if p.snap_to_planes:  # measured inliers take their plane's value: matching noise goes
-        snap = ((inlier > 0) & good[labels] & plausible).reshape(h, w)  # (H, W)
-        inv = np.where(snap, pred.reshape(h, w), inv)
-    source[by_plane] = PLANE
-    share = np.minimum(support / np.maximum(size, 1.0), 1.0)  # (S,) inlier share of the segment
-    out_conf = np.where(by_plane, PLANE_CONFIDENCE * share[labels].reshape(h, w), out_conf)
+    num_outliers = 0
+    inv_measured = inv.ravel().copy()  # (P,) planes are fitted to measurements only
+    left = todo.ravel().copy()  # (P,) still without depth
+    for level, spacing in enumerate(p.segment_px):  # fine superpixels first, then coarser
+        labels = superpixels(image, spacing).ravel()  # (P,)
+        num = int(labels.max()) + 1
+        pred, inlier = _robust_planes(coords, inv_measured, labels, measured.ravel(), num, p)
+        support = np.bincount(labels, inlier, minlength=num)  # (S,)
+        size = np.bincount(labels, minlength=num).astype(np.float64)  # (S,)
+        good = (support >= p.min_plane_support) & (support >= p.min_plane_fraction * size)
+        with np.errstate(invalid="ignore"):
+            plausible = (pred >= 0.5 * lo) & (pred <= 2.0 * hi)  # (P,) in front, not far out
+        by_plane = left & good[labels] & plausible  # (P,)
+        if p.outlier_factor > 0 and level == 0:  # measurements far off a well-supported plane
+            with np.errstate(invalid="ignore"):
+                off = np.abs(inv_measured - pred) > p.outlier_factor * p.plane_tolerance * pred
+            outliers = measured.ravel() & off & good[labels] & plausible  # (P,)
+            by_plane |= outliers
+            num_outliers = int(outliers.sum())
+        flat = inv.ravel()  # (P,) view of inv
+        flat[by_plane] = pred[by_plane]
+        if p.snap_to_planes and level == 0:  # measured inliers take their plane's value
+            snap = (inlier > 0) & good[labels] & plausible  # (P,)
+            flat[snap] = pred[snap]
+        source.ravel()[by_plane] = PLANE
+        share = np.minimum(support / np.maximum(size, 1.0), 1.0)  # (S,) inlier share
+        out_conf.ravel()[by_plane] = PLANE_CONFIDENCE * share[labels][by_plane]
+        left &= ~by_plane
+    by_plane = todo & ~left.reshape(h, w)  # (H, W)
     # 4. inpainting for what no plane reached
     rest = todo & ~by_plane  # (H, W)
     if rest.any():
@@ -293,4 +312,6 @@ def densify_depth(
         source[rest] = INPAINTED
         out_conf = np.where(rest, INPAINT_CONFIDENCE, out_conf)
     dense = np.where(keep, 1.0 / np.where(inv > 0, inv, 1.0), 0.0)  # (H, W)
-    return DenseDepth(dense.astype(np.float32), source, out_conf.astype(np.float32), num_flying)
+    return DenseDepth(
+        dense.astype(np.float32), source, out_conf.astype(np.float32), num_flying, num_outliers
+    )

@@ -195,9 +195,11 @@ class SceneCloudConfig(StageConfig):
     drop_edges: bool = True  # True: both sides of a depth edge left out; False: refill them
     speckle_px: int = 0  # measured blobs up to this many pixels (4-connected) ... (0 = off)
     speckle_rel: float = 0.03  # ... whose neighbours differ by at most this (relative 1/z) go
-    segment_px: int = 20  # colour superpixel seed spacing (pixels) for the plane fill
+    segment_px: tuple[int, ...] = (20,)  # colour superpixel seed spacings, fine to coarse
     plane_tolerance: float = 0.03  # plane inlier: |1/z - plane| / (1/z) at most this
     snap_to_planes: bool = False  # measured plane inliers take the plane's depth (denoising)
+    outlier_factor: float = 3.0  # measured pixels off their superpixel plane by more than this
+    # x plane_tolerance take the plane's depth (confident matching errors); 0 = keep them
     min_plane_support: int = 12  # a superpixel plane needs this many inlier pixels ...
     min_plane_fraction: float = 0.05  # ... and this share of the superpixel
     inpaint_radius: float = 5.0  # radius (pixels) of the inpainting fill for what planes miss
@@ -211,7 +213,7 @@ class SceneCloudConfig(StageConfig):
             value = getattr(self, name)
             if not (np.isfinite(value) and 0.0 <= value <= 1.0):
                 problems.append(f"{name} must be in [0, 1], got {value}")
-        for name in ("edge_threshold", "speckle_rel"):
+        for name in ("edge_threshold", "speckle_rel", "outlier_factor"):
             value = getattr(self, name)
             if not (np.isfinite(value) and value >= 0):
                 problems.append(f"{name} must be finite and >= 0, got {value}")
@@ -221,8 +223,8 @@ class SceneCloudConfig(StageConfig):
                 problems.append(f"{name} must be > 0, got {value}")
         if self.speckle_px < 0:
             problems.append(f"speckle_px must be >= 0, got {self.speckle_px}")
-        if self.segment_px < 2:
-            problems.append(f"segment_px must be >= 2, got {self.segment_px}")
+        if not self.segment_px or any(int(s) < 2 for s in self.segment_px):
+            problems.append(f"segment_px must be spacings >= 2 pixels, got {self.segment_px}")
         if self.min_plane_support < 3:
             problems.append(f"min_plane_support must be >= 3, got {self.min_plane_support}")
         if problems:
@@ -236,9 +238,10 @@ class SceneCloudConfig(StageConfig):
             drop_edges=self.drop_edges,
             speckle_px=self.speckle_px,
             speckle_rel=self.speckle_rel,
-            segment_px=self.segment_px,
+            segment_px=tuple(int(s) for s in self.segment_px),
             plane_tolerance=self.plane_tolerance,
             snap_to_planes=self.snap_to_planes,
+            outlier_factor=self.outlier_factor,
             min_plane_support=self.min_plane_support,
             min_plane_fraction=self.min_plane_fraction,
             inpaint_radius=self.inpaint_radius,
