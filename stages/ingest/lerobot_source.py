@@ -233,7 +233,7 @@ def _read_frames(
 ) -> np.ndarray:
     """The episode's ``length`` frames of video ``key``; rejects a length mismatch."""
     index = int(ep["episode_index"])
-    fps = float(info["features"][key].get("info", {}).get("video.fps", info["fps"]))
+    fps = float((info["features"][key].get("info") or {}).get("video.fps", info["fps"]))
     if _v3(info):
         rel = info["video_path"].format(
             video_key=key,
