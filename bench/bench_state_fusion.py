@@ -36,6 +36,7 @@ from egosim.pipeline.clip_io import row_from_clip
 from egosim.pipeline.geometry import invert_se3, transform_points, unproject_depth
 from egosim.pipeline.records import Clip
 from egosim.schemas.state import state_for_clip
+from egosim.stages.state_fusion.config import StateFusionConfig
 from egosim.stages.state_fusion.fusion import State
 from egosim.stages.state_fusion.metrics import (
     centroid_error,
@@ -128,16 +129,19 @@ def _in_roi(points: np.ndarray, centres: np.ndarray) -> np.ndarray:
     return np.any(d <= ROI_RADIUS, axis=1)
 
 
-def measure_state_update(config: WorldConfig, look_back: bool = True) -> dict[str, Any]:
+def measure_state_update(
+    config: WorldConfig, look_back: bool = True, fusion: StateFusionConfig | None = None
+) -> dict[str, Any]:
     """Fuse the static and the interaction video of one clip and compare with ground truth.
 
     Returns a dict of figures (metres, seconds, counts); per moved object ``objects`` lists
     ``id``, ``shift`` (true displacement), ``error`` (updated state) and ``baseline_error``
     (state 0), ``interactive`` (the instance was flagged) and ``instance``; ``look_back`` adds
     :func:`look_back_figures`. ``clip``, ``row0`` and ``row`` hold the clip and both states.
+    ``fusion`` replaces the stage's default parameters.
     """
     clip = render_clip(config)
-    stage = StateFusionStage()
+    stage = StateFusionStage(fusion)
     start = time.perf_counter()
     row0 = stage.process(clip_rows(clip, static=True))
     seconds_first = time.perf_counter() - start

@@ -303,3 +303,18 @@ def test_stage_runs_through_the_executor(tmp_path: Path, world):
     assert row["previous_clip_id"] == row0["state_clip_id"] == f"{clip.clip_id}-static"
     assert row["clip_id"] == row["state_clip_id"] == clip.clip_id
     assert any(row["instance_interactive"])
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed", [0, 1, 2, 3])
+def test_moved_object_on_the_held_out_world(seed):
+    """The 'alt' world (other hands, table, objects, camera; nothing tuned on it): measured
+    13.6, 18.3, 14.1, 8.8 mm against baselines of 100-180 mm. With the paper's IoU instead of
+    box_overlap 'ioa' the moved object is missed in 3 of these 4 clips: only the part of a held
+    object that the hand leaves visible is segmented, and its box barely overlaps the hand's."""
+    figures = measure_state_update(WorldConfig(seed=seed, variant="alt", **SMALL), look_back=False)
+    (obj,) = figures["objects"]
+    assert obj["interactive"]
+    assert obj["error"] < 0.02
+    assert obj["baseline_error"] > 0.08
+    assert figures["hand_points"] == 0

@@ -14,6 +14,7 @@ import numpy as np
 from egosim.pipeline.stage import ConfigError, StageConfig
 
 SEGMENTATION_BACKENDS = ("geometric",)  # object instances without weights (plane + DBSCAN)
+BOX_OVERLAPS = ("iou", "ioa")  # how the interaction test compares object and hand boxes
 
 
 @dataclasses.dataclass(frozen=True)
@@ -22,10 +23,9 @@ class StateFusionConfig(StageConfig):
 
     backend: str = "geometric"  # object instances: "geometric" (RANSAC plane + DBSCAN), no weights
     # Interaction test (paper, supp. 2.2)
-    hand_box_iou: float = 0.1  # object box vs hand box IoU above this: candidate (paper: 0.1)
-    depth_gap_m: float = (
-        0.15  # median object-hand depth gap below this: interacting (paper: 0.15 m)
-    )
+    hand_box_iou: float = 0.1  # object/hand box overlap above this: candidate (paper: 0.1)
+    box_overlap: str = "ioa"  # "ioa": overlap / object box; "iou": paper's (see fusion.py)
+    depth_gap_m: float = 0.15  # object-hand median depth gap below: interacting (paper: 0.15 m)
     hand_box_pad: float = 0.3  # hand keypoint box widened by this fraction of its size (ours)
     hand_dilation_px: int = 4  # hand/arm masks dilated by this many pixels before fusion (ours)
     # Support plane and object instances (geometric backend; ours)
@@ -68,6 +68,8 @@ class StateFusionConfig(StageConfig):
         problems: list[str] = []
         if self.backend not in SEGMENTATION_BACKENDS:
             problems.append(f"backend must be one of {SEGMENTATION_BACKENDS}, got {self.backend!r}")
+        if self.box_overlap not in BOX_OVERLAPS:
+            problems.append(f"box_overlap must be one of {BOX_OVERLAPS}, got {self.box_overlap!r}")
         positive = (
             "depth_gap_m",
             "plane_distance_m",
