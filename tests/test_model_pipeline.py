@@ -22,6 +22,7 @@ from egosim.pipeline.execute import ShardTask, run_shard_task
 from egosim.pipeline.shards import ShardReader, ShardWriter
 from egosim.pipeline.stage import ClipRejected, ConfigError, get_stage
 from egosim.schemas.pack import EVALUATION, PACK, SIMULATION
+from egosim.schemas.scene import SCENE_RENDER
 from egosim.stages.common.pack_dataset import PackDataset
 from egosim.stages.common.packed import PackRowError, sample_from_pack_row
 from egosim.stages.evaluate.report import format_table, overall
@@ -119,14 +120,18 @@ def test_pack_row_holds_every_condition_at_the_training_size(chain) -> None:
 def test_quality_gate_rejects_with_every_reason(chain) -> None:
     rows = _rows(chain)
     rows["keypoints"] = {**rows["keypoints"], "keypoint_visible": [[False] * 42] * T}
-    stage = PackStage.from_params({"min_visible_fraction": 1.0})
+    rows["scene_render"] = {**rows["scene_render"], "visible_fraction": [0.5] * T}
+    stage = PackStage.from_params({"min_visible_fraction": 0.9})
     with pytest.raises(ClipRejected, match="quality gate") as err:
         stage.process(rows)
     assert "visible_fraction" in str(err.value) and "hand_valid_fraction 0.000" in str(err.value)
-    # Through the executor: the reason lands in the rejects shard.
+    # Through the executor: the reason lands in the rejects shard (a render that saw half).
     d = chain["dir"]
     inputs = {role: chain[step] for role, step in PACK_ROLES.items()}
-    task = _task(d, "pack_gated", "pack", inputs, {"min_visible_fraction": 1.0})
+    inputs["scene_render"] = d / "scene_render_half.parquet"
+    with ShardWriter(inputs["scene_render"], SCENE_RENDER, stage="test") as writer:
+        writer.write_row(rows["scene_render"])
+    task = _task(d, "pack_gated", "pack", inputs, {"min_visible_fraction": 0.9})
     assert run_shard_task(task).rejected == 1
     with ShardReader(task.rejects) as reader:
         assert "quality gate" in next(reader.iter_rows())["reason"]
