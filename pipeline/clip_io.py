@@ -63,6 +63,7 @@ def row_from_clip(clip: Clip, crf: int = media.DEFAULT_CRF) -> dict[str, Any]:
             clip.source_frame_indices, lambda a: np.asarray(a, dtype=np.int64).tolist()
         ),
         "clip_policy": clip.clip_policy,
+        "gripper_opening": _opt(clip.gripper_opening, lambda a: a.astype(np.float32).tolist()),
     }
 
 
@@ -116,6 +117,9 @@ def clip_from_row(row: Mapping[str, Any]) -> Clip:
         source_num_frames=_opt(row.get("source_num_frames"), int),
         source_frame_indices=_opt(row.get("source_frame_indices"), lambda v: _arr(v, np.int64)),
         clip_policy=row.get("clip_policy"),
+        gripper_opening=_opt(
+            row.get("gripper_opening"), lambda v: _arr(v, np.float32).reshape(t, 2)
+        ),
     )
     return clip.check()
 

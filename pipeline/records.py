@@ -46,6 +46,7 @@ class Clip:
     source_num_frames: int | None = None  # frames in that source (None when unknown)
     source_frame_indices: np.ndarray | None = None  # (T,) int index of each frame in the source
     clip_policy: str | None = None  # what ingest's clip policy did: "full|short|tail[:preset]"
+    gripper_opening: np.ndarray | None = None  # (T, 2) float32 metres per hand slot, NaN = none
 
     @property
     def num_frames(self) -> int:
@@ -90,6 +91,7 @@ class Clip:
             "hand_joints": (t, 2, NUM_HAND_JOINTS, 3),
             "hand_valid": (t, 2),
             "hand_confidence": (t, 2, NUM_HAND_JOINTS),
+            "gripper_opening": (t, 2),
             "hand_mask": (t, h, w),
             "object_mask": (t, h, w),
         }

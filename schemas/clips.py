@@ -9,6 +9,9 @@ Version 2 adds what ingest's clip policy did (``source_fps``, ``source_num_frame
 ``source_frame_indices``, ``clip_policy``; see ``docs/design.md``, "Clip policy / clips v2").
 Version 1 shards have none of these and are refused by readers (``SchemaCompatibilityError``):
 re-run ``ingest`` to rewrite them.
+
+Version 3 adds ``gripper_opening`` (robot clips: the opening of the gripper in each hand slot; see
+``docs/design.md``, "Robot embodiments"). Version 2 shards are refused the same way.
 """
 
 from __future__ import annotations
@@ -90,6 +93,23 @@ def _check_hands(row: Mapping[str, Any]) -> list[str]:
     return problems
 
 
+def _check_gripper(row: Mapping[str, Any]) -> list[str]:
+    value = row.get("gripper_opening")
+    if value is None:
+        return []
+    t = row["num_frames"]
+    arr = np.asarray(value, dtype=np.float64)
+    if arr.shape != (t, 2):
+        return [f"gripper_opening must be ({t}, 2), got shape {arr.shape}"]
+    finite = arr[np.isfinite(arr)]
+    if np.isinf(arr).any() or (finite < 0).any():
+        return [f"gripper_opening must be NaN or >= 0 metres, got min {np.nanmin(arr)}"]
+    valid = row.get("hand_valid")
+    if valid is not None and np.isnan(arr[np.asarray(valid, dtype=bool)]).any():
+        return ["gripper_opening is NaN for a valid hand"]
+    return []
+
+
 CLIP_POLICY_KINDS = ("full", "short", "tail")  # first part of the clip_policy column
 RATE_TOLERANCE = 1e-6  # relative: fps may exceed source_fps by this much (float rounding)
 
@@ -123,7 +143,7 @@ def _check_policy(row: Mapping[str, Any]) -> list[str]:
 
 CLIPS = ShardSchema(
     name="clips",
-    version=2,
+    version=3,
     doc="Standardised clips: video, timing, intrinsics and optional ground truth, one per row.",
     columns=(
         Column("clip_id", pa.string(), "Unique clip id within the dataset."),
@@ -194,6 +214,21 @@ CLIPS = ShardSchema(
             "last full window), then ':' and the ingest preset, e.g. 'short:egosim'.",
             True,
         ),
+        Column(
+            "gripper_opening",
+            pa.list_(pa.list_(pa.float32(), 2)),
+            "(T, 2) metres between the gripper's finger faces per hand slot (robot clips; the "
+            "hand columns hold its skeleton); NaN where the slot holds no gripper; null for "
+            "human clips.",
+            True,
+        ),
     ),
-    validators=(_check_counts, _check_camera, _check_poses, _check_hands, _check_policy),
+    validators=(
+        _check_counts,
+        _check_camera,
+        _check_poses,
+        _check_hands,
+        _check_policy,
+        _check_gripper,
+    ),
 )

@@ -102,6 +102,7 @@ def check_against_truth(
         np.testing.assert_allclose(
             opening_from_joints(clip.hand_joints[:, hand]), opening[:, g], atol=OPENING_TOL
         )
+        np.testing.assert_allclose(clip.gripper_opening[:, hand], opening[:, g], atol=OPENING_TOL)
         for t in range(T):
             uv_true, z = project_world_points(
                 truth[t, g, joints], ep.world_from_cam[t], ep.intrinsics
@@ -153,6 +154,7 @@ def test_lerobot_dataset_round_trips_through_ingest(
         other = np.abs(clip.frames.astype(np.float64) - ep.frames[::-1]).mean(axis=(1, 2, 3))
         assert err.max() < FRAME_TOL and other.max() > err.max() + 5.0  # measured ~7 vs ~16
     assert not clips[0].hand_valid[:, 0].any()  # one gripper: the left hand slot stays empty
+    assert np.isnan(clips[0].gripper_opening[:, 0]).all()
     assert {c.source for c in ingest("auto", tmp_path, robot="franka")} == {"lerobot"}
 
 
@@ -260,3 +262,24 @@ def test_agibot_timestamps_in_nanoseconds_or_seconds() -> None:
     np.testing.assert_allclose(_seconds(ns), [0.0, 0.1], atol=1e-12)
     np.testing.assert_allclose(_seconds(np.array([12.5, 12.6, 12.7])), [0.0, 0.1, 0.2], atol=1e-9)
     np.testing.assert_allclose(_seconds(ns.astype(np.float64)), [0.0, 0.1], atol=1e-6)
+
+
+def test_keypoint_render_auto_draws_robot_clips_as_grippers(world: Clip, tmp_path: Path) -> None:
+    """variant auto: a robot clip gets the gripper drawing (no dot of other fingers' colours)."""
+    from egosim.pipeline.clip_io import row_from_clip
+    from egosim.stages.hands.stage import HandsStage
+    from egosim.stages.keypoint_render.stage import KeypointRenderConfig, KeypointRenderStage
+
+    ep, _ = scripted(world, grippers=2, robot="agibot_g1")
+    write_agibot_episode(tmp_path, "327", "1", ep)
+    (clip,) = ingest("agibot", tmp_path)
+    row = row_from_clip(clip)
+    hands = HandsStage().process({"clips": row})
+    auto = KeypointRenderStage(KeypointRenderConfig(variant="auto"))
+    out = auto.process({"clips": row, "hands": hands})
+    grip = KeypointRenderStage(KeypointRenderConfig(variant="gripper"))
+    assert out["variant"] == "gripper"
+    assert out["skeleton_video"] == grip.process({"clips": row, "hands": hands})["skeleton_video"]
+    human = row_from_clip(world)
+    out = auto.process({"clips": human, "hands": HandsStage().process({"clips": human})})
+    assert out["variant"] == "hand"

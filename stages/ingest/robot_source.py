@@ -7,9 +7,8 @@ seconds, OpenCV camera axes, ``world_from_cam`` camera-to-world, end-effector po
 :class:`~egosim.pipeline.records.Clip` whose hand columns hold the gripper skeleton
 (:mod:`egosim.stages.common.gripper`). Ingest then standardises that clip like any other source.
 
-The gripper opening is not a column of ``clips`` v2: it is the distance between the thumb and
-index fingertips of the stored skeleton (:func:`~egosim.stages.common.gripper.opening_from_joints`),
-exact by construction (see ``docs/design.md``, "Robot embodiments").
+The gripper opening is the ``gripper_opening`` column (clips v3), NaN in slots without a
+gripper; it also equals the thumb-to-index fingertip distance of the stored skeleton.
 """
 
 from __future__ import annotations
@@ -118,6 +117,8 @@ def episode_clip(ep: RobotEpisode, geometry: GripperGeometry) -> Clip:
         raise ClipRejected(f"{ep.source} episode {ep.name} ({ep.uri}): " + "; ".join(problems))
     opening = geometry.opening_from_state(ep.gripper_state)  # (T, G) metres
     joints, valid, conf = gripper_hand_arrays(ep.world_from_ee, opening, geometry, ep.hands)
+    per_slot = np.full((len(opening), 2), np.nan)  # (T, 2)
+    per_slot[:, list(ep.hands)] = opening
     return Clip(
         clip_id=ep.name,
         source=ep.source,
@@ -131,4 +132,5 @@ def episode_clip(ep: RobotEpisode, geometry: GripperGeometry) -> Clip:
         hand_valid=valid,
         hand_confidence=conf.astype(np.float32),
         text=ep.text,
+        gripper_opening=per_slot.astype(np.float32),
     ).check()

@@ -152,7 +152,8 @@ class IngestStage(SourceStage):
     backends = ("video", "frames", "egodex", "mcap", "synthetic", "agibot", "lerobot")
     # 2: clip policy (short and tail clips, source rate kept), clips v2 columns;
     # 3: clip ids sanitised to the identifier rule and unique across a run (schemas.ids).
-    version = 3
+    # 4: clips v3 (gripper_opening; robot sources agibot and lerobot).
+    version = 4
     config: IngestConfig
 
     def list_units(self, source: str | None) -> list[str]:

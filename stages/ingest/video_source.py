@@ -166,6 +166,7 @@ def standardise_clip(clip: Clip, cfg: ClipFormat) -> Iterator[Clip]:
             hand_joints=pick(clip.hand_joints),
             hand_valid=pick(clip.hand_valid),
             hand_confidence=pick(clip.hand_confidence),
+            gripper_opening=pick(clip.gripper_opening),
             hand_mask=image(clip.hand_mask, nearest=True),
             object_mask=image(clip.object_mask, nearest=True),
             object_poses=pick(clip.object_poses),

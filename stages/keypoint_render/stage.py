@@ -28,7 +28,9 @@ from egosim.stages.keypoint_render.draw import draw_skeleton_video, project_hand
 class KeypointRenderConfig(StageConfig):
     """Parameters of ``keypoint_render``."""
 
-    variant: Literal["hand", "gripper"] = "hand"  # all 21 joints, or thumb + index chains
+    # hand: all 21 joints; gripper: thumb + index chains; auto: per clip, gripper when every
+    # valid hand's middle, ring and little joints (9-20) have confidence 0 (robot clips)
+    variant: Literal["hand", "gripper", "auto"] = "hand"
     line_width_px: float = 3.0  # bone width in pixels at 0.5 m depth (scaled by 0.5 / depth)
     near: float = 0.01  # joints closer than this camera z (metres) are not projected
     crf: int = 18  # H.264 quality of the skeleton video
@@ -77,14 +79,19 @@ class KeypointRenderStage(ClipStage):
         valid = np.asarray(hands["hand_valid"], dtype=bool).reshape(t, 2)
         cfg = self.config
         proj = project_hands(joints, valid, poses, cams.intrinsics, h, w, cfg.near)
-        video = draw_skeleton_video(proj, h, w, cfg.variant, cfg.line_width_px)
+        variant = cfg.variant
+        if variant == "auto":
+            conf = np.asarray(hands["hand_confidence"], dtype=np.float64).reshape(t, 2, 21)
+            robot = valid.any() and not conf[:, :, 9:][valid].any()
+            variant = "gripper" if robot else "hand"
+        video = draw_skeleton_video(proj, h, w, variant, cfg.line_width_px)
         return {
             "clip_id": cid,
             "num_frames": t,
             "width": w,
             "height": h,
             "fps": float(clip["fps"]),
-            "variant": cfg.variant,
+            "variant": variant,
             "keypoints_2d": proj.uv.astype(np.float32).reshape(t, -1).tolist(),
             "keypoint_depth": proj.depth.astype(np.float32).reshape(t, -1).tolist(),
             "keypoint_visible": proj.visible.reshape(t, -1).tolist(),
