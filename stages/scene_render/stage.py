@@ -34,7 +34,7 @@ class SceneRenderConfig(StageConfig):
     max_splat_radius: int = 2  # widest square splat (pixels each side) for near points; 0 = off
     near: float = 0.01  # points closer than this camera z (metres) are skipped
     max_crack_px: int = 64  # holes inside the render up to this many pixels are closed; 0 = off
-    max_crack_width: int = 2  # gaps between rendered pixels up to this wide are closed; 0 = off
+    max_crack_width: int = 4  # gaps between rendered pixels up to this wide are closed; 0 = off
     crf: int = 18  # H.264 quality of the scene video (lower = better, bigger)
 
     def __post_init__(self) -> None:
