@@ -145,3 +145,62 @@ def test_isolated_detection_contradicting_a_track_is_dropped() -> None:
     assert (side[:, 0] == 1).all() and side[12, 1] == -1
     kept = assign_sides(raw, w, MediaPipeParams(min_track_frames=1))
     assert kept[12, 1] == 1 and kept[12, 0] == 0  # the old behaviour: sides swapped in frame 12
+
+
+def _dwm_recall(name: str) -> dict[str, float]:
+    """Per-side recall, false-positive frames and wrong-side frames of the default backend on one
+    real DWM clip against its hand render (green = left, red = right; a side is shown on a frame
+    with >= 150 pixels of its colour; a detection is on a hand when its keypoint centroid is
+    within 40 px of that colour). Frames whose render leaves out a visible hand (by eye, as in
+    ``bench/hands_real.py``) are left out of the false positives."""
+    pytest.importorskip("mediapipe")
+    pytest.importorskip("ai_edge_litert")
+    from egosim.pipeline.media import read_video_file
+    from egosim.stages.hands.mediapipe_backend import mediapipe_hands
+
+    folder = shared_data("dwm_realworld", "realworld_dynamic")
+    frames, _ = read_video_file(folder / "videos" / f"{name}.mp4")
+    render, _ = read_video_file(folder / "videos_hands" / f"{name}.mp4")
+    r, g, b = (render[..., c].astype(np.int16) for c in range(3))
+    masks = np.stack(
+        [(g > 100) & (g > r + 50) & (g > b + 50), (r > 100) & (r > g + 50) & (r > b + 50)], axis=1
+    )  # (T, 2, H, W) left, right
+    shown = masks.sum(axis=(2, 3)) >= 150  # (T, 2)
+    k = np.array([360.0, 360.0, frames.shape[2] / 2, frames.shape[1] / 2])
+    res = mediapipe_hands(frames, k)
+    gaps = {"00013": (7, 8, 21, 22, 35), "00017": (*range(20, 33), *range(36, 43), 47)}[name]
+    out: dict[str, float] = {}
+    for s in range(2):
+        found = wrong = false = 0
+        for f in range(len(frames)):
+            if not res.valid[f, s]:
+                continue
+            c = np.nanmean(res.landmarks.uv[f, s], axis=0)  # (2,)
+            near = []
+            for hand in range(2):
+                rows, cols = np.nonzero(masks[f, hand])
+                d = np.hypot(cols + 0.5 - c[0], rows + 0.5 - c[1]).min() if rows.size else np.inf
+                near.append(d <= 40.0)
+            found += int(near[s] and shown[f, s])
+            wrong += int(near[1 - s] and not near[s])
+            false += int(not any(near) and f not in gaps)
+        out[f"recall_{s}"] = found / max(int(shown[:, s].sum()), 1)
+        out[f"wrong_side_{s}"] = wrong
+        out[f"false_{s}"] = false
+    return out
+
+
+def test_real_dwm_00013_hands_found_through_misses() -> None:
+    """Sleeved hands gripping a cushion: MediaPipe alone found the left hand on 17% of the frames
+    that show it and the right on 42%; followed through misses, measured 1.0 and 0.96."""
+    fig = _dwm_recall("00013")
+    assert fig["recall_0"] >= 0.9 and fig["recall_1"] >= 0.9, fig
+    assert fig["wrong_side_0"] == fig["wrong_side_1"] == 0, fig
+    assert fig["false_0"] + fig["false_1"] <= 1, fig  # measured 0 (goal: <= 2% of 49 frames)
+
+
+def test_real_dwm_00017_left_hand() -> None:
+    """One left hand opening a drawer: measured recall 1.0, nothing else reported."""
+    fig = _dwm_recall("00017")
+    assert fig["recall_0"] >= 0.9, fig
+    assert fig["wrong_side_0"] == 0 and fig["false_0"] + fig["false_1"] <= 1, fig
