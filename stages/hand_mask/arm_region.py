@@ -4,13 +4,21 @@ Nothing here knows the world frame: the forearm's direction comes from the image
 hand with 2D keypoints (MANO order, pixels, pixel centres at integer + 0.5):
 
 - the hand is drawn as capsules (see ``capsules``); its thin skeleton is certainly hand;
-- the hand's own direction ``d`` is the wrist minus the middle knuckle (mean of the knuckles when
-  that one is unknown), i.e. where the forearm continues in the image;
+- the hand's own direction is the wrist minus the middle knuckle (mean of the knuckles when
+  that one is unknown); the arm's direction ``d`` is searched within ``max_turn_deg`` of it for
+  the strip whose colour is most uniform and most unlike the strips beside it
+  (:func:`arm_direction`);
 - a thin strip beyond the wrist along ``d`` (``seed_start``..``seed_end`` hand lengths) is
-  certainly arm: it seeds the colour model with the sleeve's or skin's colour;
+  certainly arm, extended by a walk along ``d`` while the colour holds and still stands out from
+  the sides (:func:`arm_extent`); where the strip does not stand out from either side there is
+  no arm to follow (it is out of view) and nothing more is added;
+- pixels of the strip's colour connected to it within ``colour_region`` half-widths of the axis
+  are certainly arm; when those within ``refine_half_angle_deg`` form a ray from the wrist, the
+  arm is re-aimed along its main axis (:func:`region_direction`) and the labels redrawn;
 - a tapered band along ``d`` from the wrist to the image border is probably arm;
-- a fan of ``fan_half_angle_deg`` either side of ``d`` is probably background (the forearm may bend
-  at the wrist; the colour model moves those pixels to the arm when they look like it);
+- a fan of ``fan_half_angle_deg`` either side of ``d``, ending ``fan_width`` half-widths from the
+  axis, is probably background (the forearm may bend at the wrist; the colour model moves those
+  pixels to the arm when they look like it);
 - everything else is background.
 
 GrabCut (OpenCV) learns the colour models from these labels and relabels the two "probably"

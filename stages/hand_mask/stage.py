@@ -11,11 +11,12 @@ Backends:
 
 - ``keypoints`` (default): masks in image space with no assumption about the world's axes (see
   ``arm_region``): the hand as capsules round its projected keypoints, the arm as the region of
-  the hand's (or sleeve's) colour connected to the wrist, found by GrabCut seeded with the hand
-  skeleton and a strip beyond the wrist along the hand's own image direction (wrist minus middle
-  knuckle); then every frame's mask is carried backwards in time by optical flow (see
-  ``propagate``), so an arm that enters later is masked in the earlier frames where it already
-  shows at the border but no keypoint is.
+  the sleeve's or skin's colour connected to the wrist, found by GrabCut seeded with the hand
+  skeleton and a strip beyond the wrist along the arm's image direction (searched round the
+  hand's own, wrist minus middle knuckle, by colour, then re-aimed along the arm-coloured
+  region); then masks are carried by optical flow up to ``propagate_frames`` frames backwards
+  and forwards into frames whose own mask is empty (see ``propagate``): a hand the keypoints
+  miss for a few frames, or an arm that enters later, is masked there too.
 - ``sam``: a SAM-family model from ``sam_model_path`` through transformers, prompted with the
   keypoints and the capsule mask's box (see ``sam``).
 

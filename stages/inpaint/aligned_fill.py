@@ -19,7 +19,7 @@ import cv2
 import numpy as np
 
 from egosim.schemas.inpaint import FILL_OPENCV, FILL_ORIGINAL, FILL_REPROJECTED
-from egosim.stages.inpaint.reproject_fill import FillResult, dilate, unseen_fill
+from egosim.stages.inpaint.reproject_fill import FillResult, OccluderColours, dilate, unseen_fill
 
 MIN_MATCHES = 12  # fewer good feature matches than this: the frame is not used
 
@@ -59,6 +59,7 @@ def aligned_fill(
     inpaint_radius: float = 5.0,
     unseen_method: str = "telea",
     max_residual: float = 10.0,
+    occluder_ratio: float = 0.0,
     ring_px: int = 15,
 ) -> FillResult:
     """Remove the hand from ``frames[0]``; see the module docstring.
@@ -67,6 +68,8 @@ def aligned_fill(
     the identity instead of fitted homographies. ``candidates``: frames whose colours are
     medianed per pixel (the earliest that see it). ``max_residual``, ``ring_px``: the alignment
     check of fitted homographies (see the module docstring).
+    ``occluder_ratio``: samples that look like frame 0's hands are not used (see
+    :class:`~egosim.stages.inpaint.reproject_fill.OccluderColours`; 0: off).
     """
     t, h, w = frames.shape[:3]
     masks = dilate(hand_mask > 0, dilate_px)  # (T, H, W)
@@ -78,6 +81,9 @@ def aligned_fill(
         return FillResult(image, fill_source, source_frame, target)
     ys, xs = np.nonzero(target)  # (M,)
     ring = (dilate(target, ring_px) > 0) & ~target  # (H, W) round the hole
+    occluders = None
+    if occluder_ratio > 0:
+        occluders = OccluderColours(frames[0], hand_mask[0] > 0, target, occluder_ratio)
     grey0 = cv2.cvtColor(frames[0], cv2.COLOR_RGB2GRAY).astype(np.int16)  # (H, W)
     samples = np.zeros((candidates, len(ys), 3), np.float32)  # colours per candidate slot
     count = np.zeros(len(ys), np.int32)  # (M,) slots used per pixel
@@ -106,6 +112,8 @@ def aligned_fill(
         if not ok.any():
             continue
         idx = np.nonzero(ok)[0]
+        if occluders is not None:  # not another frame's missed hand or arm
+            idx = idx[~occluders.hand_like(warped[ys[idx], xs[idx]])]
         samples[count[idx], idx] = warped[ys[idx], xs[idx]]
         first_frame[idx[count[idx] == 0]] = k
         count[idx] += 1

@@ -84,6 +84,54 @@ def unseen_fill(
     return cv2.cvtColor(out, cv2.COLOR_BGR2RGB)
 
 
+class OccluderColours:
+    """Tells samples that look like frame 0's hands and arms from ones that look like background.
+
+    Two small palettes (k-means in RGB) are learned from frame 0 ``image (H, W, 3)``: one from
+    the pixels under its ``hand (H, W)`` mask, one from a ring of ``ring_px`` round ``target
+    (H, W)`` (the dilated mask, so the ring holds background only). A sample is hand-like when
+    its nearest hand colour is closer than ``ratio`` times its nearest background colour: another
+    frame
+    whose mask missed a sleeve would otherwise paste that sleeve into the hole (a ghost), and a
+    median over frames does not remove an arm that stays in place for most of the clip.
+    """
+
+    def __init__(
+        self,
+        image: np.ndarray,
+        hand: np.ndarray,
+        target: np.ndarray,
+        ratio: float = 0.6,
+        ring_px: int = 15,
+    ) -> None:
+        self.ratio = ratio
+        ring = (dilate(target, ring_px) > 0) & ~(target > 0)  # (H, W)
+        self.hand = _palette(image[hand > 0], 4)  # (k, 3)
+        self.background = _palette(image[ring], 6)  # (k', 3)
+
+    def hand_like(self, colours: np.ndarray) -> np.ndarray:
+        """``(N,)`` bool: which of ``colours (N, 3)`` look like a hand or arm of frame 0."""
+        if self.ratio <= 0 or self.hand is None or self.background is None or not len(colours):
+            return np.zeros(len(colours), bool)
+        c = colours.astype(np.float32)[:, None]  # (N, 1, 3)
+        to_hand = np.linalg.norm(c - self.hand[None], axis=2).min(axis=1)  # (N,)
+        to_background = np.linalg.norm(c - self.background[None], axis=2).min(axis=1)  # (N,)
+        return to_hand < self.ratio * to_background
+
+
+def _palette(colours: np.ndarray, k: int) -> np.ndarray | None:
+    """``(k, 3)`` float32 k-means centres of ``colours (N, 3)`` (deterministic), or None if few."""
+    if len(colours) < 4 * k:
+        return None
+    data = colours.astype(np.float32)
+    if len(data) > 20000:  # a fixed, even subsample keeps it fast and deterministic
+        data = data[:: len(data) // 20000 + 1]
+    criteria = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 20, 1.0)
+    cv2.setRNGSeed(0)
+    _, _, centres = cv2.kmeans(data, k, None, criteria, 2, cv2.KMEANS_PP_CENTERS)
+    return centres
+
+
 def reproject_fill(
     frames: np.ndarray,
     hand_mask: np.ndarray,
@@ -96,6 +144,7 @@ def reproject_fill(
     inpaint_radius: float = 5.0,
     candidates: int = 1,
     unseen_method: str = "telea",
+    occluder_ratio: float = 0.0,
 ) -> FillResult:
     """Remove the hand from ``frames[0]``; see the module docstring.
 
@@ -131,6 +180,9 @@ def reproject_fill(
     points_cam0 = unproject_depth(d0, intrinsics)[ys, xs]  # (M, 3)
     points_world = transform_points(world_from_cam[0], points_cam0)  # (M, 3)
     candidates = max(1, int(candidates))
+    occluders = None
+    if occluder_ratio > 0:
+        occluders = OccluderColours(frames[0], hand_mask[0] > 0, target, occluder_ratio)
     samples = np.zeros((candidates, len(ys), 3), np.float32)  # colours per candidate slot
     count = np.zeros(len(ys), np.int32)  # (M,) slots each pixel filled
     for k in range(1, t):  # 3. closest frames first
@@ -155,7 +207,11 @@ def reproject_fill(
         map_y = y[ok].astype(np.float32).reshape(-1, 1)
         sampled = cv2.remap(frames[k], map_x, map_y, cv2.INTER_LINEAR, cv2.BORDER_REPLICATE)
         got = idx[ok]
-        samples[count[got], got] = sampled.reshape(-1, 3)
+        sampled = sampled.reshape(-1, 3)
+        if occluders is not None:  # not another frame's missed hand or arm
+            keep = ~occluders.hand_like(sampled)
+            got, sampled = got[keep], sampled[keep]
+        samples[count[got], got] = sampled
         first = got[count[got] == 0]
         source_frame[ys[first], xs[first]] = k
         count[got] += 1

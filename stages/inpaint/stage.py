@@ -10,7 +10,9 @@ inputs when a workflow connects them, else the clip's own. Backends:
   (see ``reproject_fill``). Without frame-0 depth or poses (a static camera has no depth) the
   later frames are aligned in the image instead: the identity for a static camera (the
   ``cameras`` row's ``static_camera``, or poses that do not move), which makes the fill a plain
-  temporal median, else homographies fitted to features (see ``aligned_fill``);
+  temporal median, else homographies fitted to features and checked round the hole (see
+  ``aligned_fill``). Masks grow by ``dilate_px`` plus ``dilate_fraction`` of the image diagonal
+  first (motion blur, shadows and mask edges);
 - ``opencv``: OpenCV (Telea) inpainting only (the baseline);
 - ``diffusers``: a diffusers inpainting pipeline from ``model_path`` (see
   ``diffusers_backend``).
@@ -81,6 +83,8 @@ class InpaintConfig(StageConfig):
     inpaint_radius: float = 5.0  # OpenCV inpainting neighbourhood radius, pixels
     candidates: int = 7  # later frames whose colours are medianed per pixel (1: closest only)
     unseen_method: str = "telea"  # OpenCV method for pixels no frame sees: "telea" or "ns"
+    occluder_ratio: float = 0.8  # a sample nearer frame 0's hand colours than this times its
+    # nearest background colour is another frame's missed hand or arm, not used (0: off)
     model_path: str = ""  # local folder of a diffusers inpainting pipeline (backend diffusers)
     device: str = "cpu"  # torch device of the diffusers pipeline
     prompt: str = "empty table, no hands"  # text prompt of the diffusers pipeline
@@ -98,6 +102,8 @@ class InpaintConfig(StageConfig):
             problems.append(f"depth_tolerance must be in [0, 1], got {self.depth_tolerance}")
         if not 0.0 < self.inpaint_radius <= 100.0:
             problems.append(f"inpaint_radius must be in (0, 100], got {self.inpaint_radius}")
+        if not 0.0 <= self.occluder_ratio <= 1.0:
+            problems.append(f"occluder_ratio must be in [0, 1], got {self.occluder_ratio}")
         if not 1 <= self.candidates <= 32:
             problems.append(f"candidates must be in [1, 32], got {self.candidates}")
         if self.unseen_method not in UNSEEN_METHODS:
@@ -116,8 +122,8 @@ class InpaintStage(ClipStage):
     """Remove hands from the first frame: reprojected later frames, then OpenCV inpainting."""
 
     name = "inpaint"
-    version = 4  # 3: median of several frames; clips without depth aligned in the image. 4: more
-    # frames in the median, dilation with the image size
+    version = 5  # 3: median of several frames; clips without depth aligned in the image. 4: more
+    # frames in the median, dilation with the image size. 5: hand-coloured samples not used
 
     description = "remove hands from the first frame (reprojected frames + OpenCV inpainting)"
     config_class = InpaintConfig
@@ -173,6 +179,7 @@ class InpaintStage(ClipStage):
                 candidates=cfg.candidates,
                 inpaint_radius=cfg.inpaint_radius,
                 unseen_method=cfg.unseen_method,
+                occluder_ratio=cfg.occluder_ratio,
             )
         try:
             return reproject_fill(
@@ -187,6 +194,7 @@ class InpaintStage(ClipStage):
                 inpaint_radius=cfg.inpaint_radius,
                 candidates=cfg.candidates,
                 unseen_method=cfg.unseen_method,
+                occluder_ratio=cfg.occluder_ratio,
             )
         except InpaintInputError as exc:
             raise ClipRejected(f"clip {clip_id!r}: {exc}") from exc
