@@ -6,10 +6,11 @@ Figures measured here (MediaPipe 0.10.21, CPU):
   misses are mostly the knuckles (joints 1, 5, 9, 13, 17): FreiHAND places them elsewhere.
 - InterHand fixture: the palm detector finds 1 of 6 hands (tight crops); on it, mean joint error of
   the 3D lift 28 mm at the observed depth (54 mm with the size prior alone), root-relative 28 mm.
-- HOT3D egocentric clip (RGB view, 438 frames): video mode finds both hands in 58% of frames and at
-  least one in 94% (image mode: 40% / 86%); swapped labels agree with the assigned side 81% of the
-  time (unswapped they would agree 19%); landmark jitter (median second difference) 1.8% of the
-  hand's size raw, 0.7% after smoothing.
+- HOT3D egocentric clip (RGB view, 438 frames): video mode finds both hands in 58-61% of frames and
+  at least one in 94% (image mode: 40% / 86%); with hands followed through misses (default since
+  hands v3) 76% and 100%; swapped labels agree with the assigned side 79-81% of the time
+  (unswapped they would agree 19%); landmark jitter (median second difference) 1.9-2.3% of the
+  hand's size raw, 0.7-0.8% after smoothing.
 """
 
 from __future__ import annotations
@@ -326,7 +327,7 @@ def test_hot3d_first_60_frames(mediapipe: object) -> None:
 @pytest.mark.slow
 def test_hot3d_whole_clip(mediapipe: object) -> None:
     fig = _hot3d_figures(_hot3d(None))
-    assert fig["two_hands"] >= 0.5 and fig["any_hand"] >= 0.9, fig
+    assert fig["two_hands"] >= 0.7 and fig["any_hand"] >= 0.97, fig  # measured 0.76, 1.0
     assert fig["label_agreement"] >= 0.7, fig
     assert fig["left_u"] < fig["right_u"], fig
     assert fig["jitter_raw"] < 0.04 and fig["jitter_smoothed"] < 0.5 * fig["jitter_raw"], fig
