@@ -241,8 +241,7 @@ def synthetic_case(
     clip = dataclasses.replace(clip, depth=None, static_depth=None, first_frame_clean=None)
     work.mkdir(parents=True, exist_ok=True)
     clips = work / "clips.parquet"
-    if not clips.is_file():
-        write_clips(clips, [clip])
+    write_clips(clips, [clip])  # cheap; depth_camera below reruns only if the clip changed
 
     cams = _step("depth_camera", {"clips": clips}, {"backend": "given"}, work, fresh=False)
     cloud = _step("scene_cloud", {"clips": clips, "cameras": cams}, cloud_params, work)
@@ -314,9 +313,15 @@ def main() -> int:
         start = time.perf_counter()
         if not args.no_run:
             run_case(case, args.data, run, args.workers)
-        scene = (
-            None if args.workflow_render else rerender(run, run / tag, cloud_params, render_params)
-        )
+        try:
+            scene = (
+                None
+                if args.workflow_render
+                else rerender(run, run / tag, cloud_params, render_params)
+            )
+        except FileNotFoundError as exc:  # the workflow stopped before inpaint
+            rows.append({"case": case.name, "error": str(exc)})
+            continue
         row, strip = real_case(case, args.data, run, scene)
         row["seconds"] = time.perf_counter() - start
         rows.append(row)

@@ -11,9 +11,9 @@ full of streaks. :func:`densify_depth` does neither:
    planarity (:func:`flying_pixel_mask`) are left out (``drop_edges``: both sides of the edge,
    whose colours mix the two surfaces; rendering closes the two-pixel seam at t=0) or, without
    ``drop_edges``, only the pixels between the sides become unmeasured and are filled.
-   Optionally (``speckle_px``, off by default: it cannot tell a right island of estimated depth
-   from a wrong one) small islands of estimated depth (``cv2.filterSpeckles``) become unmeasured
-   too. Nothing else is dropped.
+   Islands of estimated depth of at most ``speckle_px`` pixels (``cv2.filterSpeckles``; it cannot
+   tell a right island from a wrong one, so keep it small) become unmeasured too. Nothing else is
+   dropped.
 3. **Segment planes**: the colour image is cut into superpixels that follow colour edges
    (``cv2.watershed`` flooded from a grid of seeds; fine superpixels first, then coarser ones
    for what the fine ones could not fill). In each segment a plane is fitted to the
@@ -52,7 +52,7 @@ class DensifyParams:
     min_confidence: float = 0.5  # depth confidence at or above = measured (0..1)
     edge_threshold: float = 0.05  # flying pixel: |2nd difference of 1/z| / (1/z) above this
     drop_edges: bool = True  # True: both sides of a depth edge are left out, not filled
-    speckle_px: int = 0  # measured blobs of at most this many pixels that ... (0 = off)
+    speckle_px: int = 50  # measured blobs of at most this many pixels that ... (0 = off)
     speckle_rel: float = 0.03  # ... whose neighbours differ by at most this (relative 1/z) go
     segment_px: tuple[int, ...] = (20,)  # superpixel seed spacings, fine to coarse (pixels)
     plane_tolerance: float = 0.03  # plane inlier: |1/z - plane| / (1/z) at most this

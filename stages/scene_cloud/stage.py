@@ -193,7 +193,7 @@ class SceneCloudConfig(StageConfig):
     min_confidence: float = 0.5  # depth_camera confidence at or above = measured depth (0..1)
     edge_threshold: float = 0.05  # flying pixel: |2nd difference of 1/z| / (1/z) above; 0 = off
     drop_edges: bool = True  # True: both sides of a depth edge left out; False: refill them
-    speckle_px: int = 0  # measured blobs up to this many pixels (4-connected) ... (0 = off)
+    speckle_px: int = 50  # measured blobs up to this many pixels (4-connected) ... (0 = off)
     speckle_rel: float = 0.03  # ... whose neighbours differ by at most this (relative 1/z) go
     segment_px: tuple[int, ...] = (20,)  # colour superpixel seed spacings, fine to coarse
     plane_tolerance: float = 0.03  # plane inlier: |1/z - plane| / (1/z) at most this
