@@ -14,7 +14,9 @@ hand with 2D keypoints (MANO order, pixels, pixel centres at integer + 0.5):
   no arm to follow (it is out of view) and nothing more is added;
 - pixels of the strip's colour connected to it within ``colour_region`` half-widths of the axis
   are certainly arm; when those within ``refine_half_angle_deg`` form a ray from the wrist, the
-  arm is re-aimed along its main axis (:func:`region_direction`) and the labels redrawn;
+  arm is re-aimed along its main axis (:func:`region_direction`) and the labels redrawn; that
+  region is probably arm wherever it runs (``region_probable``: an arm that turns more than the
+  band allows is not ruled out);
 - a tapered band along ``d`` from the wrist to the image border is probably arm;
 - a fan of ``fan_half_angle_deg`` either side of ``d``, ending ``fan_width`` half-widths from the
   axis, is probably background (the forearm may bend at the wrist; the colour model moves those
@@ -65,6 +67,7 @@ class ArmParams:
     fan_width: float = 3.0  # the fan ends this many forearm half-widths from the axis (0: no end)
     refine_direction: bool = True  # re-aim the arm along the arm-coloured region's main axis
     refine_half_angle_deg: float = 60.0  # that region is looked for this far either side
+    region_probable: bool = True  # that region is probably arm (else background off the band)
 
     def __post_init__(self) -> None:
         problems = []
@@ -301,9 +304,12 @@ def draw_arm_labels(
         if region is not None and arm.refine_direction:
             better = region_direction(region, wrist, d)
             if better is not None:
-                fan, band, seed, _ = _arm_regions(
+                fan, band, seed, again = _arm_regions(
                     lab, mask, wrist, better, hand_len, scale, capsule, arm
                 )
+                region = region if again is None else again
+        if region is not None and arm.region_probable:
+            band = band | region  # the arm's colour wherever it runs: GrabCut decides
     # A probably-background ring round the hand lets the colour model trim fat capsules.
     ring = cv2.dilate(mask, np.ones((3, 3), np.uint8), iterations=max(1, round(0.03 * scale)))
     for region, label in (

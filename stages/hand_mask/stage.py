@@ -173,8 +173,9 @@ class HandMaskStage(ClipStage):
     # cleaned joints and a replacement camera (see the module docstring)
     optional_inputs: ClassVar[Mapping[str, ShardSchema]] = {**CAMERA_ROLES, "hands": HANDS}
     output = HAND_MASK
-    version = 4  # 2: image-space arm masks (no world axis). 3: arm found by a colour walk, masks
-    # carried into frames whose hands were missed. 4: arm re-aimed along its colour region
+    version = 5  # 2: image-space arm masks (no world axis). 3: arm found by a colour walk, masks
+    # carried into frames whose hands were missed. 4: arm re-aimed along its colour region.
+    # 5: that region is probably arm wherever it runs
     backends = ("keypoints", "sam")
 
     def __init__(self, config: StageConfig | None = None) -> None:
