@@ -15,17 +15,20 @@ from bench.bench_state_fusion import (
     look_back_figures,
     measure_state_update,
     segment_two,
+    visible_object_points,
 )
 from egosim.pipeline.clip_io import write_clips
 from egosim.pipeline.execute import run_shard_task
 from egosim.pipeline.geometry import look_at, make_se3, matrix_from_quat
+from egosim.pipeline.runner import IN_PROCESS, run_workflow
 from egosim.pipeline.shards import ShardWriter, open_shard
 from egosim.pipeline.stage import ClipRejected, ConfigError, get_stage
+from egosim.pipeline.workflow import load_workflow
 from egosim.schemas import STATE, get_schema
 from egosim.schemas.hand_mask import HAND_MASK
 from egosim.schemas.hands import HANDS
 from egosim.schemas.state import scene_cloud_row_from_state, state_for_clip
-from egosim.stages.scene_cloud.stage import cloud_from_row
+from egosim.stages.scene_cloud.stage import SceneCloudStage, cloud_from_row
 from egosim.stages.state_fusion.config import StateFusionConfig
 from egosim.stages.state_fusion.fusion import (
     FusionError,
@@ -37,10 +40,13 @@ from egosim.stages.state_fusion.fusion import (
     sim3_from_poses,
     sim3_matrix,
 )
+from egosim.stages.state_fusion.metrics import centroid_error
 from egosim.stages.state_fusion.stage import StateFusionStage, observation_from_rows
 from egosim.stages.state_fusion.state_io import row_from_state, state_from_row
 from egosim.stages.world import WorldConfig, render_clip
 from tests.conftest import one_shard_task
+
+REPO = Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture(scope="module")
@@ -383,3 +389,40 @@ def test_hinged_lid_opened_in_the_state():
     assert figures["chamfer_roi"] < 0.008
     assert figures["chamfer_roi"] < 0.3 * figures["chamfer_roi_baseline"]
     assert figures["hand_fraction"] <= 0.01
+
+
+def test_first_update_from_the_clips_scene_cloud(world, seed0):
+    """The dataset path (runner-expressible): the clip's scene_cloud (its hand-free first
+    frame) is the state before it; after fusing the clip the box stands at its new place."""
+    clip, rows, _ = world
+    cloud_row = SceneCloudStage().process({"clips": rows["clips"]})
+    row = StateFusionStage().process({**rows, "scene_cloud": cloud_row})
+    assert row["previous_clip_id"] == row["clip_id"] == clip.clip_id
+    state = state_from_row(row)
+    (obj,) = seed0["objects"]
+    inter = [i for i in state.instances if i.interactive]
+    assert len(inter) == 1
+    target = visible_object_points(clip, inter[0].geometry_frame, obj["id"])
+    assert centroid_error(state.instance_points(inter[0].id), target) < 0.01
+    old = clip.object_poses[0, obj["id"] - 1, :3, 3]
+    above_old = (np.linalg.norm(state.points[:, :2] - old[:2], axis=1) < 0.025) & (
+        state.points[:, 2] > old[2] + 0.015
+    )
+    assert above_old.sum() == 0  # the box's old place was seen empty and carved
+
+
+@pytest.mark.slow
+def test_state_workflow_runs_through_the_runner(tmp_path: Path):
+    """workflows/state.yaml on two tiny synthetic clips (a pick and, every 3rd, a lid)."""
+    tiny = ["height=120", "width=208", "num_frames=17", "fps=16"]
+    overrides = [f"ingest.{kv}" for kv in [*tiny, "synthetic_count=2"]]
+    workflow = load_workflow(REPO / "workflows" / "state.yaml", overrides)
+    out = tmp_path / "run"
+    summary = run_workflow(workflow, out, scheduler=IN_PROCESS)
+    assert summary.rejected == 0
+    with open_shard(out / "state" / "shard-00000.parquet", STATE) as reader:
+        rows = list(reader.iter_rows())
+    assert len(rows) == 2
+    for row in rows:
+        assert sum(row["instance_interactive"]) >= 1, row["clip_id"]
+        assert row["previous_clip_id"] == row["clip_id"]

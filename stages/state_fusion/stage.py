@@ -5,7 +5,8 @@ the hand boxes of the interaction test are their projections), ``hand_mask`` (ha
 dilated and left out of the state); optional ``poses`` / ``cameras`` (the clip's cameras by the
 shared rule of :func:`egosim.stages.common.cameras.resolve_cameras`) and ``previous_state`` (the
 state the clip starts from, a ``state`` row keyed by this clip's id: in simulation, the state the
-clip was generated from).
+clip was generated from), or else ``scene_cloud`` (the clip's hand-free first frame as the state
+before it: :func:`initial_state`; the first update of a dataset clip through the runner).
 
 Depth: the clip's own per-frame ``depth`` column (the synthetic world, EgoDex, MCAP with depth,
 or a generated clip's depth when the simulator returns it). ``depth_camera`` gives depth for
@@ -22,6 +23,7 @@ cameras are taken to be in the state's frame already (identity, recorded).
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Mapping
 from typing import Any, ClassVar
 
@@ -33,10 +35,17 @@ from egosim.pipeline.stage import ClipRejected, ClipStage
 from egosim.schemas import CLIPS, ShardSchema
 from egosim.schemas.hand_mask import HAND_MASK
 from egosim.schemas.hands import HANDS
+from egosim.schemas.scene import SCENE_CLOUD
 from egosim.schemas.state import STATE
 from egosim.stages.common.cameras import CAMERA_ROLES, resolve_cameras
 from egosim.stages.state_fusion.config import StateFusionConfig
-from egosim.stages.state_fusion.fusion import FusionError, Observation, fuse_state
+from egosim.stages.state_fusion.fusion import (
+    SOURCE_PREVIOUS,
+    FusionError,
+    Observation,
+    State,
+    fuse_state,
+)
 from egosim.stages.state_fusion.state_io import row_from_state, state_from_row
 
 
@@ -114,6 +123,36 @@ def observation_from_rows(
     )
 
 
+def initial_state(cloud_row: Mapping[str, Any], obs: Observation) -> State:
+    """The state before a clip from its ``scene_cloud`` row (the hand-free first frame).
+
+    Every point is background carried from before (no instances yet); the cloud's camera is
+    the clip's frame 0, in the frame of the clip's cameras (``scene_cloud`` uses the same
+    camera rule), so no registration is needed.
+    """
+    n = int(cloud_row["num_points"])
+    return State(
+        clip_id=obs.clip_id,  # previous_clip_id == clip_id: the state before was its own cloud
+        previous_clip_id=None,
+        world_frame=obs.clip_id,
+        num_frames=1,
+        points=np.frombuffer(cloud_row["points_xyz"], dtype="<f4").reshape(n, 3).copy(),
+        colours=np.frombuffer(cloud_row["points_rgb"], dtype=np.uint8).reshape(n, 3).copy(),
+        point_size=np.frombuffer(cloud_row["point_size"], dtype="<f4").copy(),
+        instance=np.zeros(n, np.int32),
+        source=np.full(n, SOURCE_PREVIOUS, np.uint8),
+        instances=[],
+        intrinsics=np.asarray(obs.intrinsics, np.float64),
+        width=obs.frames.shape[2],
+        height=obs.frames.shape[1],
+        world_from_cam=obs.world_from_cam[:1].copy(),
+        camera_frames=[f"{obs.clip_id}:0"],
+        previous_from_clip=np.eye(4),
+        sim3_scale=1.0,
+        registration_rms=None,
+    )
+
+
 class StateFusionStage(ClipStage):
     """Fuse a clip into the world state: objects, interaction test, TSDF, Sim3, cleaning."""
 
@@ -128,6 +167,7 @@ class StateFusionStage(ClipStage):
     optional_inputs: ClassVar[Mapping[str, ShardSchema]] = {
         **CAMERA_ROLES,
         "previous_state": STATE,
+        "scene_cloud": SCENE_CLOUD,  # the initial state when there is no previous_state
     }
     output = STATE
     backends = ("geometric",)
@@ -139,6 +179,9 @@ class StateFusionStage(ClipStage):
         obs = observation_from_rows(rows, self.config)
         prev_row = rows.get("previous_state")
         previous = state_from_row(prev_row) if prev_row is not None else None
+        if previous is None and rows.get("scene_cloud") is not None:
+            previous = initial_state(rows["scene_cloud"], obs)
+            obs = dataclasses.replace(obs, reference_world_from_cam=None)  # its frame already
         try:
             state = fuse_state(obs, previous, self.config)
         except FusionError as exc:
