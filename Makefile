@@ -38,7 +38,7 @@ $(STAMP): pyproject.toml
 	$(BIN)/pip install -q "absl-py>=2,<3" "flatbuffers>=24,<26" "attrs>=19.1" "matplotlib>=3.8,<4" \
 		"protobuf>=5.29.6,<6"
 	# A TFLite runtime to run MediaPipe's landmark model on chosen regions (tracking through misses:
-	# on the real DWM clip 00013 left-hand recall 0.17 -> 1.0, right 0.42 -> 0.79).
+	# on the real DWM clip 00013 left-hand recall 0.17 -> 1.0, right 0.42 -> 0.96).
 	$(BIN)/pip install -q "ai-edge-litert==2.3.0"
 	touch $(STAMP)
 

@@ -8,7 +8,7 @@ Figures measured here (MediaPipe 0.10.21 models, ai-edge-litert 2.3.0, CPU):
 - The same clip with both hands deleted from frames 0-2: followed back from frame 3, every deleted
   hand comes back within 2-6% of the hand's size of MediaPipe's own landmarks (mean 3.2%).
 - DWM clip 00013 (real Aria, sleeved hands gripping a cushion): with tracking, left-hand recall
-  0.17 -> 1.0 and right 0.42 -> 0.79 (``python -m bench.hands_real``).
+  0.17 -> 1.0 and right 0.42 -> 0.96 (``python -m bench.hands_real``).
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 from egosim.stages.hands.mediapipe_backend import hand_size
-from egosim.stages.hands.roi_landmarks import (
+from egosim.stages.common.roi_landmarks import (
     INPUT_SIZE,
     Roi,
     TrackParams,
@@ -89,7 +89,7 @@ def _nearest_error(uv: np.ndarray, candidates: np.ndarray) -> float:
 
 
 def test_landmark_model_on_previous_roi_matches_mediapipe(egodex) -> None:
-    from egosim.stages.hands.roi_landmarks import LandmarkModel
+    from egosim.stages.common.roi_landmarks import LandmarkModel
 
     frames, raw = egodex
     model = LandmarkModel()
@@ -105,7 +105,7 @@ def test_landmark_model_on_previous_roi_matches_mediapipe(egodex) -> None:
 
 
 def test_hands_followed_back_to_frame_zero(egodex) -> None:
-    from egosim.stages.hands.roi_landmarks import LandmarkModel
+    from egosim.stages.common.roi_landmarks import LandmarkModel
 
     frames, raw = egodex
     uv, world = raw.uv.copy(), raw.world.copy()
