@@ -16,7 +16,6 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from egosim.stages.hands.mediapipe_backend import hand_size
 from egosim.stages.common.roi_landmarks import (
     INPUT_SIZE,
     Roi,
@@ -24,6 +23,7 @@ from egosim.stages.common.roi_landmarks import (
     roi_from_landmarks,
     track_through_misses,
 )
+from egosim.stages.hands.mediapipe_backend import hand_size
 from tests.conftest import shared_data
 
 

@@ -6,14 +6,17 @@ Two pieces that more than one stage needs:
   order (video/tracking mode by default, which finds far more hands on egocentric video than
   per-image mode). Per frame up to two hands: 21 image landmarks (pixels), 21 world landmarks
   (metres about the hand's centre, camera-aligned axes, scaled by MediaPipe's average-hand size
-  prior: wrist to middle knuckle 8-10 cm whatever the hand) and the handedness score.
+  prior: wrist to middle knuckle 8-10 cm whatever the hand) and the handedness score; then
+  every found hand is followed through the frames where the palm detector missed it, forwards
+  and backwards (:func:`egosim.stages.common.roi_landmarks.track_through_misses`, the same
+  tracker the ``hands`` stage uses).
 - :func:`place_in_camera`: the translation that puts the metric world landmarks where their
   projection fits the 2D landmarks (linear least squares, a translation-only PnP). The result is
   metric camera-frame joints whose distance comes from the hand-size prior.
 
-The ``hands`` stage has its own copy of both (``stages/hands/mediapipe_backend.py``:
-``detect_landmarks``, ``lift_to_camera``); it can switch to this module. MediaPipe is imported
-lazily: install it as ``make setup`` does (``--no-deps mediapipe==0.10.21``).
+The ``hands`` stage adds tiled search and side assignment (``stages/hands/mediapipe_backend.py``:
+``detect_landmarks``) and its palm-PnP lift (``lift_to_camera``); the metric scale needs neither.
+MediaPipe is imported lazily: install it as ``make setup`` does (``--no-deps mediapipe==0.10.21``).
 """
 
 from __future__ import annotations
@@ -21,6 +24,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+
+from egosim.stages.common.roi_landmarks import LandmarkModel, track_through_misses
 
 NUM_JOINTS = 21  # MediaPipe / MANO joint count per hand
 MAX_HANDS = 2  # hands detected per frame
@@ -38,6 +43,8 @@ class HandLandmarkParams:
     min_detection_confidence: float = 0.3  # palm detector threshold (0.5 misses drawn hands)
     min_tracking_confidence: float = 0.5  # below it the tracker re-runs the palm detector
     model_complexity: int = 1  # landmark model: 0 lite, 1 full
+    track_misses: bool = True  # follow found hands through detector misses, forwards and
+    # backwards (the landmark model on flow-carried ROIs, :mod:`.roi_landmarks`; ai-edge-litert)
 
     def __post_init__(self) -> None:
         problems = []
@@ -107,6 +114,12 @@ def detect_hand_landmarks(
                 out.world[i, k] = [(p.x, p.y, p.z) for p in world_lm.landmark]
                 out.score[i, k] = handedness.classification[0].score
                 out.present[i, k] = True
+    if params.track_misses and out.present.any():
+        model = LandmarkModel(params.model_complexity)
+        tracked = track_through_misses(
+            frames, out.uv, out.world, out.score, out.present, model
+        )  # fills uv, world, score and present in place
+        out.score[tracked] = 0.5  # the side of a followed hand is not scored here
     return out
 
 

@@ -54,8 +54,8 @@ import numpy as np
 
 from egosim.pipeline.geometry import transform_points
 from egosim.pipeline.records import LEFT, NUM_HAND_JOINTS, RIGHT, Clip
-from egosim.stages.hands.filters import Detections
 from egosim.stages.common.roi_landmarks import LandmarkModel, TrackParams, track_through_misses
+from egosim.stages.hands.filters import Detections
 
 BRIDGED_CONFIDENCE_FACTOR = 0.5  # confidence of interpolated frames relative to detected ones
 MIDDLE_MCP = 9  # joint index of the middle finger's knuckle (hand size: wrist to it)
