@@ -526,6 +526,7 @@ def compare_with_observation(
     world_from_cam: np.ndarray,
     intrinsics: np.ndarray,
     config: StateFusionConfig,
+    use_colour: bool = True,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Old ``points (N, 3)`` against the clip's observations: ``(seen (N,), contradicted (N,))``.
 
@@ -533,7 +534,7 @@ def compare_with_observation(
     known depth and is not hidden behind the observed surface by more than ``overlap_depth_m``.
     The latest frame that sees it decides: contradicted when it lies in front of the observed
     surface by more than ``overlap_depth_m`` (free space) or its colour differs by more than
-    ``overlap_colour`` (mean absolute RGB difference in [0, 1]).
+    ``overlap_colour`` (mean absolute RGB difference in [0, 1]; only with ``use_colour``).
     """
     n = len(points)
     seen = np.zeros(n, bool)
@@ -552,7 +553,9 @@ def compare_with_observation(
         idx, v, u, z, d = idx[good], v[good], u[good], z[good], d[good]
         seen[idx] = True
         colour_diff = np.abs(frames[k, v, u].astype(np.float32) / 255.0 - col[idx]).mean(1)
-        contradicted[idx] = (z < d - config.overlap_depth_m) | (colour_diff > config.overlap_colour)
+        contradicted[idx] = (z < d - config.overlap_depth_m) | (
+            use_colour & (colour_diff > config.overlap_colour)
+        )
     return seen, contradicted
 
 
@@ -710,7 +713,23 @@ def fuse_state(
     for m in np.flatnonzero(interactive):
         k = geo_frame[m] = geometry_frame(tracks[m], config.settled_distance_m)
         pix = tracks[m].pixels[k]
-        new_pts.append(tracks[m].points[k].astype(np.float32))
+        obj_pts = tracks[m].points[k].astype(np.float32)
+        # A later frame that sees through the object's last place (free space in front of the
+        # observed surface) means it left (a lid opened, a track lost): those points go.
+        if k + 1 < t:
+            _, gone = compare_with_observation(
+                obj_pts,
+                obs.frames[k].reshape(-1, 3)[pix],
+                depth[k + 1 :],
+                obs.frames[k + 1 :],
+                valid[k + 1 :],
+                poses[k + 1 :],
+                intrinsics,
+                config,
+                use_colour=False,
+            )
+            pix, obj_pts = pix[~gone], obj_pts[~gone]
+        new_pts.append(obj_pts)
         new_rgb.append(obs.frames[k].reshape(-1, 3)[pix])
         new_size.append((depth[k].reshape(-1)[pix] / intrinsics[0]).astype(np.float32))
         new_track.append(np.full(len(pix), m + 1, np.int32))
