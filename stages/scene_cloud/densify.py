@@ -52,7 +52,7 @@ class DensifyParams:
     min_confidence: float = 0.5  # depth confidence at or above = measured (0..1)
     edge_threshold: float = 0.05  # flying pixel: |2nd difference of 1/z| / (1/z) above this
     drop_edges: bool = True  # True: both sides of a depth edge are left out, not filled
-    speckle_px: int = 50  # measured blobs of at most this many pixels that ... (0 = off)
+    speckle_px: int = 50  # islands of estimated depth of at most this many pixels ... (0 = off)
     speckle_rel: float = 0.03  # ... whose neighbours differ by at most this (relative 1/z) go
     segment_px: tuple[int, ...] = (20,)  # superpixel seed spacings, fine to coarse (pixels)
     plane_tolerance: float = 0.03  # plane inlier: |1/z - plane| / (1/z) at most this

@@ -49,14 +49,7 @@ from egosim.stages.common.cameras import (
     first_frame_depth,
     resolve_cameras,
 )
-from egosim.stages.scene_cloud.densify import (
-    MEASURED,
-    DensifyParams,
-    densify_depth,
-    flying_pixel_mask,
-)
-
-__all__ = ["flying_pixel_mask"]  # re-exported: it moved to densify
+from egosim.stages.scene_cloud.densify import MEASURED, DensifyParams, densify_depth
 
 STATIC_PLANE_DEPTH = 1.0  # depth of the plane standing in for a static / rotating camera's scene
 
@@ -72,9 +65,9 @@ class SceneCloud:
     points: np.ndarray  # (N, 3) float32 world metres
     colours: np.ndarray  # (N, 3) uint8 RGB
     point_size: np.ndarray  # (N,) float32 side in metres of each point's source pixel (z / fx)
-    num_flying_removed: int  # measured pixels dropped as flying pixels or speckles (then filled)
+    num_flying_removed: int  # measured pixels dropped at depth edges (left out or filled), speckles
     kept_fraction: float  # N / (H * W)
-    confidence: np.ndarray  # (N,) uint8 255 = depth measured; 1..254 = filled, 254 x confidence
+    confidence: np.ndarray  # (N,) uint8 255 = depth measured; 1..254 filled: 1 + 253 x confidence
 
 
 def point_confidence(source: np.ndarray, confidence: np.ndarray) -> np.ndarray:
@@ -193,7 +186,7 @@ class SceneCloudConfig(StageConfig):
     min_confidence: float = 0.5  # depth_camera confidence at or above = measured depth (0..1)
     edge_threshold: float = 0.05  # flying pixel: |2nd difference of 1/z| / (1/z) above; 0 = off
     drop_edges: bool = True  # True: both sides of a depth edge left out; False: refill them
-    speckle_px: int = 50  # measured blobs up to this many pixels (4-connected) ... (0 = off)
+    speckle_px: int = 50  # islands of estimated depth up to this many pixels ... (0 = off)
     speckle_rel: float = 0.03  # ... whose neighbours differ by at most this (relative 1/z) go
     segment_px: tuple[int, ...] = (20,)  # colour superpixel seed spacings, fine to coarse
     plane_tolerance: float = 0.03  # plane inlier: |1/z - plane| / (1/z) at most this
