@@ -12,8 +12,9 @@ in red | render at the end); with ``--cloud``/``--render`` settings both names c
   ``poses`` and ``inpaint`` shards (:func:`rerender`; ``--workflow-render`` measures the run's own
   render instead), and the render is compared with ``videos_static`` (the true static scene along
   the true trajectory). Hand pixels are ``videos_hands`` dilated by ``HAND_DILATE_PX``. The
-  depth-fill settings before this module's change are reproduced by ``--cloud min_confidence=0
-  --cloud fill=false --render max_crack_px=0 --render max_crack_width=0``.
+  scene steps as they were before the depth fill (scene_cloud v4, scene_render v1) are reproduced
+  by ``--cloud min_confidence=0 --cloud fill=false --cloud speckle_px=0 --render max_crack_px=0
+  --render max_crack_width=0`` (checked: the same figures as the old stages' own render).
 - **Synthetic** (``world_*``): a small synthetic clip whose depth is removed, so ``depth_camera``
   (backend ``given``: the world's poses) estimates it by plane sweep like on real video; then
   ``scene_cloud`` (hands left out by the world's hand mask) and ``scene_render``; compared with
