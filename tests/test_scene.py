@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from egosim.pipeline import media
-from egosim.pipeline.clip_io import write_clips
+from egosim.pipeline.clip_io import row_from_clip, write_clips
 from egosim.pipeline.execute import ShardTask, run_shard_task
 from egosim.pipeline.geometry import (
     intrinsics_from_fov,
@@ -23,10 +23,13 @@ from egosim.pipeline.geometry import (
     unproject_depth,
 )
 from egosim.pipeline.shards import ShardWriter, open_shard
+from egosim.pipeline.stage import ClipRejected
 from egosim.schemas.inpaint import INPAINT
 from egosim.schemas.scene import SCENE_CLOUD, SCENE_RENDER
+from egosim.schemas.state import STATE, scene_cloud_row_from_state
 from egosim.stages.scene_cloud.stage import (
     SceneCloudError,
+    SceneCloudStage,
     build_scene_cloud,
     cloud_from_row,
     fill_depth_under,
@@ -36,6 +39,7 @@ from egosim.stages.scene_render.splat import (
     inpaint_mask_from_visible,
     render_point_cloud,
 )
+from egosim.stages.scene_render.stage import SceneRenderStage
 from egosim.stages.world.clip import render_clip
 from egosim.stages.world.config import WorldConfig
 from tests.conftest import one_shard_task, translated, write_cameras, write_poses
@@ -464,3 +468,68 @@ def test_depth_under_inpainted_pixels_continues_the_surface() -> None:
     out = fill_depth_under(hand, filled)
     assert np.abs(out[filled] - depth[filled]).max() < 0.1
     assert np.array_equal(out[~filled], hand[~filled])
+
+
+def _state_row_holding(cloud_row: dict, clip) -> dict:
+    """A ``state`` row (no instances) holding ``cloud_row``'s points, fused from ``clip``."""
+    n = int(cloud_row["num_points"])
+    return {
+        "clip_id": clip.clip_id,
+        "state_clip_id": clip.clip_id,
+        "previous_clip_id": None,
+        "world_frame": clip.clip_id,
+        "num_frames": 1,
+        "num_points": n,
+        "points_xyz": cloud_row["points_xyz"],
+        "points_rgb": cloud_row["points_rgb"],
+        "point_size": cloud_row["point_size"],
+        "point_instance": np.zeros(n, "<i4").tobytes(),
+        "point_source": np.zeros(n, np.uint8).tobytes(),
+        **{
+            name: []
+            for name in (
+                "instance_id",
+                "instance_label",
+                "instance_interactive",
+                "instance_last_observed_frame",
+                "instance_geometry_frame",
+                "instance_interaction",
+                "instance_depth_gap_m",
+                "instance_centroid",
+            )
+        },
+        "width": W,
+        "height": H,
+        "intrinsics": np.asarray(clip.intrinsics, np.float64).tolist(),
+        "world_from_cam": clip.world_from_cam[:1].reshape(1, 16).tolist(),
+        "camera_frames": [f"{clip.clip_id}:0"],
+        "previous_from_clip": np.eye(4).reshape(16).tolist(),
+        "sim3_scale": 1.0,
+        "registration_rms_m": None,
+    }
+
+
+def test_scene_render_renders_a_state_as_its_scene_cloud(world_clip) -> None:
+    clip_row = row_from_clip(world_clip)
+    cloud_row = SceneCloudStage().process({"clips": clip_row})
+    state_row = _state_row_holding(cloud_row, world_clip)
+    STATE.validate_row(state_row)
+    stage = SceneRenderStage()
+    from_state = stage.process({"clips": clip_row, "state": state_row})
+    from_cloud = stage.process(
+        {"clips": clip_row, "scene_cloud": scene_cloud_row_from_state(state_row)}
+    )
+    assert from_state == from_cloud  # same bytes: one renderer
+    # The state wins over a scene_cloud row given beside it.
+    empty_cloud = {
+        **cloud_row,
+        "num_points": 1,
+        "points_xyz": cloud_row["points_xyz"][:12],
+        "points_rgb": cloud_row["points_rgb"][:3],
+        "point_size": cloud_row["point_size"][:4],
+        "point_confidence": cloud_row["point_confidence"][:1],
+    }
+    both = stage.process({"clips": clip_row, "state": state_row, "scene_cloud": empty_cloud})
+    assert both == from_state
+    with pytest.raises(ClipRejected, match=f"clip '{world_clip.clip_id}': nothing to render"):
+        stage.process({"clips": clip_row})

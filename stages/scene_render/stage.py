@@ -1,6 +1,9 @@
 """The ``scene_render`` stage: render each clip's scene cloud along its trajectory.
 
-Reads the ``clips`` row (size, fps) and the clip's ``scene_cloud`` row; writes a scene video and
+Reads the ``clips`` row (size, fps) and the points to render: the clip's ``state`` row when that
+role is connected (a world state keyed by the clip, e.g. the state a simulated clip starts from;
+converted by :func:`egosim.schemas.state.scene_cloud_row_from_state`), else its ``scene_cloud``
+row; a clip with neither is rejected. One renderer for both. Writes a scene video and
 a visibility mask video (1 = a scene point landed, or a small crack between landed points was
 closed: ``max_crack_px``, ``max_crack_width``) made by
 :func:`egosim.stages.scene_render.splat.render_point_cloud`, the same torch code on CPU and GPU.
@@ -21,6 +24,7 @@ from egosim.pipeline import media
 from egosim.pipeline.stage import ClipRejected, ClipStage, ConfigError, StageConfig
 from egosim.schemas import CLIPS, ShardSchema
 from egosim.schemas.scene import SCENE_CLOUD, SCENE_RENDER
+from egosim.schemas.state import STATE, scene_cloud_row_from_state
 from egosim.stages.common.cameras import CAMERA_ROLES, resolve_cameras
 from egosim.stages.scene_cloud.stage import cloud_from_row
 from egosim.stages.scene_render.splat import SplatError, render_point_cloud
@@ -55,23 +59,42 @@ class SceneRenderConfig(StageConfig):
             raise ConfigError("; ".join(problems))
 
 
+def points_row(rows: Mapping[str, Mapping[str, Any]]) -> Mapping[str, Any]:
+    """The ``scene_cloud`` row to render for one clip: its ``state`` row converted, else its
+    ``scene_cloud`` row; raises ClipRejected naming the clip when neither is given."""
+    cid = rows["clips"]["clip_id"]
+    if rows.get("state") is not None:
+        return scene_cloud_row_from_state(rows["state"], cid)
+    if rows.get("scene_cloud") is not None:
+        return rows["scene_cloud"]
+    raise ClipRejected(
+        f"clip {cid!r}: nothing to render: no 'state' row and no 'scene_cloud' row for this clip "
+        "(connect one of the two roles; a clip rejected upstream has neither)"
+    )
+
+
 class SceneRenderStage(ClipStage):
-    """Render the scene cloud along the clip's poses: scene video and visibility mask."""
+    """Render a scene cloud or a world state along the clip's poses: scene video, visibility."""
 
     name = "scene_render"
-    description = "render the scene cloud along the trajectory: scene video + visibility mask"
+    description = "render the scene cloud or state along the trajectory: scene video + visibility"
     config_class = SceneRenderConfig
-    inputs: ClassVar[Mapping[str, ShardSchema]] = {"clips": CLIPS, "scene_cloud": SCENE_CLOUD}
-    optional_inputs: ClassVar[Mapping[str, ShardSchema]] = CAMERA_ROLES  # replace the clip's camera
+    inputs: ClassVar[Mapping[str, ShardSchema]] = {"clips": CLIPS}
+    optional_inputs: ClassVar[Mapping[str, ShardSchema]] = {
+        **CAMERA_ROLES,  # replace the clip's camera
+        "scene_cloud": SCENE_CLOUD,  # the clip's hand-free first-frame cloud
+        "state": STATE,  # a world state keyed by the clip; wins over scene_cloud
+    }
     output = SCENE_RENDER
     backends = ("torch_splat",)
-    version = 2  # 2: small holes inside the render closed (max_crack_px) and marked visible
+    version = 3  # 3: renders a state row (optional role) as well as a scene_cloud row
     config: SceneRenderConfig
 
     def process(self, rows: Mapping[str, Mapping[str, Any]]) -> dict[str, Any]:
-        """Render one clip."""
-        clip, cloud_row = rows["clips"], rows["scene_cloud"]
+        """Render one clip (its ``state`` row when given, else its ``scene_cloud`` row)."""
+        clip = rows["clips"]
         cid = clip["clip_id"]
+        cloud_row = points_row(rows)
         t, h, w = int(clip["num_frames"]), int(clip["height"]), int(clip["width"])
         cams = resolve_cameras(rows)
         if cams.world_from_cam is None:
