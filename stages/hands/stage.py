@@ -2,7 +2,10 @@
 
 Backend ``given`` reads the clip's own joint labels (synthetic world, EgoDex); ``mediapipe``
 detects hands in the frames and lifts them to 3D (:mod:`egosim.stages.hands.mediapipe_backend`);
-``hamer`` imports HaMeR outputs (:mod:`egosim.stages.hands.hamer_backend`). The filters of
+``hamer`` imports HaMeR outputs (:mod:`egosim.stages.hands.hamer_backend`); ``regressor`` runs a
+learned HaMeR/WiLoR-style joint regressor from local safetensors weights on crops around the
+``mediapipe`` backend's hands (:mod:`egosim.stages.hands.regressor_backend`; needs torch, imported
+only then). The filters of
 :mod:`egosim.stages.hands.filters` run on every backend's detections: frame-wise
 de-duplication (projected joint boxes, IoU, breadth-first grouping, most confident per side) and
 temporal outlier removal (bidirectional speed test in camera space). Intrinsics and poses come
@@ -15,7 +18,9 @@ speed test (camera space) do, and the detecting backends lift their joints with 
 from __future__ import annotations
 
 import dataclasses
+import re
 from collections.abc import Mapping
+from pathlib import Path
 from typing import Any, ClassVar, Literal
 
 import numpy as np
@@ -42,10 +47,14 @@ from egosim.stages.hands.mediapipe_backend import MediaPipeParams, mediapipe_det
 class HandsConfig(StageConfig):
     """Parameters of ``hands``."""
 
-    # labels, MediaPipe, HaMeR files, or auto (labels when the clip has them, else MediaPipe)
-    backend: Literal["given", "mediapipe", "hamer", "auto"] = "given"
+    # labels, MediaPipe, HaMeR files, a learned regressor, or auto (labels, else MediaPipe)
+    backend: Literal["given", "mediapipe", "hamer", "regressor", "auto"] = "given"
     hamer_dir: str = ""  # backend hamer: folder of <clip_id>.npz HaMeR outputs
-    mediapipe_video_mode: bool = True  # backend mediapipe: tracking mode (False: per image)
+    regressor_weights: str = ""  # backend regressor: folder of config.json + model.safetensors
+    regressor_device: str = "cpu"  # backend regressor: torch device ("cpu", "cuda", "cuda:1")
+    # backend regressor: hand boxes and sides from MediaPipe, or from the clip's labels
+    regressor_boxes: Literal["mediapipe", "given"] = "mediapipe"
+    mediapipe_video_mode: bool = True  # mediapipe (and its regressor boxes): tracking mode
     iou_threshold: float = 0.5  # boxes overlapping more than this are the same hand
     max_speed: float = 2.5  # m/s in camera space; above it both ways = temporal outlier
     max_angular_speed: float = 720.0  # deg/s palm turn in camera space; above both ways = outlier
@@ -61,6 +70,20 @@ class HandsConfig(StageConfig):
             problems.append(f"max_angular_speed must be > 0 deg/s, got {self.max_angular_speed}")
         if self.backend == "hamer" and not self.hamer_dir:
             problems.append("backend 'hamer' needs hamer_dir (a folder of <clip_id>.npz files)")
+        if self.backend == "regressor" and not self.regressor_weights:
+            problems.append("backend 'regressor' needs regressor_weights (a local folder)")
+        elif self.backend == "regressor" and not Path(self.regressor_weights).is_dir():
+            problems.append(
+                f"regressor_weights must be an existing folder, got {self.regressor_weights!r}"
+            )
+        if not re.fullmatch(r"cpu|mps|cuda(:\d+)?", self.regressor_device):
+            problems.append(
+                f"regressor_device must be cpu, mps, cuda or cuda:N, got {self.regressor_device!r}"
+            )
+        if self.regressor_boxes not in ("mediapipe", "given"):
+            problems.append(
+                f"regressor_boxes must be 'mediapipe' or 'given', got {self.regressor_boxes!r}"
+            )
         if problems:
             raise ConfigError("; ".join(problems))
 
@@ -83,8 +106,16 @@ def _detections(
     if backend == "given":
         return given_detections(row)
     clip = dataclasses.replace(clip_from_row(row), world_from_cam=poses, intrinsics=intrinsics)
+    mediapipe = MediaPipeParams(video_mode=config.mediapipe_video_mode)
     if backend == "mediapipe":
-        return mediapipe_detections(clip, MediaPipeParams(video_mode=config.mediapipe_video_mode))
+        return mediapipe_detections(clip, mediapipe)
+    if backend == "regressor":  # imports torch: only when chosen
+        from egosim.stages.hands.regressor_backend import RegressorParams, regressor_detections
+
+        params = RegressorParams(
+            config.regressor_weights, config.regressor_device, config.regressor_boxes, mediapipe
+        )
+        return regressor_detections(clip, params)
     from egosim.schemas.ids import path_under, validate_id  # clip ids name files: check them
 
     return hamer_detections(clip, path_under(config.hamer_dir, f"{validate_id(clip.clip_id)}.npz"))
@@ -141,7 +172,7 @@ class HandsStage(ClipStage):
     inputs: ClassVar[Mapping[str, ShardSchema]] = {"clips": CLIPS}
     optional_inputs: ClassVar[Mapping[str, ShardSchema]] = CAMERA_ROLES  # replace the clip's camera
     output = HANDS
-    backends = ("given", "mediapipe", "hamer")
+    backends = ("given", "mediapipe", "hamer", "regressor")
     config: HandsConfig
 
     def process(self, rows: Mapping[str, Mapping[str, Any]]) -> dict[str, Any]:

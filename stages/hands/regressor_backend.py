@@ -1,0 +1,438 @@
+"""Backend ``regressor``: a learned hand regressor (HaMeR / WiLoR style) from local weights.
+
+For one clip:
+
+1. **Detect**: square boxes around each hand, with its side, from the default ``mediapipe``
+   backend's tracked and side-assigned 2D landmarks (``boxes="mediapipe"``), or from the clip's
+   own joint labels projected with its camera (``boxes="given"``: the regressor alone, evaluated
+   on true boxes). A box is centred on the landmarks' bounding box, its side ``box_scale`` times
+   the larger of its width and height (HaMeR's rescale of keypoint boxes).
+2. **Crop**: each box is resampled to an ``image_size`` square; left hands are mirrored first,
+   since the network (like HaMeR's MANO head) models right hands only.
+3. **Regress** (:class:`HandRegressor`): a ViT backbone over the crop's patches, mean-pooled,
+   then an MLP head that predicts 21 joints in metres relative to the wrist (joint order of the
+   clip labels, MediaPipe / OpenPose), in the camera's axes (OpenCV: x right, y down, z
+   forward), and a weak-perspective camera ``(s, tx, ty)``. As in HaMeR, the crop is not
+   rotated to face the hand, so the joints' axes are the full camera's.
+4. **Place** (:func:`full_perspective_translation`): the weak-perspective camera says that a
+   wrist-relative point ``X`` appears at the crop-normalised coordinate
+   ``n = s * (X_xy + (tx, ty))``, where ``n`` runs over ``[-1, 1]`` across the box; in full-image
+   pixels ``u = c_u + n_x * b / 2`` for a box of side ``b`` pixels centred at ``(c_u, c_v)``. A
+   pinhole ``(fx, fy, cx, cy)`` with the wrist at camera translation ``T`` maps a point near the
+   wrist (``|X| << T_z``) to ``u = fx * (X_x + T_x) / T_z + cx``. Equal pixels per metre give
+   ``s * b / 2 = f / T_z``, so ``T_z = 2 f / (s b)`` (``f`` the mean of ``fx`` and ``fy``), and
+   equal wrist pixels give ``T_x = T_z * (c_u + s * tx * b / 2 - cx) / fx`` (and ``T_y`` with
+   ``c_v, ty, cy, fy``). With ``fx = fy`` this is HaMeR's ``cam_crop_to_full``:
+   ``T_x = tx + 2 (c_u - cx) / (s b)``; here ``f, cx, cy`` are the clip's intrinsics, not a
+   guessed focal at the image centre, so the depth is metric if the predicted hand size is.
+   Mirroring a left hand's crop negates ``n_x``, so its joints' x and its ``tx`` are negated.
+   Then to world with ``world_from_cam``.
+
+Weights are a local folder with ``config.json`` (:class:`RegressorSpec` fields) and
+``model.safetensors`` (the state dict of :class:`HandRegressor`); pickled checkpoints are
+refused before anything is unpickled. :func:`save_regressor` writes such a folder. Released
+HaMeR and WiLoR checkpoints are pickles of a different network (a ViT-H backbone on 256x192
+crops, a transformer-decoder head that predicts MANO pose and shape, and the MANO layer, whose
+model files are licence-gated) and need a converter to this layout, which is not written: there
+are no MANO files here to test one against. The backbone's parameter names follow timm/ViTPose
+(``patch_embed.proj``, ``blocks.N.attn.qkv``, ``blocks.N.mlp.fc1``) so that such a converter
+can copy a ViT backbone by name. torch is imported by this module; the stage imports it only
+when this backend is chosen.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import json
+import math
+from pathlib import Path
+from typing import Literal
+
+import cv2
+import numpy as np
+import torch
+from safetensors import SafetensorError
+from safetensors.torch import load_file, save_file
+from torch import nn
+
+from egosim.model.checkpoint import refuse_pickle
+from egosim.pipeline.geometry import invert_se3, project_points, transform_points
+from egosim.pipeline.records import LEFT, NUM_HAND_JOINTS, RIGHT, Clip
+from egosim.pipeline.stage import ConfigError
+from egosim.stages.hands.filters import Detections
+from egosim.stages.hands.given import NoHandLabelsError
+from egosim.stages.hands.mediapipe_backend import MediaPipeParams, mediapipe_hands
+
+CONFIG_FILE = "config.json"  # architecture and preprocessing of a weights folder
+WEIGHTS_FILE = "model.safetensors"  # the state dict of HandRegressor
+ARCHITECTURE = "egosim-hand-regressor"  # the ``architecture`` value config.json must hold
+BATCH_SIZE = 32  # crops per forward pass
+PICKLE_SUFFIXES = (".bin", ".pt", ".pth", ".ckpt", ".pkl")  # torch.save checkpoints, refused
+
+
+class RegressorWeightsError(ConfigError):
+    """A regressor weights folder is missing, incomplete or does not match its config."""
+
+
+@dataclasses.dataclass(frozen=True)
+class RegressorSpec:
+    """Architecture and preprocessing of a :class:`HandRegressor` (``config.json``)."""
+
+    image_size: int = 256  # square crop side in pixels
+    patch_size: int = 16  # ViT patch side in pixels; divides image_size
+    hidden_size: int = 768  # token width
+    num_layers: int = 12  # transformer blocks
+    num_heads: int = 12  # attention heads; divides hidden_size
+    mlp_ratio: float = 4.0  # MLP width over hidden_size in each block
+    head_size: int = 1024  # hidden width of the joint/camera head
+    box_scale: float = 2.0  # crop side over the larger side of the landmarks' box
+    image_mean: tuple[float, float, float] = (0.485, 0.456, 0.406)  # RGB in [0, 1] (ImageNet)
+    image_std: tuple[float, float, float] = (0.229, 0.224, 0.225)  # RGB in [0, 1] (ImageNet)
+
+    def __post_init__(self) -> None:
+        problems = []
+        if self.image_size <= 0 or self.patch_size <= 0 or self.image_size % self.patch_size:
+            problems.append(
+                f"patch_size must divide image_size, got {self.patch_size} and {self.image_size}"
+            )
+        if self.num_heads <= 0 or self.hidden_size % self.num_heads:
+            problems.append(
+                f"num_heads must divide hidden_size, got {self.num_heads} and {self.hidden_size}"
+            )
+        if self.num_layers < 1 or self.head_size < 1 or self.mlp_ratio <= 0:
+            problems.append(
+                f"num_layers, head_size, mlp_ratio must be positive, got {self.num_layers}, "
+                f"{self.head_size}, {self.mlp_ratio}"
+            )
+        if not self.box_scale >= 1.0:
+            problems.append(f"box_scale must be >= 1, got {self.box_scale}")
+        if len(self.image_mean) != 3 or len(self.image_std) != 3 or min(self.image_std) <= 0:
+            problems.append(f"image_mean/std must be 3 values (std > 0), got {self.image_std}")
+        if problems:
+            raise RegressorWeightsError("; ".join(problems))
+
+
+class Attention(nn.Module):
+    """Multi-head self-attention with a fused ``qkv`` projection (timm naming)."""
+
+    def __init__(self, dim: int, num_heads: int) -> None:
+        super().__init__()
+        self.num_heads = num_heads
+        self.qkv = nn.Linear(dim, 3 * dim)
+        self.proj = nn.Linear(dim, dim)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """``x (B, N, C)`` -> ``(B, N, C)``."""
+        b, n, c = x.shape
+        qkv = self.qkv(x).reshape(b, n, 3, self.num_heads, c // self.num_heads)  # (B, N, 3, H, D)
+        q, k, v = qkv.permute(2, 0, 3, 1, 4)  # each (B, H, N, D)
+        out = nn.functional.scaled_dot_product_attention(q, k, v)  # (B, H, N, D)
+        return self.proj(out.transpose(1, 2).reshape(b, n, c))  # (B, N, C)
+
+
+class Mlp(nn.Module):
+    """Two linear layers with a GELU between (timm naming)."""
+
+    def __init__(self, dim: int, hidden: int) -> None:
+        super().__init__()
+        self.fc1 = nn.Linear(dim, hidden)
+        self.fc2 = nn.Linear(hidden, dim)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """``x (B, N, C)`` -> ``(B, N, C)``."""
+        return self.fc2(nn.functional.gelu(self.fc1(x)))
+
+
+class Block(nn.Module):
+    """Pre-norm transformer block."""
+
+    def __init__(self, dim: int, num_heads: int, mlp_ratio: float) -> None:
+        super().__init__()
+        self.norm1 = nn.LayerNorm(dim, eps=1e-6)
+        self.attn = Attention(dim, num_heads)
+        self.norm2 = nn.LayerNorm(dim, eps=1e-6)
+        self.mlp = Mlp(dim, int(dim * mlp_ratio))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """``x (B, N, C)`` -> ``(B, N, C)``."""
+        x = x + self.attn(self.norm1(x))
+        return x + self.mlp(self.norm2(x))
+
+
+class HandRegressor(nn.Module):
+    """ViT backbone plus a head: wrist-relative joints and a weak-perspective camera per crop."""
+
+    def __init__(self, spec: RegressorSpec) -> None:
+        super().__init__()
+        self.spec = spec
+        c = spec.hidden_size
+        grid = spec.image_size // spec.patch_size
+        self.patch_embed = nn.Module()
+        self.patch_embed.proj = nn.Conv2d(3, c, spec.patch_size, stride=spec.patch_size)
+        self.pos_embed = nn.Parameter(torch.zeros(1, grid * grid, c))
+        self.blocks = nn.ModuleList(
+            Block(c, spec.num_heads, spec.mlp_ratio) for _ in range(spec.num_layers)
+        )
+        self.last_norm = nn.LayerNorm(c, eps=1e-6)
+        self.head = nn.Sequential(nn.Linear(c, spec.head_size), nn.GELU())
+        self.joints_out = nn.Linear(spec.head_size, NUM_HAND_JOINTS * 3)
+        self.cam_out = nn.Linear(spec.head_size, 3)
+        # Outputs are offsets from a mean hand and a mean camera, as HaMeR adds its head's output
+        # to MANO's mean parameters and an initial camera (0.9, 0, 0): training sets the mean
+        # hand (zeros here); the camera's scale starts at 0.9 of the box.
+        self.register_buffer("mean_joints", torch.zeros(NUM_HAND_JOINTS, 3))
+        self.register_buffer("mean_cam", torch.tensor([_softplus_inverse(0.9), 0.0, 0.0]))
+        nn.init.trunc_normal_(self.pos_embed, std=0.02)  # ViT's choice
+        # Small output layers: an untrained model predicts near the means, not wild cameras.
+        for layer in (self.joints_out, self.cam_out):
+            nn.init.normal_(layer.weight, std=0.01)
+            nn.init.zeros_(layer.bias)
+
+    def forward(self, crops: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """``crops (B, 3, S, S)`` normalised -> ``(joints (B, 21, 3) metres, wrist at 0;
+        cam (B, 3) = (s > 0, tx, ty))``."""
+        x = self.patch_embed.proj(crops)  # (B, C, S/p, S/p)
+        x = x.flatten(2).transpose(1, 2) + self.pos_embed  # (B, N, C)
+        for block in self.blocks:
+            x = block(x)  # (B, N, C)
+        h = self.head(self.last_norm(x).mean(dim=1))  # (B, head_size)
+        joints = self.joints_out(h).reshape(-1, NUM_HAND_JOINTS, 3) + self.mean_joints  # (B, 21, 3)
+        joints = joints - joints[:, :1]  # (B, 21, 3) wrist at the origin
+        raw = self.cam_out(h) + self.mean_cam  # (B, 3)
+        scale = nn.functional.softplus(raw[:, :1])  # (B, 1) > 0: the hand is in front
+        return joints, torch.cat([scale, raw[:, 1:]], dim=1)  # (B, 21, 3), (B, 3)
+
+
+def _softplus_inverse(y: float) -> float:
+    return math.log(math.expm1(y))
+
+
+def save_regressor(model: HandRegressor, folder: str | Path) -> None:
+    """Write ``model`` as a weights folder (``config.json`` + ``model.safetensors``)."""
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    config = {"architecture": ARCHITECTURE, **dataclasses.asdict(model.spec)}
+    (folder / CONFIG_FILE).write_text(json.dumps(config, indent=2) + "\n")
+    state = {k: v.detach().cpu().contiguous() for k, v in model.state_dict().items()}
+    save_file(state, folder / WEIGHTS_FILE)
+
+
+def load_regressor(folder: str | Path, device: str = "cpu") -> HandRegressor:
+    """Load a weights folder written by :func:`save_regressor` (eval mode, on ``device``).
+
+    Raises :class:`RegressorWeightsError` when the folder or a file is missing or does not match
+    the config, and :class:`~egosim.model.checkpoint.UnsafeCheckpointError` for a pickle.
+    """
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise RegressorWeightsError(f"regressor_weights {str(folder)!r} is not a folder")
+    if not (folder / WEIGHTS_FILE).is_file():
+        pickles = sorted(p.name for p in folder.iterdir() if p.suffix in PICKLE_SUFFIXES)
+        hint = (
+            f"; {pickles} are pickles, which are never loaded (they can run code): convert "
+            "their tensors to safetensors in a trusted environment"
+            if pickles
+            else ""
+        )
+        raise RegressorWeightsError(
+            f"regressor_weights {str(folder)!r} has no {WEIGHTS_FILE}{hint}"
+        )
+    if not (folder / CONFIG_FILE).is_file():
+        raise RegressorWeightsError(f"regressor_weights {str(folder)!r} has no {CONFIG_FILE}")
+    try:
+        config = json.loads((folder / CONFIG_FILE).read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise RegressorWeightsError(f"{folder / CONFIG_FILE}: unreadable ({exc})") from exc
+    arch = config.pop("architecture", None) if isinstance(config, dict) else None
+    if arch != ARCHITECTURE:
+        raise RegressorWeightsError(
+            f"{folder / CONFIG_FILE}: architecture must be {ARCHITECTURE!r}, got {arch!r} "
+            "(HaMeR/WiLoR checkpoints need converting: see the module docstring)"
+        )
+    known = {f.name for f in dataclasses.fields(RegressorSpec)}
+    unknown = sorted(set(config) - known)
+    if unknown:
+        raise RegressorWeightsError(f"{folder / CONFIG_FILE}: unknown keys {unknown}")
+    for key in ("image_mean", "image_std"):
+        if key in config:
+            config[key] = tuple(config[key])
+    try:
+        spec = RegressorSpec(**config)
+    except TypeError as exc:
+        raise RegressorWeightsError(f"{folder / CONFIG_FILE}: {exc}") from exc
+    refuse_pickle(folder / WEIGHTS_FILE)  # before any parsing: a pickle can run code
+    try:
+        state = load_file(folder / WEIGHTS_FILE)
+    except (SafetensorError, OSError) as exc:
+        raise RegressorWeightsError(f"{folder / WEIGHTS_FILE}: not safetensors ({exc})") from exc
+    model = HandRegressor(spec)
+    try:
+        model.load_state_dict(state, strict=True)
+    except RuntimeError as exc:
+        raise RegressorWeightsError(
+            f"{folder / WEIGHTS_FILE} does not match config: {exc}"
+        ) from exc
+    return model.to(device).eval()
+
+
+@functools.lru_cache(maxsize=2)
+def _cached_regressor(folder: str, device: str) -> HandRegressor:
+    return load_regressor(folder, device)
+
+
+def full_perspective_translation(
+    cam: np.ndarray, box_centre: np.ndarray, box_size: np.ndarray, intrinsics: np.ndarray
+) -> np.ndarray:
+    """Wrist translations ``(N, 3)`` in the camera from weak-perspective ``cam (N, 3)``
+    ``(s, tx, ty)`` of crops centred at ``box_centre (N, 2)`` pixels with side ``box_size (N,)``
+    pixels, under ``intrinsics (4,)`` (derivation in the module docstring)."""
+    fx, fy, cx, cy = np.asarray(intrinsics, dtype=np.float64)
+    cam = np.asarray(cam, dtype=np.float64)
+    s, tx, ty = cam[:, 0], cam[:, 1], cam[:, 2]  # each (N,)
+    half = np.asarray(box_size, dtype=np.float64) / 2.0  # (N,)
+    centre = np.asarray(box_centre, dtype=np.float64)  # (N, 2)
+    tz = 0.5 * (fx + fy) / (s * half)  # (N,) metres
+    u_root = centre[:, 0] + s * tx * half  # (N,) wrist pixel
+    v_root = centre[:, 1] + s * ty * half  # (N,)
+    return np.stack([tz * (u_root - cx) / fx, tz * (v_root - cy) / fy, tz], axis=-1)  # (N, 3)
+
+
+def square_box(uv: np.ndarray, box_scale: float) -> tuple[np.ndarray, float] | None:
+    """Centre ``(2,)`` and side (pixels) of the square box around ``uv (21, 2)`` landmarks;
+    None when fewer than two are finite or they span no area."""
+    ok = np.all(np.isfinite(uv), axis=1)
+    if ok.sum() < 2:
+        return None
+    lo, hi = uv[ok].min(axis=0), uv[ok].max(axis=0)  # (2,), (2,)
+    side = float((hi - lo).max()) * box_scale
+    if not side > 0:
+        return None
+    return (lo + hi) / 2.0, side
+
+
+def crop_hand(
+    frame: np.ndarray, centre: np.ndarray, side: float, size: int, mirror: bool
+) -> np.ndarray:
+    """The square ``side``-pixel box at ``centre`` of ``frame (H, W, 3)`` resampled to
+    ``(size, size, 3)`` (outside the frame: black), mirrored left-right if ``mirror``."""
+    scale = size / side
+    # Continuous pixel coordinates (centres at integer + 0.5) map as p = (u - (c - side/2)) *
+    # scale; OpenCV's matrix maps pixel indices, hence the half-pixel terms.
+    shift = (np.asarray(centre) - side / 2.0) * scale  # (2,)
+    matrix = np.array(
+        [
+            [scale, 0.0, 0.5 * scale - 0.5 - shift[0]],
+            [0.0, scale, 0.5 * scale - 0.5 - shift[1]],
+        ]
+    )  # (2, 3) crop index from frame index
+    crop = cv2.warpAffine(
+        frame, matrix, (size, size), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT
+    )
+    return crop[:, ::-1].copy() if mirror else crop
+
+
+@dataclasses.dataclass(frozen=True)
+class RegressorParams:
+    """Knobs of the regressor backend (the stage's ``regressor_*`` fields)."""
+
+    weights: str  # local weights folder (config.json + model.safetensors)
+    device: str = "cpu"  # torch device of the network
+    boxes: Literal["mediapipe", "given"] = "mediapipe"  # where hand boxes and sides come from
+    mediapipe: MediaPipeParams = MediaPipeParams()  # noqa: RUF009 (frozen) boxes="mediapipe"
+
+
+def hand_boxes(
+    clip: Clip, boxes: str, mediapipe: MediaPipeParams
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """2D landmarks per side ``(T, 2, 21, 2)`` pixels, ``present (T, 2)`` and detector
+    ``confidence (T, 2)`` from the default backend or the clip's labels."""
+    t = clip.num_frames
+    if boxes == "mediapipe":
+        res = mediapipe_hands(clip.frames, clip.intrinsics, None, None, mediapipe)
+        lm = res.landmarks
+        return lm.uv, lm.present.copy(), lm.confidence
+    if clip.hand_joints is None:
+        raise NoHandLabelsError("regressor_boxes 'given' needs the clip's hand_joints labels")
+    if clip.world_from_cam is None:
+        raise NoHandLabelsError("regressor_boxes 'given' needs camera poses to project labels")
+    cam_from_world = invert_se3(clip.world_from_cam)  # (T, 4, 4)
+    uv = np.full((t, 2, NUM_HAND_JOINTS, 2), np.nan)
+    for f in range(t):
+        points_cam = transform_points(cam_from_world[f], clip.hand_joints[f])  # (2, 21, 3)
+        uv[f] = project_points(points_cam, clip.intrinsics)[0]  # (2, 21, 2)
+    present = (
+        np.asarray(clip.hand_valid, dtype=bool)
+        if clip.hand_valid is not None
+        else np.all(np.isfinite(clip.hand_joints), axis=(2, 3))
+    )  # (T, 2)
+    conf = (
+        np.asarray(clip.hand_confidence, dtype=np.float64).mean(axis=2)
+        if clip.hand_confidence is not None
+        else np.ones((t, 2))
+    )  # (T, 2)
+    return uv, present, conf
+
+
+def regress_hands(
+    model: HandRegressor, crops: np.ndarray, device: str = "cpu"
+) -> tuple[np.ndarray, np.ndarray]:
+    """Run ``model`` on ``crops (N, S, S, 3)`` uint8 RGB: ``(joints (N, 21, 3), cam (N, 3))``."""
+    spec = model.spec
+    mean = torch.tensor(spec.image_mean, dtype=torch.float32).view(1, 3, 1, 1)
+    std = torch.tensor(spec.image_std, dtype=torch.float32).view(1, 3, 1, 1)
+    joints, cams = [], []
+    with torch.inference_mode():
+        for i in range(0, len(crops), BATCH_SIZE):
+            x = torch.from_numpy(crops[i : i + BATCH_SIZE]).permute(0, 3, 1, 2)  # (B, 3, S, S)
+            x = (x.float() / 255.0 - mean) / std  # (B, 3, S, S)
+            j, c = model(x.to(device))  # (B, 21, 3), (B, 3)
+            joints.append(j.double().cpu().numpy())
+            cams.append(c.double().cpu().numpy())
+    if not joints:
+        return np.zeros((0, NUM_HAND_JOINTS, 3)), np.zeros((0, 3))
+    return np.concatenate(joints), np.concatenate(cams)
+
+
+def regressor_detections(clip: Clip, params: RegressorParams) -> Detections:
+    """The stage's detections (``K = 2``, slot = side) of ``clip`` by the regressor.
+
+    Joints are in world metres through the clip's ``world_from_cam`` (camera metres if None).
+    """
+    model = _cached_regressor(str(Path(params.weights).resolve()), params.device)
+    size = model.spec.image_size
+    t = clip.num_frames
+    uv, found, det_conf = hand_boxes(clip, params.boxes, params.mediapipe)
+    items, crops = [], []
+    for f, s in zip(*np.nonzero(found), strict=True):
+        box = square_box(uv[f, s], model.spec.box_scale)
+        if box is None:
+            continue
+        centre, side = box
+        items.append((f, s, centre, side))
+        crops.append(crop_hand(clip.frames[f], centre, side, size, mirror=(s == LEFT)))
+    stacked = np.stack(crops) if crops else np.zeros((0, size, size, 3), np.uint8)
+    shapes, cams = regress_hands(model, stacked, params.device)  # (N, 21, 3), (N, 3)
+    left = np.array([s == LEFT for _, s, _, _ in items], dtype=bool)  # (N,)
+    shapes[left, :, 0] *= -1.0  # a mirrored crop: mirror the hand back
+    cams[left, 1] *= -1.0  # and its horizontal offset
+    centres = np.array([c for _, _, c, _ in items]).reshape(-1, 2)  # (N, 2)
+    box_sides = np.array([b for _, _, _, b in items], dtype=np.float64)  # (N,) pixels
+    roots = full_perspective_translation(cams, centres, box_sides, clip.intrinsics)  # (N, 3)
+
+    joints = np.zeros((t, 2, NUM_HAND_JOINTS, 3))
+    conf = np.zeros((t, 2, NUM_HAND_JOINTS))
+    present = np.zeros((t, 2), dtype=bool)
+    for n, (f, s, _, _) in enumerate(items):
+        points_cam = shapes[n] + roots[n]  # (21, 3)
+        if not (np.all(np.isfinite(points_cam)) and np.all(points_cam[:, 2] > 0)):
+            continue  # a joint behind the camera: unusable
+        joints[f, s] = (
+            points_cam
+            if clip.world_from_cam is None
+            else transform_points(clip.world_from_cam[f], points_cam)
+        )
+        conf[f, s] = float(np.clip(det_conf[f, s], 0.0, 1.0))
+        present[f, s] = True
+    side = np.tile(np.array([LEFT, RIGHT]), (t, 1))  # (T, 2)
+    return Detections(joints=joints, side=side, confidence=conf, present=present)
