@@ -372,10 +372,11 @@ def _bundled_workflow(workflow: Path | None, file_name: str) -> Path:
 
 @app.command()
 def simulate(
-    data: Annotated[
-        list[Path], typer.Option("--data", help="Pack shards, folders of them, or a run folder.")
-    ],
     out: Annotated[Path, typer.Option("--out", help="Run folder for simulation shards, videos.")],
+    data: Annotated[
+        list[Path] | None,
+        typer.Option("--data", help="Pack shards, folders of them, or a run folder."),
+    ] = None,
     checkpoint: Annotated[
         str,
         typer.Option(
@@ -391,16 +392,51 @@ def simulate(
         Path | None, typer.Option("--workflow", help="Workflow file (default simulate.yaml).")
     ] = None,
     scheduler: Annotated[str, SCHEDULER_OPTION] = IN_PROCESS,
+    continuous: Annotated[
+        int,
+        typer.Option(
+            "--continuous",
+            help="Closed loop over N action segments (--state, --segments); 0 = off.",
+        ),
+    ] = 0,
+    state: Annotated[
+        Path | None,
+        typer.Option("--state", help="--continuous: initial state or scene_cloud shard."),
+    ] = None,
+    segments: Annotated[
+        list[Path] | None,
+        typer.Option("--segments", help="--continuous: clips shards of the segments, in order."),
+    ] = None,
+    generator: Annotated[
+        str, typer.Option("--generator", help="--continuous: clip generator (oracle).")
+    ] = "oracle",
 ) -> None:
     """Generate every packed clip: runs workflows/simulate.yaml, then writes the videos.
 
     Writes OUT/simulate/shard-*.parquet (with the run's manifest, rejects and summary) and
-    OUT/videos/<clip_id>.mp4; a re-run skips the shards that are done.
+    OUT/videos/<clip_id>.mp4; a re-run skips the shards that are done. With --continuous N:
+    the closed loop (render the state along segment k, generate clip k, fuse it, go on) from
+    --state over the N --segments, writing every state, render and clip under OUT and
+    OUT/closed_loop.mp4 (``--set`` sets its config: e.g. fusion.voxel_size_m=0.01).
     """
     from egosim.stages.common.pack_dataset import find_pack_shards
     from egosim.stages.simulate.videos import write_videos
 
+    if continuous:
+        ignored = {
+            "--data": bool(data),
+            "--checkpoint": bool(checkpoint),
+            "--workflow": workflow is not None,
+            "--scheduler": scheduler != IN_PROCESS,
+        }
+        if any(ignored.values()):
+            unused = [flag for flag, given in ignored.items() if given]
+            raise _fail(StageError(f"--continuous runs in this process and takes no {unused}"))
+        _simulate_continuous(out, continuous, state, segments, generator, _settings(set_, param))
+        return
     try:
+        if not data:
+            raise StageError("--data is required (pack shards), unless --continuous N is given")
         if checkpoint:
             from egosim.model.checkpoint import refuse_pickle
             from egosim.model.inference import resolve_checkpoint
@@ -422,6 +458,33 @@ def simulate(
     except _model_errors() as exc:
         raise _fail(exc) from exc
     typer.echo(f"wrote {len(videos)} video(s) under {out / 'videos'}")
+
+
+def _simulate_continuous(
+    out: Path,
+    count: int,
+    state: Path | None,
+    segments: list[Path] | None,
+    generator: str,
+    settings: dict[str, str],
+) -> None:
+    """``simulate --continuous N``: build the closed loop's config and run it."""
+    from egosim.pipeline.stage import build_config
+    from egosim.stages.state_fusion.closed_loop import ClosedLoopConfig, run_closed_loop
+
+    try:
+        if state is None:
+            raise StageError("--continuous needs --state (an initial state or scene_cloud shard)")
+        params = {**settings, "num_segments": count, "generator": generator}
+        config = build_config(ClosedLoopConfig, params, where="simulate --continuous")
+        result = run_closed_loop(
+            state, find_shards(segments or [], "clips") if segments else [], out, config
+        )
+    except _model_errors() as exc:
+        raise _fail(exc) from exc
+    for k, path in enumerate(result.states, 1):
+        typer.echo(f"segment {k}: {result.clips[k - 1]} -> {path}")
+    typer.echo(f"wrote {result.video}")
 
 
 @app.command()

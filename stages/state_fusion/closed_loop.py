@@ -1,0 +1,245 @@
+"""Continuous simulation: render the state, generate a clip, fuse it, go on (issue 13).
+
+The runner joins rows on ``clip_id`` within one shard index, so it cannot chain segment k's
+state into segment k+1; this loop does, per segment, with the registered stages' own
+``process`` (through the registry, so no stage imports another):
+
+1. ``scene_render`` renders state k (a ``state`` row keyed by segment k's clip) along segment
+   k's trajectory; the first segment may start from a ``scene_cloud`` row instead;
+2. a generator (:data:`GENERATORS`) makes clip k from the segment's action and that render;
+3. ``state_fusion`` fuses clip k onto state k (its hands from the segment's joints, its hand
+   mask from the generated clip) into state k+1.
+
+Every input row, render, generated clip and state goes to ``OUT/<step>/shard-00000.parquet``
+(steps ``initial``, ``render_KK``, ``clip_KK``, ``state_KK``) and the renders and clips side by
+side to ``OUT/closed_loop.mp4``. Bad input (no segments, a count other than ``num_segments``,
+a segment whose cameras overlap none of the state's, missing columns) is refused before
+anything runs, with every problem in one :class:`ClosedLoopError`; a segment a stage rejects
+stops the loop with that reason (never an unchanged state).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from collections.abc import Callable, Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from egosim.pipeline import media
+from egosim.pipeline.shards import ShardReader, ShardWriter, read_shard_meta, shard_file_name
+from egosim.pipeline.stage import ClipRejected, ConfigError, StageConfig, get_stage
+from egosim.schemas import CLIPS
+from egosim.schemas.ids import path_under, validate_id
+from egosim.schemas.scene import SCENE_CLOUD, SCENE_RENDER
+from egosim.schemas.state import STATE, state_for_clip
+from egosim.stages.state_fusion.config import StateFusionConfig
+from egosim.stages.state_fusion.fusion import overlapping_cameras
+
+
+class ClosedLoopError(ValueError):
+    """The closed loop's input is unusable, or a segment was rejected; says which and why."""
+
+
+Generator = Callable[[Mapping[str, Any], Mapping[str, Any]], dict[str, Any]]
+
+
+def oracle_generator(segment: Mapping[str, Any], render: Mapping[str, Any]) -> dict[str, Any]:
+    """The ground-truth clip of the segment (its own video, depth and hand mask): measures the
+    state update apart from the model. ``render`` is not used."""
+    missing = [c for c in ("video", "depth", "hand_mask") if segment.get(c) is None]
+    if missing:
+        raise ClosedLoopError(
+            f"segment {segment['clip_id']!r}: the oracle generator returns the segment's own "
+            f"clip, which lacks {missing} (synthetic-world clips carry them)"
+        )
+    return dict(segment)
+
+
+GENERATORS: dict[str, Generator] = {"oracle": oracle_generator}  # name -> clip generator
+
+
+@dataclasses.dataclass(frozen=True)
+class ClosedLoopConfig(StageConfig):
+    """Parameters of the closed loop (``egosim simulate --continuous N``)."""
+
+    num_segments: int = 1  # N: action segments the loop must be given, in order
+    generator: str = "oracle"  # clip generator: "oracle" (the ground-truth clip)
+    video_crf: int = 18  # H.264 quality of the stitched video (lower = better)
+    fusion: StateFusionConfig = dataclasses.field(default_factory=StateFusionConfig)  # fusion
+
+    def __post_init__(self) -> None:
+        problems = []
+        if self.num_segments < 1:
+            problems.append(f"num_segments must be >= 1, got {self.num_segments}")
+        if self.generator not in GENERATORS:
+            problems.append(
+                f"generator must be one of {sorted(GENERATORS)}, got {self.generator!r}"
+            )
+        if not 0 <= self.video_crf <= 51:
+            problems.append(f"video_crf must be in [0, 51], got {self.video_crf}")
+        if problems:
+            raise ConfigError("; ".join(problems))
+
+
+@dataclasses.dataclass
+class ClosedLoopResult:
+    """What a closed-loop run wrote: one shard per step, and the stitched video."""
+
+    states: list[Path]  # state after each segment, in order
+    clips: list[Path]  # generated clip of each segment
+    renders: list[Path]  # state rendered along each segment's trajectory
+    video: Path  # renders | clips side by side, all segments
+
+
+def read_rows(paths: Sequence[Path]) -> list[tuple[str, dict[str, Any]]]:
+    """``(schema name, row)`` of every row of ``paths`` in order (files, then rows)."""
+    out = []
+    for path in paths:
+        schema = read_shard_meta(Path(path)).schema
+        with ShardReader(Path(path)) as reader:
+            out += [(schema, row) for row in reader.iter_rows()]
+    return out
+
+
+def _poses(row: Mapping[str, Any]) -> np.ndarray:
+    return np.asarray(row["world_from_cam"], np.float64).reshape(-1, 4, 4)
+
+
+def check_inputs(
+    initial: tuple[str, Mapping[str, Any]],
+    segments: Sequence[Mapping[str, Any]],
+    config: ClosedLoopConfig,
+) -> None:
+    """Raise :class:`ClosedLoopError` listing every problem of the loop's input at once."""
+    schema, first = initial
+    problems = []
+    if schema not in (STATE.name, SCENE_CLOUD.name):
+        problems.append(f"the initial state must be a 'state' or 'scene_cloud' row, got {schema!r}")
+    if not segments:
+        problems.append("no action segments given (need clips rows: trajectory + hand joints)")
+    elif len(segments) != config.num_segments:
+        problems.append(f"--continuous {config.num_segments} but {len(segments)} segment(s) given")
+    ids = [s["clip_id"] for s in segments]
+    if len(set(ids)) != len(ids):
+        problems.append(f"segment clip ids repeat: {ids}")
+    known = _poses(first) if schema == STATE.name else np.zeros((0, 4, 4))
+    fusion = config.fusion
+    for k, seg in enumerate(segments, 1):
+        where = f"segment {k} ({seg['clip_id']!r})"
+        missing = [c for c in ("world_from_cam", "hand_joints", "hand_valid") if seg.get(c) is None]
+        if missing:
+            problems.append(f"{where}: no {missing} (a segment's action is its camera and hands)")
+            continue
+        size, size1 = (seg["height"], seg["width"]), (segments[0]["height"], segments[0]["width"])
+        if size != size1:
+            problems.append(f"{where}: frames are {size} (H, W), segment 1's are {size1}")
+        poses = _poses(seg)
+        if len(known):
+            near = overlapping_cameras(
+                poses, known, fusion.overlap_max_distance_m, fusion.overlap_max_angle_deg
+            )
+            if near.sum() < max(1, fusion.min_overlap_cameras):
+                gap = np.linalg.norm(poses[:, None, :3, 3] - known[None, :, :3, 3], axis=-1).min()
+                problems.append(
+                    f"{where}: its cameras overlap none of the state's (nearest centre {gap:.3g} m,"
+                    f" need <= {fusion.overlap_max_distance_m} m and "
+                    f"{fusion.overlap_max_angle_deg} deg): another world frame?"
+                )
+        known = np.concatenate([known, poses])
+    if problems:
+        raise ClosedLoopError("closed loop input: " + "; ".join(problems))
+
+
+def hands_row(clip: Mapping[str, Any]) -> dict[str, Any]:
+    """A ``hands`` row from a clip row's own joints (the segment's action)."""
+    t = int(clip["num_frames"])
+    valid = np.asarray(clip["hand_valid"], bool).reshape(t, 2)
+    conf = clip.get("hand_confidence")
+    conf = np.repeat(valid[:, :, None], 21, 2) if conf is None else np.asarray(conf)
+    return {
+        "clip_id": clip["clip_id"],
+        "num_frames": t,
+        "backend": "given",
+        "hand_joints": clip["hand_joints"],
+        "hand_valid": valid.tolist(),
+        "hand_confidence": np.asarray(conf, np.float32).reshape(t, 42).tolist(),
+        "num_duplicates_removed": 0,
+        "num_outliers_removed": 0,
+    }
+
+
+def hand_mask_row(clip: Mapping[str, Any]) -> dict[str, Any]:
+    """A ``hand_mask`` row from a clip row's ``hand_mask`` column (the generated clip's)."""
+    t = int(clip["num_frames"])
+    mask = media.decode_lossless_video(clip["hand_mask"], f"clip {clip['clip_id']} hand_mask")
+    return {
+        "clip_id": clip["clip_id"],
+        "num_frames": t,
+        "width": clip["width"],
+        "height": clip["height"],
+        "hand_mask": clip["hand_mask"],
+        "coverage": (mask > 0).reshape(len(mask), -1).mean(1).tolist(),
+        "backend": "keypoints",
+    }
+
+
+def _write(out: Path, step: str, schema: Any, row: Mapping[str, Any], params: dict) -> Path:
+    path = path_under(out, validate_id(step, "step name"), shard_file_name(0))
+    with ShardWriter(path, schema, stage="closed_loop", params=params) as writer:
+        writer.write_row(row)
+    return path
+
+
+def run_closed_loop(
+    initial_path: Path, segment_paths: Sequence[Path], out: Path, config: ClosedLoopConfig
+) -> ClosedLoopResult:
+    """Run the loop over the segments (see the module docstring); returns what it wrote."""
+    rows = read_rows([initial_path])
+    if len(rows) != 1:
+        raise ClosedLoopError(f"{initial_path}: the initial state needs 1 row, has {len(rows)}")
+    initial = rows[0]
+    given = read_rows(segment_paths)
+    segments = [row for _, row in given]
+    bad = sorted({name for name, _ in given} - {CLIPS.name})
+    if bad:
+        raise ClosedLoopError(f"segments must be 'clips' shards, got schemas {bad}")
+    check_inputs(initial, segments, config)
+    generate = GENERATORS[config.generator]
+    render_stage = get_stage("scene_render")()
+    fusion_stage = get_stage("state_fusion")(config.fusion)
+    params = {"generator": config.generator, "num_segments": config.num_segments}
+    schema, current = initial
+    _write(out, "initial", STATE if schema == STATE.name else SCENE_CLOUD, current, params)
+    result = ClosedLoopResult([], [], [], path_under(out, "closed_loop.mp4"))
+    frames = []
+    for k, seg in enumerate(segments, 1):
+        cid = seg["clip_id"]
+        role = "state" if schema == STATE.name else "scene_cloud"
+        before = state_for_clip(current, cid) if role == "state" else {**current, "clip_id": cid}
+        try:
+            render = render_stage.process({"clips": seg, role: before})
+            clip = {**generate(seg, render), "clip_id": cid}
+            fuse_rows = {
+                "clips": clip,
+                "hands": hands_row(seg),
+                "hand_mask": hand_mask_row(clip),
+                "previous_state" if role == "state" else "scene_cloud": before,
+            }
+            current = fusion_stage.process(fuse_rows)
+        except ClipRejected as exc:
+            raise ClosedLoopError(f"segment {k} of {len(segments)} rejected: {exc}") from exc
+        schema = STATE.name
+        result.renders.append(_write(out, f"render_{k:02d}", SCENE_RENDER, render, params))
+        result.clips.append(_write(out, f"clip_{k:02d}", CLIPS, clip, params))
+        result.states.append(_write(out, f"state_{k:02d}", STATE, current, params))
+        h, w = int(clip["height"]), int(clip["width"])
+        scene = media.decode_rgb_video(render["scene_video"], h, w, f"render {cid}")
+        frames.append(np.concatenate([scene, media.decode_rgb_video(clip["video"], h, w)], 2))
+    fps = float(segments[0]["fps"])
+    tmp = result.video.with_name(result.video.name + ".tmp-loop")
+    tmp.write_bytes(media.encode_rgb_video(np.concatenate(frames), fps, config.video_crf))
+    os.replace(tmp, result.video)
+    return result
