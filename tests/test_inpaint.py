@@ -257,3 +257,21 @@ def test_stage_takes_depth_and_cameras_from_connected_roles(tmp_path: Path) -> N
     )  # fmt: skip
     np.testing.assert_array_equal(media.decode_png(row["first_frame"]), expected.image)
     assert row["reprojected_fraction"] > 0.3
+
+
+def test_sampling_more_pixels_than_remap_takes_at_once() -> None:
+    """A large hole (over 32767 pixels) is sampled in chunks, bilinearly and exactly."""
+    from egosim.stages.inpaint.reproject_fill import sample_bilinear
+
+    rng = np.random.default_rng(0)
+    image = rng.integers(0, 256, (40, 60, 3), dtype=np.uint8)
+    x = rng.uniform(0, 59, 70000)
+    y = rng.uniform(0, 39, 70000)
+    got = sample_bilinear(image, x, y).astype(np.float64)  # (N, 3)
+    x0, y0 = np.floor(x).astype(int), np.floor(y).astype(int)
+    x1, y1 = np.minimum(x0 + 1, 59), np.minimum(y0 + 1, 39)
+    fx, fy = (x - x0)[:, None], (y - y0)[:, None]
+    im = image.astype(np.float64)
+    want = (im[y0, x0] * (1 - fx) * (1 - fy) + im[y0, x1] * fx * (1 - fy)
+            + im[y1, x0] * (1 - fx) * fy + im[y1, x1] * fx * fy)  # fmt: skip
+    assert np.abs(got - want).max() <= 1.0  # remap's fixed-point weights round to 1/32

@@ -132,6 +132,24 @@ def _palette(colours: np.ndarray, k: int) -> np.ndarray | None:
     return centres
 
 
+REMAP_CHUNK = 32000  # cv2.remap refuses maps with SHRT_MAX (32767) or more rows
+
+
+def sample_bilinear(image: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Bilinear samples ``(N, C)`` of ``image (H, W, C)`` at OpenCV pixel coordinates ``x, y (N,)``.
+
+    Borders replicate. Done in chunks: ``cv2.remap`` asserts on maps of 32767 or more rows.
+    """
+    out = np.empty((len(x), image.shape[2]), dtype=image.dtype)
+    for start in range(0, len(x), REMAP_CHUNK):
+        part = slice(start, start + REMAP_CHUNK)
+        map_x = x[part].astype(np.float32).reshape(-1, 1)
+        map_y = y[part].astype(np.float32).reshape(-1, 1)
+        got = cv2.remap(image, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        out[part] = got.reshape(-1, image.shape[2])
+    return out
+
+
 def reproject_fill(
     frames: np.ndarray,
     hand_mask: np.ndarray,
@@ -203,11 +221,8 @@ def reproject_fill(
             ok &= (seen <= 0) | (np.abs(seen - z) <= depth_tolerance * np.maximum(z, 1e-6))
         if not ok.any():
             continue
-        map_x = x[ok].astype(np.float32).reshape(-1, 1)
-        map_y = y[ok].astype(np.float32).reshape(-1, 1)
-        sampled = cv2.remap(frames[k], map_x, map_y, cv2.INTER_LINEAR, cv2.BORDER_REPLICATE)
+        sampled = sample_bilinear(frames[k], x[ok], y[ok])  # (m_ok, 3)
         got = idx[ok]
-        sampled = sampled.reshape(-1, 3)
         if occluders is not None:  # not another frame's missed hand or arm
             keep = ~occluders.hand_like(sampled)
             got, sampled = got[keep], sampled[keep]
