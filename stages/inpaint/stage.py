@@ -122,8 +122,9 @@ class InpaintStage(ClipStage):
     """Remove hands from the first frame: reprojected later frames, then OpenCV inpainting."""
 
     name = "inpaint"
-    version = 5  # 3: median of several frames; clips without depth aligned in the image. 4: more
-    # frames in the median, dilation with the image size. 5: hand-coloured samples not used
+    version = 6  # 3: median of several frames; clips without depth aligned in the image. 4: more
+    # frames in the median, dilation with the image size. 5: hand-coloured samples not used.
+    # 6: large holes no longer rejected (chunked sampling)
 
     description = "remove hands from the first frame (reprojected frames + OpenCV inpainting)"
     config_class = InpaintConfig
