@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 
 from egosim.pipeline.geometry import look_at
-from egosim.stages.world.camera_path import _wobble
+from egosim.stages.world.camera_path import _wobble, view_directions
 from egosim.stages.world.scene import TABLE_TOP_Z
 
 FOV_SPREAD_DEG = 15.0  # the alt FOV is the configured one plus an offset in +-FOV_SPREAD_DEG
@@ -55,16 +55,6 @@ def camera_path_alt(seed: int, mode: str, num_frames: int, fps: float) -> np.nda
         duration = max(num_frames / fps, 1.0)
         yaw = yaw_amp * np.sin(2.0 * np.pi * times / duration + rng.uniform(0, 2 * np.pi))  # (T,)
         pitch = np.deg2rad(-52.0 + 10.0 * np.sin(2.0 * np.pi * 0.15 * times + rng.uniform(0, 6)))
-        to_focus = focus - eye0
-        base_yaw = np.arctan2(to_focus[1], to_focus[0])
-        direction = np.stack(
-            [
-                np.cos(base_yaw + yaw) * np.cos(pitch),
-                np.sin(base_yaw + yaw) * np.cos(pitch),
-                np.sin(pitch),
-            ],
-            axis=1,
-        )  # (T, 3)
-        targets = eyes + direction
+        targets = eyes + view_directions(focus - eye0, yaw, pitch)  # (T, 3)
     cams = np.stack([look_at(e, t) for e, t in zip(eyes, targets, strict=True)])  # (T, 4, 4)
     return _roll(cams, roll)

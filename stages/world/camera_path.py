@@ -8,6 +8,20 @@ from egosim.pipeline.geometry import look_at
 from egosim.stages.world.scene import TABLE_TOP_Z
 
 
+def view_directions(to_focus: np.ndarray, yaw: np.ndarray, pitch: np.ndarray) -> np.ndarray:
+    """Unit view directions ``(T, 3)`` (world z up): ``yaw (T,)`` radians about the bearing of
+    ``to_focus (3,)`` in the ground plane, ``pitch (T,)`` radians above the horizon."""
+    base_yaw = np.arctan2(to_focus[1], to_focus[0])
+    return np.stack(
+        [
+            np.cos(base_yaw + yaw) * np.cos(pitch),
+            np.sin(base_yaw + yaw) * np.cos(pitch),
+            np.sin(pitch),
+        ],
+        axis=1,
+    )  # (T, 3)
+
+
 def _wobble(rng: np.random.Generator, times: np.ndarray, amp: float, freqs: tuple) -> np.ndarray:
     """Sum of sinusoids ``(T, 3)`` with random phases, amplitudes up to ``amp`` per axis."""
     out = np.zeros((len(times), 3))
@@ -40,15 +54,5 @@ def camera_path(seed: int, mode: str, num_frames: int, fps: float) -> np.ndarray
         duration = max(num_frames / fps, 1.0)
         yaw = yaw_amp * np.sin(2.0 * np.pi * times / duration + rng.uniform(0, 2 * np.pi))  # (T,)
         pitch = np.deg2rad(-40.0 + 12.0 * np.sin(2.0 * np.pi * 0.2 * times + rng.uniform(0, 6)))
-        to_focus = focus - eye0
-        base_yaw = np.arctan2(to_focus[1], to_focus[0])
-        direction = np.stack(
-            [
-                np.cos(base_yaw + yaw) * np.cos(pitch),
-                np.sin(base_yaw + yaw) * np.cos(pitch),
-                np.sin(pitch),
-            ],
-            axis=1,
-        )  # (T, 3)
-        targets = eyes + direction
+        targets = eyes + view_directions(focus - eye0, yaw, pitch)  # (T, 3)
     return np.stack([look_at(e, t) for e, t in zip(eyes, targets, strict=True)])  # (T, 4, 4)
