@@ -54,6 +54,7 @@ import numpy as np
 
 from egosim.pipeline.geometry import transform_points
 from egosim.pipeline.records import LEFT, NUM_HAND_JOINTS, RIGHT, Clip
+from egosim.stages.common.hand_landmarks import place_in_camera
 from egosim.stages.common.roi_landmarks import LandmarkModel, TrackParams, track_through_misses
 from egosim.stages.hands.filters import Detections
 
@@ -440,33 +441,7 @@ def depth_under(depth: np.ndarray, uv: np.ndarray) -> float:
     return float(np.median(values)) if values.size else float("nan")
 
 
-def place_by_translation(
-    uv: np.ndarray,
-    world_landmarks: np.ndarray,
-    intrinsics: np.ndarray,
-    weights: np.ndarray | None = None,
-) -> np.ndarray:
-    """Camera joints ``(N, 3)``: ``world_landmarks (N, 3)`` translated to fit ``uv (N, 2)``.
-
-    Finds the translation ``t`` minimising the (weighted) reprojection error of
-    ``world_landmarks + t`` in closed form: for each joint ``x_n (W_z + t_z) = W_x + t_x`` and
-    likewise for y, with ``x_n = (u - cx) / fx``. The rotation stays the landmarks' own, so this
-    is right only when their axes are the camera's (MediaPipe's are not, see
-    :func:`lift_to_camera`).
-    """
-    fx, fy, cx, cy = np.asarray(intrinsics, dtype=np.float64)
-    x_n = (uv[:, 0] - cx) / fx  # (N,)
-    y_n = (uv[:, 1] - cy) / fy  # (N,)
-    n = len(uv)
-    a = np.zeros((2 * n, 3))
-    b = np.zeros(2 * n)
-    a[:n, 0], a[:n, 2], b[:n] = 1.0, -x_n, x_n * world_landmarks[:, 2] - world_landmarks[:, 0]
-    a[n:, 1], a[n:, 2], b[n:] = 1.0, -y_n, y_n * world_landmarks[:, 2] - world_landmarks[:, 1]
-    if weights is not None:
-        wts = np.sqrt(np.concatenate([weights, weights]))  # (2N,)
-        a, b = a * wts[:, None], b * wts
-    t, *_ = np.linalg.lstsq(a, b, rcond=None)  # (3,)
-    return world_landmarks + t  # (N, 3)
+place_by_translation = place_in_camera  # the translation-only fit, shared with the metric scale
 
 
 def best_rotation(source: np.ndarray, target: np.ndarray) -> np.ndarray:
