@@ -648,7 +648,7 @@ class DepthCameraStage(ClipStage):
     """Estimate intrinsics, per-frame poses and first-frame depth with confidence."""
 
     name = "depth_camera"
-    description = "intrinsics, poses and first-frame depth: pycolmap SfM + plane sweep, or given"
+    description = "intrinsics, poses, frame-0 depth, metric scale: static/SfM/rotation, or given"
     # 5: sfm poses and depth in metres from the hands' size prior (metric_scale); static test
     # takes still corners as the background, skips occluded frames, tolerates an end bump
     # 4: schema v2, background-motion static test, PnP tracking, rotation model, focal prior

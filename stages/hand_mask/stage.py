@@ -167,7 +167,7 @@ class HandMaskStage(ClipStage):
     """Hand-and-arm masks per frame from projected keypoints (capsules + colour) or SAM."""
 
     name = "hand_mask"
-    description = "hand and arm masks per frame from keypoints (capsules + colour) or SAM"
+    description = "hand and arm masks per frame: keypoint capsules + image-space arm search, or SAM"
     config_class = HandMaskConfig
     inputs: ClassVar[Mapping[str, ShardSchema]] = {"clips": CLIPS}
     # cleaned joints and a replacement camera (see the module docstring)
