@@ -289,10 +289,13 @@ def world_scale_errors(config: WorldConfig, factors: tuple[float, ...] = (0.37, 
 
 if __name__ == "__main__":
     # Scale errors on full-size world clips (61 frames, 480x832): tuned on tabletop seeds 0-1.
-    #   .venv/bin/python tests/test_metric_scale.py tabletop:0 tabletop:1 wild:0 ...
+    #   .venv/bin/python tests/test_metric_scale.py tabletop:0 tabletop:1 wild:0 alt:tabletop:0 ...
     import sys
 
+    # Held-out world: prefix the variant, e.g. alt:tabletop:0 (WorldConfig.variant).
     for spec in sys.argv[1:] or ["tabletop:0", "tabletop:1"]:
-        mode, seed = spec.split(":")
-        for line in world_scale_errors(WorldConfig(seed=int(seed), mode=mode)):
-            print(line, flush=True)
+        *variant, mode, seed = spec.split(":")
+        name = variant[0] if variant else "default"
+        config = WorldConfig(seed=int(seed), mode=mode, variant=name)
+        for line in world_scale_errors(config):
+            print(config.variant, line, flush=True)
