@@ -43,7 +43,9 @@ frame-0 depth masked under the hands), oracle and MediaPipe landmarks together. 
   clips give ``scale=None``: MediaPipe finds no capsule hand in tabletop 2-3, wild 2 (also not
   in per-image mode at detection confidence 0.1) and 2-8 in wild 1, 3, 4; in tabletop 4 it finds
   only the resting left hand, which never leaves the pixels masked at frame 0, so no scene depth
-  lies under it (``fill_px`` inpaints such holes; off by default, not yet measured to help).
+  lies under it. Filling frame-0 depth holes first (Telea up to 50 px, or the scene cloud's
+  superpixel plane fill) was measured and dropped: it cost usable detections on the synthetic
+  world and moved the EgoDex clip's scale by +10% to +35% away from hand/surface contact.
 
 The error is the same for both factors (the method is scale-equivariant). Known biases: the size
 prior (MediaPipe's hands came out 3% near on median, +-8% per detection), hands that never
@@ -55,7 +57,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-import cv2
 import numpy as np
 
 from egosim.pipeline.geometry import invert_se3, project_points, transform_points, unproject_depth
@@ -89,8 +90,6 @@ class MetricScaleParams:
     window_px: int = 3  # z_s: median of known depths within this many pixels of the joint
     min_window_pixels: int = 5  # fewer known depths in the window: no sample
     max_edge_rel: float = 0.15  # window max/min depth above 1 + this: a depth edge, no sample
-    fill_px: int = 0  # frame-0 depth holes (under hands) are inpainted up to this many pixels
-    # from known depth (a hand that stays where it was at frame 0); 0 = off (not yet measured)
     min_confidence: float = 0.5  # depth0 pixels with confidence0 below this count as unknown
     min_colour_diff: float = 20.0  # joint hidden by the scene: frame t matches frame 0's splat
     # there (mean over the window of the max channel difference below this, 0..255); 0 = no test
@@ -114,7 +113,7 @@ class MetricScaleParams:
             value = getattr(self, name)
             if not (np.isfinite(value) and value >= 0):
                 problems.append(f"{name} must be finite and >= 0, got {value!r}")
-        for name in ("window_px", "colour_window_px", "fill_px"):
+        for name in ("window_px", "colour_window_px"):
             if getattr(self, name) < 0:
                 problems.append(f"{name} must be >= 0, got {getattr(self, name)!r}")
         if not 0.0 <= self.min_colour_diff <= 255.0:
@@ -171,21 +170,6 @@ def splat_depth(
     source = np.full(h * w, -1, dtype=np.int64)
     source[uniq] = src[order][first]
     return depth.reshape(h, w), source.reshape(h, w)
-
-
-def fill_depth_holes(depth: np.ndarray, fill_px: int) -> np.ndarray:
-    """``depth (H, W)`` with unknown pixels (0 / NaN) within ``fill_px`` of known ones inpainted.
-
-    OpenCV's Telea inpainting continues the surrounding surface into the hole (the table under
-    a hand that hid it at frame 0). Pixels further than ``fill_px`` from known depth stay 0.
-    """
-    known = np.isfinite(depth) & (depth > 0)  # (H, W)
-    if fill_px <= 0 or known.all() or not known.any():
-        return np.where(known, depth, 0.0)
-    hole = (~known).astype(np.uint8)  # (H, W) 1 = unknown
-    dist = cv2.distanceTransform(hole, cv2.DIST_L2, 5)  # (H, W) px to the nearest known pixel
-    filled = cv2.inpaint(np.where(known, depth, 0.0).astype(np.float32), hole, 5, cv2.INPAINT_TELEA)
-    return np.where(known, depth, np.where(dist <= fill_px, filled.astype(np.float64), 0.0))
 
 
 def surface_depth(depth: np.ndarray, uv: np.ndarray, params: MetricScaleParams) -> np.ndarray:
@@ -249,20 +233,14 @@ def detection_samples(
     world_from_cam: np.ndarray,
     depth0: np.ndarray,
     params: MetricScaleParams,
-    measured0: np.ndarray | None = None,
 ) -> list[tuple[np.ndarray, np.ndarray]]:
     """Per usable detection, its joints' metric and surface depths: ``(z_m (J,), z_s (J,))``.
 
     ``landmarks`` holds ``uv (T, K, 21, 2)`` pixels and metric ``world (T, K, 21, 3)``;
     ``frames (T, H, W, 3)`` uint8 RGB; ``depth0 (H, W)`` is frame 0's depth in reconstruction
     units (0 or NaN = unknown). Joints hidden behind the scene (:func:`scene_visible`) are
-    dropped from frames after the first; the colour test uses only ``measured0 (H, W)`` bool
-    pixels (depth measured, not filled: a filled pixel's colour is the hand that hid it;
-    default: every known pixel of ``depth0``).
+    dropped from frames after the first.
     """
-    if measured0 is None:
-        measured0 = np.isfinite(depth0) & (depth0 > 0)
-    measured_flat = measured0.reshape(-1)  # (H*W,)
     joints = np.asarray(params.joints)
     out: list[tuple[np.ndarray, np.ndarray]] = []
     t_count = landmarks.present.shape[0]
@@ -289,7 +267,7 @@ def detection_samples(
             z_s = surface_depth(depth_t, uv[joints], params)  # (J,)
             ok = np.isfinite(z_s) & (z_m > 0)
             if scene_t is not None:
-                seen = (source >= 0) & measured_flat[np.maximum(source, 0)]  # (H, W)
+                seen = source >= 0  # (H, W) a known frame-0 pixel landed here
                 ok &= ~scene_visible(frames[t], scene_t, seen, uv[joints], params)
             if ok.sum() < params.min_joint_samples:
                 continue
@@ -371,11 +349,7 @@ def scale_from_landmarks(
         return ScaleEstimate(None, None, 0, reason="frame-0 depth has no known pixel")
     if not landmarks.present.any():
         return ScaleEstimate(None, None, 0, reason="no hand detected")
-    measured0 = np.isfinite(depth0) & (depth0 > 0)  # (H, W)
-    depth0 = fill_depth_holes(depth0, params.fill_px)
-    samples = detection_samples(
-        landmarks, frames, intrinsics, world_from_cam, depth0, params, measured0
-    )
+    samples = detection_samples(landmarks, frames, intrinsics, world_from_cam, depth0, params)
     return scale_from_samples(samples, params)
 
 
