@@ -34,7 +34,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from egosim.pipeline.geometry import quat_from_matrix
-from egosim.pipeline.shards import open_shard
+from egosim.pipeline.shards import find_shards, open_shard
 from egosim.schemas import CAPTIONS, CLIPS, HANDS, KEYPOINTS, POSES, SCENE_RENDER, ShardSchema
 
 HEAD_KEY = "observation.images.head"  # RGB video key
@@ -58,7 +58,7 @@ class ExportReport:
 
 
 def _rows(run: Path, step: str, schema: ShardSchema) -> Iterator[dict[str, Any]]:
-    for path in sorted((run / step).glob("shard-*.parquet")):
+    for path in find_shards([run / step], step):
         with open_shard(path, schema) as reader:
             yield from reader.iter_rows()
 
@@ -85,8 +85,7 @@ def export_lerobot(run: Path, out: Path, robot_type: str = "egosim") -> ExportRe
     run, out = Path(run), Path(out)
     if (out / "meta" / "info.json").exists():
         raise FileExistsError(f"{out} already holds a LeRobot dataset (meta/info.json)")
-    if not sorted((run / "ingest").glob("shard-*.parquet")):
-        raise FileNotFoundError(f"no ingest shards under {run / 'ingest'}")
+    find_shards([run / "ingest"], "ingest")  # raises FileNotFoundError when there are none
     conditions = {
         step: _index(run, step, schema, [column])
         for step, (schema, column, _) in CONDITION_KEYS.items()
