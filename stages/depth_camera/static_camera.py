@@ -65,11 +65,6 @@ def background_motion(a: np.ndarray, b: np.ndarray, ransac_px: float) -> tuple[f
     return float(np.median(shift)), float(np.percentile(shift, 95)), float(inl.mean())
 
 
-def still_motion(shift: np.ndarray, fraction: float) -> tuple[float, float, float]:
-    """``(median, 95th percentile displacement, share)`` of the corners that did not move."""
-    return float(np.median(shift)), float(np.percentile(shift, 95)), fraction
-
-
 def check_motion(
     frames: np.ndarray,
     hand_mask: np.ndarray | None,
@@ -106,7 +101,9 @@ def check_motion(
         shift = np.linalg.norm(moved[ok] - corners[ok], axis=1)  # (N_ok,)
         still = shift < static_motion_px
         if still.mean() >= STILL_FRACTION:
-            med, tail, frac = still_motion(shift[still], float(still.mean()))
+            still_shift = shift[still]  # (S,) the corners that did not move are the background
+            med, tail = float(np.median(still_shift)), float(np.percentile(still_shift, 95))
+            frac = float(still.mean())
         else:
             med, tail, frac = background_motion(corners[ok], moved[ok], ransac_px)
         motion, tail_motion = max(motion, med), max(tail_motion, tail)
