@@ -138,6 +138,18 @@ def quat_from_matrix(rotation: FloatArray) -> FloatArray:
     return flat.reshape((*rotation.shape[:-2], 4))
 
 
+def xyzw_from_matrix(rotation: FloatArray) -> FloatArray:
+    """Rotations ``(..., 3, 3)`` -> quaternions ``(..., 4)`` in ``(x, y, z, w)``; NaN stays NaN.
+
+    Scalar last, as ROS, SciPy, AgiBot and LeRobot datasets store them.
+    """
+    rot = np.asarray(rotation, dtype=np.float64)
+    ok = np.isfinite(rot).all(axis=(-2, -1))  # (...)
+    out = np.full((*rot.shape[:-2], 4), np.nan)
+    out[ok] = quat_from_matrix(rot[ok])[..., [1, 2, 3, 0]]
+    return out
+
+
 def matrix_from_quat(quat: FloatArray) -> FloatArray:
     """Quaternions ``(..., 4)`` in ``(w, x, y, z)`` (normalised first) to ``(..., 3, 3)``."""
     quat = np.asarray(quat, dtype=np.float64)

@@ -33,7 +33,7 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from egosim.pipeline.geometry import quat_from_matrix
+from egosim.pipeline.geometry import xyzw_from_matrix
 from egosim.pipeline.shards import find_shards, open_shard
 from egosim.schemas import CAPTIONS, CLIPS, HANDS, KEYPOINTS, POSES, SCENE_RENDER, ShardSchema
 
@@ -72,7 +72,7 @@ def _index(run: Path, step: str, schema: ShardSchema, columns: list[str]) -> dic
 
 def _pose7(world_from_cam: np.ndarray) -> np.ndarray:
     """``(T, 4, 4)`` -> ``(T, 7)`` x, y, z, qx, qy, qz, qw."""
-    quat = quat_from_matrix(world_from_cam[:, :3, :3])[:, [1, 2, 3, 0]]  # (T, 4) xyzw
+    quat = xyzw_from_matrix(world_from_cam[:, :3, :3])  # (T, 4)
     return np.concatenate([world_from_cam[:, :3, 3], quat], axis=1)
 
 

@@ -21,17 +21,8 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from egosim.pipeline.geometry import quat_from_matrix
+from egosim.pipeline.geometry import xyzw_from_matrix
 from egosim.pipeline.media import write_video_file
-
-
-def xyzw_from_matrix(rotation: np.ndarray) -> np.ndarray:
-    """Rotations ``(..., 3, 3)`` -> quaternions ``(..., 4)`` in ``(x, y, z, w)``; NaN stays NaN."""
-    rot = np.asarray(rotation, dtype=np.float64)
-    ok = np.isfinite(rot).all(axis=(-2, -1))  # (...)
-    out = np.full((*rot.shape[:-2], 4), np.nan)
-    out[ok] = quat_from_matrix(rot[ok])[..., [1, 2, 3, 0]]
-    return out
 
 
 @dataclass
