@@ -116,8 +116,24 @@ def hand_direction(keypoints: np.ndarray) -> tuple[np.ndarray, np.ndarray, float
     return wrist, d / length, length
 
 
+def _sample(lab: np.ndarray, exclude: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Colours ``(N, 3)`` of ``lab (H, W, 3)`` at ``points (N, 2)`` (pixel centres).
+
+    NaN outside the image and on ``exclude (H, W)`` (the hand's own mask).
+    """
+    h, w = lab.shape[:2]
+    xi = np.floor(points[:, 0]).astype(int)
+    yi = np.floor(points[:, 1]).astype(int)
+    inside = (xi >= 0) & (xi < w) & (yi >= 0) & (yi < h)
+    out = np.full((len(points), 3), np.nan, np.float32)
+    out[inside] = lab[yi[inside], xi[inside]]
+    inside[inside] = exclude[yi[inside], xi[inside]] == 0
+    out[~inside] = np.nan
+    return out
+
+
 def arm_direction(
-    image: np.ndarray,
+    lab: np.ndarray,
     wrist: np.ndarray,
     hand_dir: np.ndarray,
     hand_len: float,
@@ -129,27 +145,23 @@ def arm_direction(
     """Unit image direction ``(2,)`` of the forearm from ``wrist``, chosen by colour.
 
     Candidate directions within ``max_turn_deg`` of ``hand_dir`` (every 5 degrees) are scored on
-    a strip from 0.3 to 1.5 hand lengths past the wrist (samples inside the image and outside
-    ``exclude (H, W)``, the hand's own mask): how uniform the colour is along its axis (median
-    absolute deviation in Lab) over how much it differs from two side strips ``2 * radius`` off
-    the axis (``radius``: the forearm's half-width in pixels, default a third of ``hand_len``),
-    times ``1 + turn_cost`` per radian of turn: a forearm (skin or sleeve) is one smooth colour
-    that stands out from what lies beside it; a strip across a table or objects is not. The hand's
-    direction is kept when no candidate has enough samples.
+    a strip from 0.3 to 1.5 hand lengths past the wrist in ``lab (H, W, 3)``, the float32 Lab
+    image (samples inside the image and outside ``exclude (H, W)``, the hand's own mask): how
+    uniform the colour is along its axis (median absolute deviation in Lab) over how much it
+    differs from two side strips ``2 * radius`` off the axis (``radius``: the forearm's
+    half-width in pixels, default a third of ``hand_len``), times ``1 + turn_cost`` per radian
+    of turn: a forearm (skin or sleeve) is one smooth colour that stands out from what lies
+    beside it; a strip across a table or objects is not. The hand's direction is kept when no
+    candidate has enough samples.
     """
-    h, w = image.shape[:2]
-    lab = cv2.cvtColor(image, cv2.COLOR_RGB2LAB).astype(np.float32)  # (H, W, 3)
     radius = hand_len / 3.0 if radius is None else radius
     steps = np.linspace(0.3, 1.5, 24) * hand_len  # (S,)
     offsets = np.array([-0.3, 0.0, 0.3]) * radius  # across the strip
 
     def colours_at(pts: np.ndarray) -> np.ndarray:
         """Lab colours ``(N, 3)`` at pixel-centre points ``(N, 2)`` in the image, off the hand."""
-        xi, yi = np.floor(pts[:, 0]).astype(int), np.floor(pts[:, 1]).astype(int)
-        inside = (xi >= 0) & (xi < w) & (yi >= 0) & (yi < h)
-        xi, yi = xi[inside], yi[inside]
-        keep = exclude[yi, xi] == 0
-        return lab[yi[keep], xi[keep]]
+        colours = _sample(lab, exclude, pts)  # (N, 3) NaN outside or on the hand
+        return colours[np.isfinite(colours[:, 0])]
 
     best, best_score = hand_dir, np.inf
     for turn in np.arange(-max_turn_deg, max_turn_deg + 1e-6, 5.0):
@@ -201,28 +213,17 @@ def arm_extent(
     n = np.array([-d[1], d[0]])  # (2,)
     step = max(1.0, 0.5 * radius)
 
-    def sample(points: np.ndarray) -> np.ndarray:
-        """Lab colours ``(N, 3)`` at ``points (N, 2)`` (pixel centres), NaN outside the image."""
-        xi = np.floor(points[:, 0]).astype(int)
-        yi = np.floor(points[:, 1]).astype(int)
-        inside = (xi >= 0) & (xi < w) & (yi >= 0) & (yi < h)
-        out = np.full((len(points), 3), np.nan, np.float32)
-        out[inside] = lab[yi[inside], xi[inside]]
-        inside[inside] = exclude[yi[inside], xi[inside]] == 0
-        out[~inside] = np.nan
-        return out
-
     across = np.array([-0.5, 0.0, 0.5]) * radius  # (3,)
     ref_t = np.arange(start, end + 1e-6, step)  # (S,)
     ref_pts = wrist + ref_t[:, None, None] * d + across[None, :, None] * n  # (S, 3, 2)
-    ref = sample(ref_pts.reshape(-1, 2))
+    ref = _sample(lab, exclude, ref_pts.reshape(-1, 2))
     ref = ref[np.all(np.isfinite(ref), axis=1)]
     if len(ref) < 3:
         return end, None
     ref_colour = np.median(ref, axis=0)  # (3,)
     # The strip must stand out from what lies beside it, or it is background, not an arm.
     ref_sides = [
-        sample(wrist + ref_t[:, None] * d + off * radius * n) for off in (-2.0, 2.0)
+        _sample(lab, exclude, wrist + ref_t[:, None] * d + off * radius * n) for off in (-2.0, 2.0)
     ]  # 2 x (S, 3)
     away = [
         float(np.linalg.norm(np.nanmedian(c, axis=0) - ref_colour))
@@ -235,11 +236,12 @@ def arm_extent(
     ts = np.arange(end + step, end + reach, step)  # (S,)
     centre = wrist + ts[:, None, None] * d + across[None, :, None] * n  # (S, 3, 2)
     sides = wrist + ts[:, None, None] * d + np.array([-2.0, 2.0])[None, :, None] * radius * n
-    colours = sample(centre.reshape(-1, 2)).reshape(len(ts), 3, 3)  # (S, 3, 3) NaN outside
+    colours = _sample(lab, exclude, centre.reshape(-1, 2))  # (S * 3, 3) NaN outside
+    colours = colours.reshape(len(ts), 3, 3)  # (S, 3, 3)
     some = np.any(np.isfinite(colours[..., 0]), axis=1)  # (S,)
     colour = np.full((len(ts), 3), np.nan, np.float32)
     colour[some] = np.nanmedian(colours[some], axis=1)
-    side = sample(sides.reshape(-1, 2)).reshape(len(ts), 2, 3)  # (S, 2, 3)
+    side = _sample(lab, exclude, sides.reshape(-1, 2)).reshape(len(ts), 2, 3)  # (S, 2, 3)
     dist = np.linalg.norm(colour - ref_colour, axis=1)  # (S,) NaN outside
     side_dist = np.linalg.norm(side - ref_colour, axis=2)  # (S, 2)
     contrast = np.nanmax(np.where(np.isfinite(side_dist), side_dist, -1.0), axis=1) > tolerance
@@ -299,7 +301,7 @@ def draw_arm_labels(
         if image is not None:
             lab = cv2.cvtColor(image, cv2.COLOR_RGB2LAB).astype(np.float32)  # (H, W, 3)
             if arm.max_turn_deg > 0:
-                d = arm_direction(image, wrist, d, hand_len, mask, arm.max_turn_deg, r_wrist)
+                d = arm_direction(lab, wrist, d, hand_len, mask, arm.max_turn_deg, r_wrist)
         fan, band, seed, region = _arm_regions(lab, mask, wrist, d, hand_len, scale, capsule, arm)
         if region is not None and arm.refine_direction:
             better = region_direction(region, wrist, d)
