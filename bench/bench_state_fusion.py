@@ -48,6 +48,7 @@ from egosim.stages.state_fusion.stage import StateFusionStage
 from egosim.stages.state_fusion.state_io import state_from_row
 from egosim.stages.world import WorldConfig, render_clip
 from egosim.stages.world.state_truth import (
+    look_back_clip,
     look_back_path,
     moved_objects,
     render_views,
@@ -274,26 +275,7 @@ def segment_two(config: WorldConfig, clip: Clip, row1: dict[str, Any]) -> dict[s
     instance (vs the truly visible surface in its geometry frame of segment 1) and the points
     left above the table where it stood before (state 0 has them; state 2 should not).
     """
-    poses = look_back_path(config)
-    rgb, depth = render_views(config, clip.object_poses[-1], poses)
-    t = len(poses)
-    seg2 = Clip(
-        clip_id=f"{clip.clip_id}-seg2",
-        source="synthetic",
-        source_uri="",
-        fps=clip.fps,
-        timestamps=np.arange(t) / clip.fps,
-        intrinsics=clip.intrinsics,
-        frames=rgb,
-        world_from_cam=poses,
-        depth=depth,
-        static_frames=rgb,
-        static_depth=depth,
-        hand_joints=np.full((t, 2, 21, 3), np.nan, np.float32),
-        hand_valid=np.zeros((t, 2), bool),
-        hand_confidence=np.zeros((t, 2, 21), np.float32),
-        hand_mask=np.zeros((t, *depth.shape[1:]), np.uint8),
-    )
+    seg2 = look_back_clip(config, clip)
     rows = clip_rows(seg2)
     rows["previous_state"] = state_for_clip(row1, seg2.clip_id)
     row2 = StateFusionStage().process(rows)

@@ -10,7 +10,6 @@ from __future__ import annotations
 import dataclasses
 from pathlib import Path
 
-import numpy as np
 import pytest
 from typer.testing import CliRunner
 
@@ -22,7 +21,6 @@ from bench.bench_state_fusion import (
 )
 from egosim.pipeline.cli import app
 from egosim.pipeline.clip_io import row_from_clip, write_clips
-from egosim.pipeline.records import Clip
 from egosim.pipeline.runner import IN_PROCESS, run_workflow
 from egosim.pipeline.shards import ShardWriter, open_shard
 from egosim.pipeline.stage import ConfigError
@@ -36,38 +34,11 @@ from egosim.stages.state_fusion.metrics import centroid_error
 from egosim.stages.state_fusion.stage import StateFusionStage
 from egosim.stages.state_fusion.state_io import state_from_row
 from egosim.stages.world import WorldConfig, render_clip
-from egosim.stages.world.state_truth import (
-    look_back_path,
-    moved_objects,
-    render_views,
-    scene_truth,
-)
+from egosim.stages.world.state_truth import look_back_clip, moved_objects, scene_truth
 from tests.conftest import translated
 
 REPO = Path(__file__).resolve().parents[1]
 CONFIG = WorldConfig(seed=0, **SMALL)  # 120x208, 17 frames
-
-
-def look_back_clip(config: WorldConfig, clip: Clip) -> Clip:
-    """Segment 2: the static scene after ``clip``'s interaction along another head path."""
-    poses = look_back_path(config)
-    rgb, depth = render_views(config, clip.object_poses[-1], poses)
-    t = len(poses)
-    return Clip(
-        clip_id=f"{clip.clip_id}-seg2",
-        source="synthetic",
-        source_uri="",
-        fps=clip.fps,
-        timestamps=np.arange(t) / clip.fps,
-        intrinsics=clip.intrinsics,
-        frames=rgb,
-        world_from_cam=poses,
-        depth=depth,
-        hand_joints=np.full((t, 2, 21, 3), np.nan, np.float32),
-        hand_valid=np.zeros((t, 2), bool),
-        hand_confidence=np.zeros((t, 2, 21), np.float32),
-        hand_mask=np.zeros((t, *depth.shape[1:]), np.uint8),
-    )
 
 
 @pytest.fixture(scope="module")

@@ -13,6 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from egosim.pipeline.geometry import transform_points, unproject_depth
+from egosim.pipeline.records import Clip
 from egosim.stages.world.clip import _setup
 from egosim.stages.world.config import WorldConfig
 from egosim.stages.world.render import WorldRenderer, to_uint8
@@ -105,3 +106,29 @@ def look_back_path(config: WorldConfig, offset: int = 1000) -> np.ndarray:
     """
     other = WorldConfig(**{**config.__dict__, "seed": config.seed + offset})
     return _setup(other)[2]
+
+
+def look_back_clip(config: WorldConfig, clip: Clip) -> Clip:
+    """Segment 2 of a task: the static scene after ``clip``'s interaction along another head path.
+
+    No hands: the true static render (objects at their last poses) along
+    :func:`look_back_path`, named ``<clip_id>-seg2``.
+    """
+    poses = look_back_path(config)
+    rgb, depth = render_views(config, clip.object_poses[-1], poses)
+    t = len(poses)
+    return Clip(
+        clip_id=f"{clip.clip_id}-seg2",
+        source="synthetic",
+        source_uri="",
+        fps=clip.fps,
+        timestamps=np.arange(t) / clip.fps,
+        intrinsics=clip.intrinsics,
+        frames=rgb,
+        world_from_cam=poses,
+        depth=depth,
+        hand_joints=np.full((t, 2, 21, 3), np.nan, np.float32),
+        hand_valid=np.zeros((t, 2), bool),
+        hand_confidence=np.zeros((t, 2, 21), np.float32),
+        hand_mask=np.zeros((t, *depth.shape[1:]), np.uint8),
+    )
