@@ -241,7 +241,10 @@ class IngestStage(SourceStage):
         elif kind == "agibot":
             geometry = gripper_geometry(cfg.robot or agibot_source.DEFAULT_ROBOT)
             clip = agibot_source.read_agibot_episode(
-                Path(rest), cfg.robot_camera or "head", cfg.robot_camera_axes, geometry
+                Path(rest),
+                cfg.robot_camera or agibot_source.DEFAULT_CAMERA,
+                cfg.robot_camera_axes,
+                geometry,
             )
             yield from video_source.standardise_clip(clip, cfg)
         elif kind == "lerobot":
