@@ -585,6 +585,15 @@ def mediapipe_hands(
     return hands_from_raw(raw, frames.shape[2], intrinsics, world_from_cam, depth, params)
 
 
+def side_landmarks(
+    raw: RawLandmarks, width: int, params: MediaPipeParams | None = None
+) -> SideLandmarks:
+    """Sides, bridging and smoothing of ``raw`` landmarks (already without overlaps) found in
+    frames ``width`` pixels wide: the 2D part of :func:`hands_from_raw`, without any lift."""
+    params = params or MediaPipeParams()
+    return bridge_and_smooth(raw, assign_sides(raw, width, params), params)
+
+
 def hands_from_raw(
     raw: RawLandmarks,
     width: int,
@@ -597,8 +606,7 @@ def hands_from_raw(
     found in frames ``width`` pixels wide (arguments otherwise as :func:`mediapipe_hands`)."""
     params = params or MediaPipeParams()
     raw = drop_overlapping(raw, params.duplicate_distance)
-    side = assign_sides(raw, width, params)
-    lm = bridge_and_smooth(raw, side, params)
+    lm = side_landmarks(raw, width, params)
     t = raw.present.shape[0]
     joints = np.full((t, 2, NUM_HAND_JOINTS, 3), np.nan)
     for f, s in zip(*np.nonzero(lm.present), strict=True):

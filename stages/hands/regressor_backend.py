@@ -62,7 +62,12 @@ from egosim.pipeline.records import LEFT, NUM_HAND_JOINTS, RIGHT, Clip
 from egosim.pipeline.stage import ConfigError
 from egosim.stages.hands.filters import Detections
 from egosim.stages.hands.given import NoHandLabelsError
-from egosim.stages.hands.mediapipe_backend import MediaPipeParams, mediapipe_hands
+from egosim.stages.hands.mediapipe_backend import (
+    MediaPipeParams,
+    detect_landmarks,
+    drop_overlapping,
+    side_landmarks,
+)
 
 CONFIG_FILE = "config.json"  # architecture and preprocessing of a weights folder
 WEIGHTS_FILE = "model.safetensors"  # the state dict of HandRegressor
@@ -348,9 +353,11 @@ def hand_boxes(
     """2D landmarks per side ``(T, 2, 21, 2)`` pixels, ``present (T, 2)`` and detector
     ``confidence (T, 2)`` from the default backend or the clip's labels."""
     t = clip.num_frames
-    if boxes == "mediapipe":
-        res = mediapipe_hands(clip.frames, clip.intrinsics, None, None, mediapipe)
-        lm = res.landmarks
+    if boxes == "mediapipe":  # the 2D landmarks only: the backend's 3D lift is not needed here
+        raw = drop_overlapping(
+            detect_landmarks(clip.frames, mediapipe), mediapipe.duplicate_distance
+        )
+        lm = side_landmarks(raw, clip.width, mediapipe)
         return lm.uv, lm.present.copy(), lm.confidence
     if clip.hand_joints is None:
         raise NoHandLabelsError("regressor_boxes 'given' needs the clip's hand_joints labels")
