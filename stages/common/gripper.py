@@ -28,6 +28,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from egosim.pipeline.geometry import invert_se3, project_points, transform_points
+
 NUM_JOINTS = 21  # MANO / OpenPose hand joints
 WRIST = 0
 THUMB_CHAIN = (1, 2, 3, 4)  # thumb joints, base to tip
@@ -258,23 +260,21 @@ def gripper_box_masks(
         )
     if not (np.isfinite(margin_m) and margin_m >= 0):
         raise GripperError(f"margin_m must be finite and >= 0, got {margin_m}")
-    fx, fy, cx, cy = np.asarray(intrinsics, dtype=np.float64)
-    pose = np.asarray(world_from_cam, dtype=np.float64)
-    rot, trans = pose[:, :3, :3], pose[:, :3, 3]  # (T, 3, 3), (T, 3)
-    cam = np.einsum("tji,thkj->thki", rot, j - trans[:, None, None, :])  # (T, 2, 21, 3)
+    fx, fy = np.asarray(intrinsics, dtype=np.float64)[:2]
+    cam_from_world = invert_se3(world_from_cam)  # (T, 4, 4)
     centre_u = np.arange(width) + 0.5  # (W,)
     centre_v = np.arange(height) + 0.5  # (H,)
     masks = np.zeros((t, height, width), dtype=np.uint8)
     use = (np.asarray(confidence) > 0) & np.asarray(valid, dtype=bool)[..., None]  # (T, 2, 21)
-    use &= np.isfinite(cam).all(axis=-1) & (cam[..., 2] > 1e-6)
     for f in range(t):
+        # uv (2, 21, 2) pixels, depth (2, 21); NaN pixels behind the camera
+        uv, depth = project_points(transform_points(cam_from_world[f], j[f]), intrinsics)
+        seen = use[f] & np.isfinite(uv).all(axis=-1) & np.isfinite(depth) & (depth > 1e-6)
         for hand in range(2):
-            pts = cam[f, hand][use[f, hand]]  # (N, 3)
-            if not len(pts):
+            if not seen[hand].any():
                 continue
-            u = fx * pts[:, 0] / pts[:, 2] + cx  # (N,)
-            v = fy * pts[:, 1] / pts[:, 2] + cy  # (N,)
-            z = pts[:, 2].min()
+            u, v = uv[hand, seen[hand], 0], uv[hand, seen[hand], 1]  # (N,), (N,)
+            z = depth[hand, seen[hand]].min()
             mu, mv = fx * margin_m / z, fy * margin_m / z
             cols = (centre_u >= u.min() - mu) & (centre_u <= u.max() + mu)  # (W,)
             rows = (centre_v >= v.min() - mv) & (centre_v <= v.max() + mv)  # (H,)
