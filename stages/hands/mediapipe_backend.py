@@ -54,7 +54,11 @@ import numpy as np
 
 from egosim.pipeline.geometry import transform_points
 from egosim.pipeline.records import LEFT, NUM_HAND_JOINTS, RIGHT, Clip
-from egosim.stages.common.hand_landmarks import place_in_camera
+from egosim.stages.common.hand_landmarks import (  # shared with the metric scale
+    MediaPipeUnavailableError,  # noqa: F401 (raised by detect_landmarks, importable here)
+    _import_mediapipe,
+    place_in_camera,
+)
 from egosim.stages.common.roi_landmarks import LandmarkModel, TrackParams, track_through_misses
 from egosim.stages.hands.filters import Detections
 
@@ -73,10 +77,6 @@ PALM_TEMPLATE = np.array(
         [0.074, -0.031, 0.0],
     ]
 )  # (5, 3)
-
-
-class MediaPipeUnavailableError(ImportError):
-    """``mediapipe`` is not installed (install it as ``make setup`` does)."""
 
 
 @dataclass(frozen=True)
@@ -125,17 +125,6 @@ class SideLandmarks:
     confidence: np.ndarray  # (T, 2) float64 in [0, 1], 0 where absent
     present: np.ndarray  # (T, 2) bool detected or bridged
     detected: np.ndarray  # (T, 2) bool detected (not bridged)
-
-
-def _import_mediapipe():
-    try:
-        import mediapipe as mp
-    except ImportError as exc:
-        raise MediaPipeUnavailableError(
-            "the mediapipe backend needs mediapipe==0.10.21 (pip install --no-deps "
-            "mediapipe==0.10.21 absl-py flatbuffers attrs matplotlib 'protobuf>=5.29.6,<6')"
-        ) from exc
-    return mp
 
 
 def detect_landmarks(frames: np.ndarray, params: MediaPipeParams | None = None) -> RawLandmarks:
