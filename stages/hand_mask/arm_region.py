@@ -36,17 +36,18 @@ import cv2
 import numpy as np
 
 from egosim.stages.hand_mask.capsules import (
+    FOREARM_LENGTH_M,
     FOREARM_RADIUS_M,
     KNUCKLES,
+    SHIFT,
     WRIST,
     CapsuleParams,
     draw_hand,
+    fixed_point,
     hand_scale_px,
 )
 
 MIDDLE_KNUCKLE = 9  # MANO index of the middle finger's MCP joint
-_SHIFT = 4  # sub-pixel bits for OpenCV drawing
-_ONE = 1 << _SHIFT
 
 
 @dataclass(frozen=True)
@@ -260,11 +261,6 @@ def arm_extent(
     return last, ref_colour
 
 
-def _fixed(points: np.ndarray) -> np.ndarray:
-    """Pixel-centre coordinates ``(..., 2)`` to OpenCV fixed-point integer pixel indices."""
-    return np.round((np.asarray(points) - 0.5) * _ONE).astype(np.int32)
-
-
 def _rotate(v: np.ndarray, degrees: float) -> np.ndarray:
     a = np.radians(degrees)
     return np.array([np.cos(a) * v[0] - np.sin(a) * v[1], np.sin(a) * v[0] + np.cos(a) * v[1]])
@@ -341,30 +337,33 @@ def _arm_regions(
     :func:`region_direction`.
     """
     h, w = mask.shape
-    fan = np.zeros((h, w), np.uint8)
-    band = np.zeros((h, w), np.uint8)
     seed = np.zeros((h, w), np.uint8)
     reach = float(np.hypot(h, w)) + float(np.hypot(*(wrist - [w / 2, h / 2])))
     r0 = FOREARM_RADIUS_M[0] * scale * capsule.radius_scale * arm.band
     r1 = FOREARM_RADIUS_M[1] * scale * capsule.radius_scale * arm.band
-    r_end = min(r0 + (r1 - r0) * reach / max(0.26 * scale, 1e-6), 2.0 * r1)
+    r_end = min(r0 + (r1 - r0) * reach / max(FOREARM_LENGTH_M * scale, 1e-6), 2.0 * r1)
     n = np.array([-d[1], d[0]])  # (2,) normal
+    end = wrist + reach * d
+
+    def filled(polygon: np.ndarray) -> np.ndarray:
+        """``(H, W)`` uint8, 1 inside ``polygon (N, 2)`` (pixels)."""
+        out = np.zeros((h, w), np.uint8)
+        cv2.fillPoly(out, [fixed_point(polygon)], 1, cv2.LINE_8, SHIFT)
+        return out
+
+    def band_of(k: float) -> np.ndarray:
+        """The tapered band along ``d`` to the border, ``k`` times the forearm's half-width."""
+        return filled(np.stack([wrist + k * r0 * n, end + k * r_end * n, end - k * r_end * n,
+                                wrist - k * r0 * n]))  # fmt: skip
+
     # Fan: the wrist's neighbourhood plus every direction within the half-angle, at most
     # ``fan_width`` forearm half-widths from the axis (so a false arm stays a bounded band).
     half = arm.fan_half_angle_deg
     rays = [wrist + reach * _rotate(d, a) for a in np.linspace(-half, half, 9)]
-    fan_poly = np.stack([wrist + r0 * n, *rays, wrist - r0 * n])  # (11, 2)
-    cv2.fillPoly(fan, [_fixed(fan_poly)], 1, cv2.LINE_8, _SHIFT)
-    end = wrist + reach * d
+    fan = filled(np.stack([wrist + r0 * n, *rays, wrist - r0 * n]))  # (11, 2) polygon
     if arm.fan_width > 0:
-        k = arm.fan_width
-        strip = np.zeros((h, w), np.uint8)
-        quad = np.stack([wrist + k * r0 * n, end + k * r_end * n, end - k * r_end * n,
-                         wrist - k * r0 * n])  # fmt: skip
-        cv2.fillPoly(strip, [_fixed(quad)], 1, cv2.LINE_8, _SHIFT)
-        fan &= strip
-    quad = np.stack([wrist + r0 * n, end + r_end * n, end - r_end * n, wrist - r0 * n])
-    cv2.fillPoly(band, [_fixed(quad)], 1, cv2.LINE_8, _SHIFT)
+        fan &= band_of(arm.fan_width)
+    band = band_of(1.0)
     a = wrist + arm.seed_start * hand_len * d
     seed_end = arm.seed_end * hand_len
     ref = None
@@ -373,22 +372,17 @@ def _arm_regions(
                                    mask, arm.walk_tolerance, arm.walk_gap)  # fmt: skip
     b = wrist + seed_end * d
     thickness = max(1, round(2 * arm.seed_width * FOREARM_RADIUS_M[0] * scale))
-    cv2.line(seed, tuple(_fixed(a)), tuple(_fixed(b)), 1, thickness, cv2.LINE_8, _SHIFT)
+    cv2.line(seed, tuple(fixed_point(a)), tuple(fixed_point(b)), 1, thickness, cv2.LINE_8, SHIFT)
     if lab is None or ref is None:
         return fan, band, seed, None
     close = (np.linalg.norm(lab - ref, axis=2) <= arm.walk_tolerance) & (mask == 0)  # (H, W)
-    wide_fan = np.zeros((h, w), np.uint8)
     half = arm.refine_half_angle_deg
     rays = [wrist + reach * _rotate(d, a) for a in np.linspace(-half, half, 13)]
-    cv2.fillPoly(wide_fan, [_fixed(np.stack([wrist, *rays]))], 1, cv2.LINE_8, _SHIFT)
+    wide_fan = filled(np.stack([wrist, *rays]))
     region = connected_to((close & (wide_fan > 0)).astype(np.uint8) | seed, seed)
     if arm.colour_region > 0:
         # The arm's colour near its axis, connected to the strip, is certainly arm.
-        wide = np.zeros((h, w), np.uint8)
-        k = arm.colour_region
-        quad = np.stack([wrist + k * r0 * n, end + k * r_end * n, end - k * r_end * n,
-                         wrist - k * r0 * n])  # fmt: skip
-        cv2.fillPoly(wide, [_fixed(quad)], 1, cv2.LINE_8, _SHIFT)
+        wide = band_of(arm.colour_region)
         seed = seed | connected_to((close & (wide > 0)).astype(np.uint8) | seed, seed)
     return fan, band, seed, region
 

@@ -39,8 +39,8 @@ BONES = (
 )
 FOREARM_RADIUS_M = (0.027, 0.036)  # forearm half-width at the wrist and one forearm length on
 FOREARM_LENGTH_M = 0.26  # wrist to elbow, average adult, metres
-_SHIFT = 4  # sub-pixel bits for OpenCV drawing
-_ONE = 1 << _SHIFT
+SHIFT = 4  # sub-pixel bits for OpenCV drawing
+_ONE = 1 << SHIFT
 
 
 class KeypointError(ValueError):
@@ -84,9 +84,9 @@ def hand_scale_px(keypoints: np.ndarray) -> float:
     return max(ratios) if ratios else float("nan")
 
 
-def _fixed(points: np.ndarray) -> np.ndarray:
+def fixed_point(points: np.ndarray) -> np.ndarray:
     """Pixel-centre coordinates ``(..., 2)`` to OpenCV fixed-point integer pixel indices."""
-    return np.round((points - 0.5) * _ONE).astype(np.int32)
+    return np.round((np.asarray(points) - 0.5) * _ONE).astype(np.int32)
 
 
 def _forearm_polygon(
@@ -156,11 +156,11 @@ def draw_hand(
     if not np.isfinite(scale) or scale <= 0:
         return mask, core
     known = np.all(np.isfinite(keypoints), axis=1)  # (21,)
-    fixed = _fixed(np.where(known[:, None], keypoints, 0.0))  # (21, 2)
+    fixed = fixed_point(np.where(known[:, None], keypoints, 0.0))  # (21, 2)
     palm = [i for i in PALM_POLYGON if known[i]]
     if len(palm) >= 3:
-        cv2.fillPoly(mask, [fixed[palm]], 1, cv2.LINE_8, _SHIFT)
-        cv2.fillPoly(core, [_fixed(_shrink(keypoints[palm], 0.5))], 1, cv2.LINE_8, _SHIFT)
+        cv2.fillPoly(mask, [fixed[palm]], 1, cv2.LINE_8, SHIFT)
+        cv2.fillPoly(core, [fixed_point(_shrink(keypoints[palm], 0.5))], 1, cv2.LINE_8, SHIFT)
     for a, b, radius_m in BONES:
         if not (known[a] and known[b]):
             continue
@@ -168,19 +168,19 @@ def draw_hand(
         thickness = max(1, round(2.0 * radius))
         core_thickness = max(1, round(2.0 * radius * params.core_fraction))
         pa_, pb = tuple(int(v) for v in fixed[a]), tuple(int(v) for v in fixed[b])
-        cv2.line(mask, pa_, pb, 1, thickness, cv2.LINE_8, _SHIFT)
-        cv2.line(core, pa_, pb, 1, core_thickness, cv2.LINE_8, _SHIFT)
+        cv2.line(mask, pa_, pb, 1, thickness, cv2.LINE_8, SHIFT)
+        cv2.line(core, pa_, pb, 1, core_thickness, cv2.LINE_8, SHIFT)
     if params.forearm:
         for pull in params.body_pulls:
             polygon = _forearm_polygon(
                 keypoints, side, scale, pull, params, height, width, arm_target
             )
             if polygon is not None:
-                cv2.fillPoly(mask, [_fixed(polygon)], 1, cv2.LINE_8, _SHIFT)
+                cv2.fillPoly(mask, [fixed_point(polygon)], 1, cv2.LINE_8, SHIFT)
         if known[WRIST]:  # the wrist itself is certainly arm, whatever the arm's direction
             radius = FOREARM_RADIUS_M[0] * scale * params.radius_scale * params.core_fraction
             centre = tuple(int(v) for v in fixed[WRIST])
-            cv2.circle(core, centre, max(1, round(radius)) * _ONE, 1, -1, cv2.LINE_8, _SHIFT)
+            cv2.circle(core, centre, max(1, round(radius)) * _ONE, 1, -1, cv2.LINE_8, SHIFT)
     return mask, core
 
 
