@@ -41,7 +41,13 @@ import open3d.core as o3c
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
-from egosim.pipeline.geometry import invert_se3, rotation_angle_deg, unproject_depth
+from egosim.pipeline.geometry import (
+    invert_se3,
+    project_points,
+    rotation_angle_deg,
+    transform_points,
+    unproject_depth,
+)
 from egosim.stages.state_fusion.config import StateFusionConfig
 
 SOURCE_BACKGROUND, SOURCE_OBJECT, SOURCE_LAST_OBSERVED, SOURCE_PREVIOUS = 0, 1, 2, 3
@@ -507,14 +513,11 @@ def _project(
     points: np.ndarray, cam_from_world: np.ndarray, intrinsics: np.ndarray, h: int, w: int
 ):
     """Pixel ``(row, col)`` and z of ``points (N, 3)``; ``ok (N,)`` where in the image, z > 0."""
-    fx, fy, cx, cy = intrinsics
-    pc = points @ cam_from_world[:3, :3].T + cam_from_world[:3, 3]  # (N, 3)
-    z = pc[:, 2]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        u = np.floor(fx * pc[:, 0] / z + cx)
-        v = np.floor(fy * pc[:, 1] / z + cy)
+    uv, z = project_points(transform_points(cam_from_world, points), intrinsics)  # (N, 2), (N,)
+    u, v = np.floor(uv[:, 0]), np.floor(uv[:, 1])  # NaN behind the camera
     ok = (z > 1e-6) & (u >= 0) & (u < w) & (v >= 0) & (v < h)
-    return v.astype(np.int64, copy=False), u.astype(np.int64, copy=False), z, ok
+    u, v = np.where(ok, u, 0), np.where(ok, v, 0)  # no NaN into the integer cast
+    return v.astype(np.int64), u.astype(np.int64), z, ok
 
 
 def compare_with_observation(
