@@ -19,7 +19,13 @@ import cv2
 import numpy as np
 
 from egosim.schemas.inpaint import FILL_OPENCV, FILL_ORIGINAL, FILL_REPROJECTED
-from egosim.stages.inpaint.reproject_fill import FillResult, OccluderColours, dilate, unseen_fill
+from egosim.stages.inpaint.reproject_fill import (
+    FillResult,
+    OccluderColours,
+    dilate,
+    slot_median,
+    unseen_fill,
+)
 
 MIN_MATCHES = 12  # fewer good feature matches than this: the frame is not used
 
@@ -119,11 +125,7 @@ def aligned_fill(
         count[idx] += 1
     done = count > 0
     if done.any():
-        filled = np.zeros((int(done.sum()), 3), np.float32)
-        for n in range(1, candidates + 1):  # median over the slots each pixel filled
-            sel = count[done] == n
-            if sel.any():
-                filled[sel] = np.median(samples[:n, np.nonzero(done)[0][sel]], axis=0)
+        filled = slot_median(samples, count)[done]  # (M', 3)
         image[ys[done], xs[done]] = np.clip(np.round(filled), 0, 255).astype(np.uint8)
         fill_source[ys[done], xs[done]] = FILL_REPROJECTED
         source_frame[ys[done], xs[done]] = first_frame[done]

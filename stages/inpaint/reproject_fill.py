@@ -63,9 +63,7 @@ def dilate(mask: np.ndarray, pixels: int) -> np.ndarray:
 
 def opencv_fill(image: np.ndarray, mask: np.ndarray, radius: float = 5.0) -> np.ndarray:
     """OpenCV Telea inpainting of ``image (H, W, 3)`` RGB where ``mask (H, W)`` is 1."""
-    bgr = cv2.cvtColor(image, cv2.COLOR_RGB2BGR)
-    out = cv2.inpaint(bgr, mask.astype(np.uint8), radius, cv2.INPAINT_TELEA)
-    return cv2.cvtColor(out, cv2.COLOR_BGR2RGB)
+    return unseen_fill(image, mask, radius, "telea")
 
 
 UNSEEN_METHODS = {"telea": cv2.INPAINT_TELEA, "ns": cv2.INPAINT_NS}  # OpenCV inpainting flags
@@ -130,6 +128,19 @@ def _palette(colours: np.ndarray, k: int) -> np.ndarray | None:
     cv2.setRNGSeed(0)
     _, _, centres = cv2.kmeans(data, k, None, criteria, 2, cv2.KMEANS_PP_CENTERS)
     return centres
+
+
+def slot_median(samples: np.ndarray, count: np.ndarray) -> np.ndarray:
+    """Per-pixel median ``(M, 3)`` float32 of the first ``count (M,)`` of ``samples (S, M, 3)``.
+
+    Pixels with no sample (count 0) are 0.
+    """
+    out = np.zeros(samples.shape[1:], np.float32)  # (M, 3)
+    for n in range(1, len(samples) + 1):
+        sel = count == n
+        if sel.any():
+            out[sel] = np.median(samples[:n, sel], axis=0)
+    return out
 
 
 REMAP_CHUNK = 32000  # cv2.remap refuses maps with SHRT_MAX (32767) or more rows
@@ -231,11 +242,7 @@ def reproject_fill(
         source_frame[ys[first], xs[first]] = k
         count[got] += 1
     done = count > 0
-    colours = np.zeros((len(ys), 3), np.float32)
-    for n in range(1, candidates + 1):  # median over the slots each pixel filled
-        sel = count == n
-        if sel.any():
-            colours[sel] = np.median(samples[:n, sel], axis=0)
+    colours = slot_median(samples, count)  # (M, 3)
     todo = ~done
     image[ys[done], xs[done]] = np.clip(np.round(colours[done]), 0, 255).astype(np.uint8)
     fill_source[ys[done], xs[done]] = FILL_REPROJECTED
