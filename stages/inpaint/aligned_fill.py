@@ -30,19 +30,23 @@ from egosim.stages.inpaint.reproject_fill import (
 MIN_MATCHES = 12  # fewer good feature matches than this: the frame is not used
 
 
-def homography_to_first(
-    frame: np.ndarray, first: np.ndarray, mask: np.ndarray, mask0: np.ndarray
-) -> np.ndarray | None:
-    """Homography ``(3, 3)`` taking pixels of ``frame`` to ``first`` (OpenCV coordinates).
+def orb_features(image: np.ndarray, mask: np.ndarray) -> tuple[tuple, np.ndarray | None]:
+    """ORB keypoints and descriptors of ``image (H, W, 3)`` RGB off ``mask (H, W)`` (hands)."""
+    grey = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
+    return cv2.ORB_create(1500).detectAndCompute(grey, (mask == 0).astype(np.uint8) * 255)
 
-    Features under ``mask`` (this frame's hands) or ``mask0`` (frame 0's) are ignored. None when
-    too few matches or RANSAC inliers support one.
+
+def homography_to_first(
+    frame: np.ndarray, mask: np.ndarray, first: tuple[tuple, np.ndarray | None]
+) -> np.ndarray | None:
+    """Homography ``(3, 3)`` taking pixels of ``frame`` to frame 0 (OpenCV coordinates).
+
+    ``first``: frame 0's :func:`orb_features` (off its hands, computed once per clip); features
+    under ``mask`` (this frame's hands) are ignored. None when too few matches or RANSAC inliers
+    support one.
     """
-    orb = cv2.ORB_create(1500)
-    grey_a = cv2.cvtColor(frame, cv2.COLOR_RGB2GRAY)
-    grey_b = cv2.cvtColor(first, cv2.COLOR_RGB2GRAY)
-    kp_a, des_a = orb.detectAndCompute(grey_a, (mask == 0).astype(np.uint8) * 255)
-    kp_b, des_b = orb.detectAndCompute(grey_b, (mask0 == 0).astype(np.uint8) * 255)
+    kp_a, des_a = orb_features(frame, mask)
+    kp_b, des_b = first
     if des_a is None or des_b is None or len(kp_a) < MIN_MATCHES or len(kp_b) < MIN_MATCHES:
         return None
     matches = cv2.BFMatcher(cv2.NORM_HAMMING, crossCheck=True).match(des_a, des_b)
@@ -91,6 +95,7 @@ def aligned_fill(
     if occluder_ratio > 0:
         occluders = OccluderColours(frames[0], hand_mask[0] > 0, target, occluder_ratio)
     grey0 = cv2.cvtColor(frames[0], cv2.COLOR_RGB2GRAY).astype(np.int16)  # (H, W)
+    first = None if static_camera else orb_features(frames[0], masks[0])
     samples = np.zeros((candidates, len(ys), 3), np.float32)  # colours per candidate slot
     count = np.zeros(len(ys), np.int32)  # (M,) slots used per pixel
     first_frame = np.zeros(len(ys), np.uint16)  # (M,) earliest frame that filled the pixel
@@ -100,7 +105,7 @@ def aligned_fill(
         if static_camera:
             warped, free = frames[k], masks[k] == 0
         else:
-            hom = homography_to_first(frames[k], frames[0], masks[k], masks[0])
+            hom = homography_to_first(frames[k], masks[k], first)
             if hom is None:
                 continue
             warped = cv2.warpPerspective(frames[k], hom, (w, h), flags=cv2.INTER_LINEAR)
