@@ -15,9 +15,9 @@ with the default :class:`~egosim.stages.hands.mediapipe_backend.MediaPipeParams`
   is that hand's colour; the mean distance from the keypoint centroid to the rendered hand's
   pixel centroid on frames where both exist.
 - **Fixed-camera and EgoDex videos** (``realworld_fixed/*.mp4``, ``egodex_sample/sample.mp4``),
-  standardised as ingest does (16 fps by nearest timestamp, scaled to cover 480x832 and
-  centre-cropped with :func:`~egosim.stages.ingest.standardise.plan_resize`) and cut into ingest's
-  windows (61 frames, then a 1 + 4k tail): per window, frames with 0 / 1 / 2 hands, the fraction
+  cut into clips by ingest's own windowing with its egosim preset (16 fps by nearest timestamp,
+  scaled to cover 480x832 and centre-cropped; 61-frame windows, then a 1 + 4k tail of at least
+  33 frames): per window, frames with 0 / 1 / 2 hands, the fraction
   with any and the first frame with each hand (no ground truth there).
 - **Synthetic world** (``render_clip(WorldConfig(seed, mode))``, true joints known): recall, 2D
   error, 3D orientation error and wrist-relative MPJPE (:mod:`egosim.stages.hands.metrics`),
@@ -37,13 +37,15 @@ import numpy as np
 
 from egosim.pipeline.geometry import intrinsics_from_fov
 from egosim.pipeline.media import read_video_file
+from egosim.pipeline.stage import ClipRejected
 from egosim.stages.hands.mediapipe_backend import (
     MediaPipeParams,
     detect_landmarks,
     hands_from_raw,
 )
 from egosim.stages.hands.metrics import combine, hand_accuracy
-from egosim.stages.ingest.standardise import plan_resize
+from egosim.stages.ingest.stage import CLIP_PRESETS
+from egosim.stages.ingest.standardise import Window, WindowPolicy, plan_resize, resample_windows
 
 DEFAULT_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 MIN_RENDER_PIXELS = 150  # a render shows a hand when at least this many pixels have its colour
@@ -133,40 +135,33 @@ def _run(frames: np.ndarray, params: MediaPipeParams | None = None):
     return hands_from_raw(raw, frames.shape[2], k, None, None, params)
 
 
-def standardised(path: Path, num_frames: int | None = NUM_FRAMES) -> np.ndarray:
-    """``(T, 480, 832, 3)`` frames of a video at 16 fps as ingest's egosim preset would cut them:
-    the first ``num_frames`` (None: all)."""
+def ingest_windows(path: Path) -> list[Window]:
+    """The clips ingest's egosim preset cuts from a video (16 fps by nearest timestamp, scaled to
+    cover 480x832 and centre-cropped, full windows then a ``1 + 4k`` tail): ingest's own
+    :func:`~egosim.stages.ingest.standardise.resample_windows`; none when it rejects the video."""
     frames, stamps = read_video_file(path)
-    targets = np.arange(int(stamps[-1] * FPS) + 2) / FPS
-    targets = targets[targets <= stamps[-1] + 0.5 / FPS][:num_frames]
-    idx = np.abs(stamps[None, :] - targets[:, None]).argmin(axis=1)  # nearest by timestamp
     plan = plan_resize(frames.shape[2], frames.shape[1], WIDTH, HEIGHT)
-    return np.stack([plan.apply(frames[i]) for i in idx])
-
-
-def windows(total: int) -> list[tuple[int, int]]:
-    """``(start, stop)`` of the clips ingest's default policy cuts from ``total`` frames: full
-    windows of ``NUM_FRAMES``, then a tail of the longest ``1 + 4k`` frames left (at least 5)."""
-    out = [(a, a + NUM_FRAMES) for a in range(0, total - NUM_FRAMES + 1, NUM_FRAMES)]
-    start = out[-1][1] if out else 0
-    tail = 1 + 4 * ((total - start - 1) // 4) if total > start else 0
-    if tail >= 5:
-        out.append((start, start + tail))
-    return out
+    preset = CLIP_PRESETS["egosim"]
+    policy = WindowPolicy(preset.fps, preset.num_frames, preset.min_frames, preset="egosim")
+    pairs = ((float(t), plan.apply(frame)) for t, frame in zip(stamps, frames, strict=True))
+    try:
+        return list(resample_windows(pairs, policy, what=path.name))
+    except ClipRejected:
+        return []
 
 
 def count_figures(path: Path) -> list[dict[str, float]]:
-    """Per window of one standardised video: frames with 0 / 1 / 2 hands, the fraction with any
+    """Per ingest window of one video: frames with 0 / 1 / 2 hands, the fraction with any
     (pack's gate wants >= 0.1) and the first frame of each side."""
-    video = standardised(path, None)
     out = []
-    for a, b in windows(len(video)):
-        frames = video[a:b]
+    for window in ingest_windows(path):
+        frames = window.frames
         start, cpu = time.perf_counter(), time.process_time()
         res = _run(frames)
         seconds, cpu = time.perf_counter() - start, time.process_time() - cpu
         n = res.valid.sum(axis=1)  # (T,)
-        fig = {"start": float(a), "frames": float(len(frames)), "seconds": seconds, "cpu_s": cpu}
+        first = float(window.index * NUM_FRAMES)
+        fig = {"start": first, "frames": float(len(frames)), "seconds": seconds, "cpu_s": cpu}
         for c in range(3):
             fig[f"{c}_hands"] = float((n == c).sum())
         fig["hand_fraction"] = float((n > 0).mean())
