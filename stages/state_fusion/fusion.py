@@ -42,6 +42,7 @@ from scipy import ndimage
 from scipy.spatial import cKDTree
 
 from egosim.pipeline.geometry import (
+    intrinsics_matrix,
     invert_se3,
     project_points,
     rotation_angle_deg,
@@ -475,8 +476,7 @@ def _integrate_tsdf(
     config: StateFusionConfig,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Fuse ``depth (T, H, W)`` (0 = skip) by TSDF; returns points ``(N, 3)`` and RGB ``(N, 3)``."""
-    fx, fy, cx, cy = np.asarray(intrinsics, dtype=np.float64)
-    k_mat = o3c.Tensor(np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]]), o3c.float64)
+    k_mat = o3c.Tensor(intrinsics_matrix(intrinsics), o3c.float64)  # (3, 3)
     grid = o3d.t.geometry.VoxelBlockGrid(
         attr_names=("tsdf", "weight", "color"),
         attr_dtypes=(o3c.float32, o3c.float32, o3c.float32),
@@ -682,7 +682,7 @@ def fuse_state(
     def frame_points(k: int, step: int = 1) -> tuple[np.ndarray, np.ndarray]:
         pix = np.flatnonzero(valid[k])[::step]
         pc = rays[pix] * depth[k].reshape(-1)[pix, None]  # (n, 3) camera
-        return pc @ poses[k, :3, :3].T + poses[k, :3, 3], pix  # (n, 3) world, (n,)
+        return transform_points(poses[k], pc), pix  # (n, 3) world, (n,)
 
     step = max(1, int(valid[0].size // 2000))
     sample = np.concatenate([frame_points(k, step)[0] for k in range(t)])
