@@ -55,6 +55,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from bench.real_video import _psnr
 from egosim.pipeline import media
 from egosim.stages.hand_mask.stage import HandMaskConfig, HandMaskStage, masks_from_keypoints
 from egosim.stages.inpaint.reproject_fill import dilate, opencv_fill
@@ -68,14 +69,6 @@ HAND_THRESHOLD = 30  # a videos_hands pixel brighter than this (any channel) is 
 FAR_PX = 50  # mask farther than this from a hand or its arm corridor is a false positive
 HAND_DILATE_PX = 15  # hand region of the PSNR figure: the hand truth grown by this
 MIN_HAND_FRACTION = 0.003  # a frame "shows a hand" when this fraction of it is hand truth
-
-
-def psnr(a: np.ndarray, b: np.ndarray, mask: np.ndarray) -> float:
-    """PSNR in dB of ``a`` against ``b`` over ``mask (H, W)`` (NaN for an empty mask)."""
-    if not mask.any():
-        return float("nan")
-    diff = a.astype(np.float64)[mask] - b.astype(np.float64)[mask]
-    return float(10 * np.log10(255.0**2 / max(float(np.mean(diff**2)), 1e-12)))
 
 
 def iou(a: np.ndarray, b: np.ndarray) -> float:
@@ -148,8 +141,8 @@ def world_case(
         "iou_true": float(np.mean([iou(m > 0, g) for m, g in zip(masks, truth, strict=True)])),
         "iou_mp": float(np.mean([iou(m > 0, g) for m, g in zip(mp_masks, truth, strict=True)])),
         "iou_true_f0": iou(masks[0] > 0, truth[0]),
-        "psnr": psnr(result.image, clip.first_frame_clean, region),
-        "telea": psnr(telea, clip.first_frame_clean, region),
+        "psnr": _psnr(result.image, clip.first_frame_clean, region),
+        "telea": _psnr(telea, clip.first_frame_clean, region),
         "mask_s": mask_s,
         "fill_s": fill_s,
     }
@@ -223,10 +216,10 @@ def dwm_case(cid: str, data: Path, out: Path) -> dict:
         "far_px_frame": worst,
         "frames_judged": len(shown),
         "start": s,
-        "psnr_hand": psnr(result.image, static[s], region),
-        "telea_hand": psnr(telea, static[s], region),
-        "psnr_frame": psnr(result.image, static[s], whole),
-        "telea_frame": psnr(telea, static[s], whole),
+        "psnr_hand": _psnr(result.image, static[s], region),
+        "telea_hand": _psnr(telea, static[s], region),
+        "psnr_frame": _psnr(result.image, static[s], whole),
+        "telea_frame": _psnr(telea, static[s], whole),
         "mask_s": mask_s,
         "fill_s": fill_s,
     }
