@@ -39,6 +39,8 @@ import dataclasses
 import cv2
 import numpy as np
 
+from egosim.pipeline.geometry import pixel_grid
+
 EXCLUDED, MEASURED, PLANE, INPAINTED = 0, 1, 2, 3  # values of DenseDepth.source
 PLANE_CONFIDENCE = 0.45  # confidence of a pixel filled by a plane whose segment is all inliers
 INPAINT_CONFIDENCE = 0.1  # confidence of a pixel filled by inpainting
@@ -270,8 +272,7 @@ def densify_depth(
         return DenseDepth(sparse, source, out_conf.astype(np.float32), num_flying)
     # 3. segment planes
     fx, fy, cx, cy = np.asarray(intrinsics, dtype=np.float64)
-    vv, uu = np.mgrid[0:h, 0:w]
-    coords = np.stack([(uu.ravel() + 0.5 - cx) / fx, (vv.ravel() + 0.5 - cy) / fy], 1)  # (P, 2)
+    coords = (pixel_grid(h, w).reshape(-1, 2) - [cx, cy]) / [fx, fy]  # (P, 2) at z = 1
     lo, hi = inv[measured].min(), inv[measured].max()
     num_outliers = 0
     inv_measured = inv.ravel().copy()  # (P,) planes are fitted to measurements only
