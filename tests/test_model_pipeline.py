@@ -228,6 +228,8 @@ def test_simulate_and_evaluate_run_their_workflows(chain, run_dir: Path, tmp_pat
     assert (row["num_frames"], row["height"], row["width"]) == (T, PH, PW)
     video, _ = media.read_video_file(out / "videos" / f"{row['clip_id']}.mp4")
     assert video.shape == (T, PH, PW, 3)
+    # the file is the shard's MP4 itself, not a second encode
+    assert (out / "videos" / f"{row['clip_id']}.mp4").read_bytes() == row["video"]
     resolved = yaml.safe_load((out / "workflow.resolved.yaml").read_text())
     assert resolved["steps"]["simulate"]["params"]["steps"] == 2
     assert resolved["given"] == {"pack": [str(chain["pack"])]}
