@@ -54,6 +54,7 @@ from bench.real_video import (
     run_case,
 )
 from egosim.pipeline import media
+from egosim.stages.inpaint.reproject_fill import dilate
 
 SYNTHETIC = (  # (label, mode, seed, variant) at SYN_H x SYN_W, SYN_T frames
     ("world_wild_s1", "wild", 1, ""),
@@ -195,15 +196,7 @@ def real_case(
     indices = np.arange(len(video)) if indices is None else np.asarray(indices, dtype=np.int64)
     truth = _fit(_video_frames(data / case.static_truth), indices, (h, w))
     hands = _fit(_video_frames(data / case.hands_truth), indices, (h, w))
-    kernel = cv2.getStructuringElement(
-        cv2.MORPH_ELLIPSE, (2 * HAND_DILATE_PX + 1, 2 * HAND_DILATE_PX + 1)
-    )
-    hand = np.stack(
-        [
-            cv2.dilate((f.max(axis=2) > HAND_RENDER_THRESHOLD).astype(np.uint8), kernel)
-            for f in hands
-        ]
-    ).astype(bool)  # (T, H, W)
+    hand = dilate(hands.max(axis=3) > HAND_RENDER_THRESHOLD, HAND_DILATE_PX) > 0  # (T, H, W)
     row = {"case": case.name, "clip": cid, **_cloud_figures(cloud_rows.get(cid), (h, w))}
     row.update(coverage_figures(video, visible, truth, hand))
     return row, sheet_row(real[0], video[0], visible[0], hand[0], video[-1])
