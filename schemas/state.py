@@ -5,7 +5,7 @@ per-point instance id and per-point source), the instance table with the interac
 per-frame results, the cameras the state was built from and the Sim3 that registered the clip
 to the previous state. Point arrays are little-endian binary blobs like ``scene_cloud``'s, so a
 state row converts to a ``scene_cloud`` row by picking columns
-(``egosim.stages.state_fusion.state_io.scene_cloud_row_from_state``).
+(:func:`scene_cloud_row_from_state`).
 
 Per-point ``source`` codes (``POINT_SOURCES``): 0 background fused by TSDF, 1 non-interacted
 object fused by TSDF, 2 interacted object taken from its last observed frame, 3 carried over
@@ -23,6 +23,7 @@ import pyarrow as pa
 from egosim.schemas.base import Column, ShardSchema
 from egosim.schemas.clips import POSE
 from egosim.schemas.invariants import se3_problems
+from egosim.schemas.scene import SCENE_CLOUD
 
 POINT_SOURCES = ("background", "object", "last_observed", "previous")  # per-point source codes
 
@@ -276,11 +277,9 @@ def scene_cloud_row_from_state(
 
     ``clip_id`` names the clip the cloud is rendered for (default: the state's own clip). The
     points, colours and sizes are the state's bytes unchanged; ``source_frame`` is -1 (a fused
-    state, no single frame), ``kept_fraction`` 1.0 and, where the ``scene_cloud`` schema has
-    per-point confidence, every point counts as measured (255): fused points are observations.
+    state, no single frame), ``kept_fraction`` 1.0 and
+    every point's confidence is measured (255): fused points are observations.
     """
-    from egosim.schemas.scene import SCENE_CLOUD
-
     n = int(row["num_points"])
     out = {
         "clip_id": row["clip_id"] if clip_id is None else clip_id,
@@ -292,9 +291,8 @@ def scene_cloud_row_from_state(
         "image_source": f"state:{row['state_clip_id']}",
         "kept_fraction": 1.0,
         "num_flying_removed": 0,
+        "point_confidence": np.full(n, 255, np.uint8).tobytes(),
     }
-    if "point_confidence" in SCENE_CLOUD.column_names:
-        out["point_confidence"] = np.full(n, 255, np.uint8).tobytes()
     missing = [c for c in SCENE_CLOUD.column_names if c not in out]
     if missing:
         raise KeyError(f"scene_cloud columns {missing} have no value from a state row")
