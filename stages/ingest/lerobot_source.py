@@ -50,7 +50,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import pyarrow.compute as pc
 import pyarrow.parquet as pq
 from scipy.spatial.transform import Rotation
 
@@ -223,8 +222,8 @@ def _read_rows(root: Path, info: dict[str, Any], ep: dict[str, Any]) -> Any:
     path = root / rel
     if not path.is_file():
         raise _reject(root, index, f"data file {path} is missing")
-    table = pq.read_table(path)
-    table = table.filter(pc.equal(table.column("episode_index"), index))
+    # v3.0 files hold many episodes: read only this one's rows
+    table = pq.read_table(path, filters=[("episode_index", "=", index)])
     return table.sort_by("frame_index") if "frame_index" in table.column_names else table
 
 
