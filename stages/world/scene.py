@@ -135,6 +135,22 @@ def lid_pose(base_pose: np.ndarray, size: np.ndarray, angle: float) -> np.ndarra
     return base_pose @ hinge @ opening
 
 
+def free_spot(
+    rng: np.random.Generator,
+    placed: list[tuple[np.ndarray, float]],
+    radius: float,
+    lo: np.ndarray,
+    hi: np.ndarray,
+) -> np.ndarray | None:
+    """A random table spot ``(2,)`` in ``lo..hi`` whose footprint of ``radius`` keeps 3 cm from
+    every ``placed`` (centre, radius); None after 200 tries."""
+    for _ in range(200):
+        xy = rng.uniform(lo + radius, hi - radius)
+        if all(np.linalg.norm(xy - c) > radius + r + 0.03 for c, r in placed):
+            return xy
+    return None
+
+
 def build_scene(seed: int, articulated: bool) -> Scene:
     """The scene of ``seed``: background plus 3-6 non-overlapping objects on the table.
 
@@ -146,18 +162,11 @@ def build_scene(seed: int, articulated: bool) -> Scene:
     objects: list[Body] = []
     placed: list[tuple[np.ndarray, float]] = []  # (centre (2,), footprint radius)
 
-    def free_spot(radius: float, lo: np.ndarray, hi: np.ndarray) -> np.ndarray | None:
-        for _ in range(200):
-            xy = rng.uniform(lo + radius, hi - radius)
-            if all(np.linalg.norm(xy - c) > radius + r + 0.03 for c, r in placed):
-                return xy
-        return None
-
     if articulated:
         base, lid, size = _container(rng)
         radius = 0.5 * float(np.hypot(size[0], size[1]))
         lo, hi = PLACE_LO + np.array([0.05, -0.05]), PLACE_HI - np.array([0.0, 0.15])
-        xy = free_spot(radius, lo, hi)
+        xy = free_spot(rng, placed, radius, lo, hi)
         xy = 0.5 * (lo + hi) if xy is None else xy  # the region is empty: always fits
         pose = yaw_pose(xy[0], xy[1], TABLE_TOP_Z, rng.uniform(-0.3, 0.3))
         colour = colour_names.pop()
@@ -174,7 +183,7 @@ def build_scene(seed: int, articulated: bool) -> Scene:
         kind = PICKABLE[k % 2] if k < 2 else kinds[int(rng.integers(0, 3))]
         (verts, faces), size = _object_mesh(rng, kind)
         radius = 0.5 * float(np.hypot(size[0], size[1]))
-        xy = free_spot(radius, PLACE_LO, PLACE_HI)
+        xy = free_spot(rng, placed, radius, PLACE_LO, PLACE_HI)
         if xy is None:
             continue
         placed.append((xy, radius))

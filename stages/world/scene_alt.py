@@ -21,6 +21,7 @@ from egosim.stages.world.scene import (
     TABLE_TOP_Z,
     Body,
     Scene,
+    free_spot,
     lid_pose,
     yaw_pose,
 )
@@ -162,13 +163,6 @@ def build_scene_alt(seed: int, articulated: bool) -> Scene:
     objects: list[Body] = []
     placed: list[tuple[np.ndarray, float]] = []  # (centre (2,), footprint radius)
 
-    def free_spot(radius: float, lo: np.ndarray, hi: np.ndarray) -> np.ndarray | None:
-        for _ in range(200):
-            xy = rng.uniform(lo + radius, hi - radius)
-            if all(np.linalg.norm(xy - c) > radius + r + 0.03 for c, r in placed):
-                return xy
-        return None
-
     def texture(colour: str) -> Texture:
         return make_texture(rng, ALT_COLOURS[colour], 256, 0.0012, contrast=0.5)
 
@@ -176,7 +170,7 @@ def build_scene_alt(seed: int, articulated: bool) -> Scene:
         base, lid, size = _container(rng)
         radius = 0.5 * float(np.hypot(size[0], size[1]))
         lo, hi = PLACE_LO + np.array([0.05, -0.05]), PLACE_HI - np.array([0.0, 0.15])
-        xy = free_spot(radius, lo, hi)
+        xy = free_spot(rng, placed, radius, lo, hi)
         xy = 0.5 * (lo + hi) if xy is None else xy
         pose = yaw_pose(xy[0], xy[1], TABLE_TOP_Z, rng.uniform(-0.3, 0.3))
         colour = colour_names.pop()
@@ -201,7 +195,7 @@ def build_scene_alt(seed: int, articulated: bool) -> Scene:
         kind = PICKABLE[(k + 1) % 2] if k < 2 else others[int(rng.integers(0, 3))]
         (verts, faces), size = _object_mesh(rng, kind)
         radius = 0.5 * float(np.hypot(size[0], size[1]))
-        xy = free_spot(radius, PLACE_LO, PLACE_HI)
+        xy = free_spot(rng, placed, radius, PLACE_LO, PLACE_HI)
         if xy is None:
             continue
         placed.append((xy, radius))
