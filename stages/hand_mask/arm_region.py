@@ -271,14 +271,14 @@ def draw_arm_labels(
     keypoints: np.ndarray,
     capsule: CapsuleParams,
     arm: ArmParams,
-    image: np.ndarray | None = None,
+    lab: np.ndarray | None = None,
 ) -> None:
     """Paint one hand's GrabCut labels into ``labels (H, W)`` uint8 in place (see module doc).
 
-    With ``image (H, W, 3)`` the forearm's direction is searched round the hand's own
-    (:func:`arm_direction`); without it, the hand's direction is used. Regions only ever move
-    towards the foreground: a pixel already labelled more certainly hand
-    (by another hand) keeps its label. Labels: ``cv2.GC_BGD`` < ``GC_PR_BGD`` < ``GC_PR_FGD`` <
+    With ``lab (H, W, 3)``, the image in float32 Lab, the forearm's direction is searched round
+    the hand's own (:func:`arm_direction`); without it, the hand's direction is used. Regions
+    only ever move towards the foreground: a pixel already labelled more certainly hand (by
+    another hand) keeps its label. Labels: ``cv2.GC_BGD`` < ``GC_PR_BGD`` < ``GC_PR_FGD`` <
     ``GC_FGD`` in certainty of being hand, painted in that order.
     """
     h, w = labels.shape
@@ -293,11 +293,8 @@ def draw_arm_labels(
     if capsule.forearm and found is not None:
         wrist, d, hand_len = found
         r_wrist = FOREARM_RADIUS_M[0] * scale * capsule.radius_scale
-        lab = None
-        if image is not None:
-            lab = cv2.cvtColor(image, cv2.COLOR_RGB2LAB).astype(np.float32)  # (H, W, 3)
-            if arm.max_turn_deg > 0:
-                d = arm_direction(lab, wrist, d, hand_len, mask, arm.max_turn_deg, r_wrist)
+        if lab is not None and arm.max_turn_deg > 0:
+            d = arm_direction(lab, wrist, d, hand_len, mask, arm.max_turn_deg, r_wrist)
         fan, band, seed, region = _arm_regions(lab, mask, wrist, d, hand_len, scale, capsule, arm)
         if region is not None and arm.refine_direction:
             better = region_direction(region, wrist, d)
@@ -495,9 +492,12 @@ def hand_arm_mask(
     """
     h, w = image.shape[:2]
     labels = np.full((h, w), cv2.GC_BGD, np.uint8)
+    lab = None  # (H, W, 3) the image in Lab, converted once for every hand's arm search
+    if capsule.forearm and np.any(valid):
+        lab = cv2.cvtColor(image, cv2.COLOR_RGB2LAB).astype(np.float32)
     for hand, ok in zip(keypoints, valid, strict=True):
         if ok:
-            draw_arm_labels(labels, np.asarray(hand, dtype=np.float64), capsule, arm, image)
+            draw_arm_labels(labels, np.asarray(hand, dtype=np.float64), capsule, arm, lab)
     if not colour:
         return np.isin(labels, (cv2.GC_FGD, cv2.GC_PR_FGD)).astype(np.uint8)
     mask = grabcut_labels(image, labels, iterations, max_side)
