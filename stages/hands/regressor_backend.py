@@ -57,7 +57,7 @@ from safetensors.torch import load_file, save_file
 from torch import nn
 
 from egosim.model.checkpoint import refuse_pickle
-from egosim.pipeline.geometry import invert_se3, project_points, transform_points
+from egosim.pipeline.geometry import project_world_points, transform_points
 from egosim.pipeline.records import LEFT, NUM_HAND_JOINTS, RIGHT, Clip
 from egosim.pipeline.stage import ConfigError
 from egosim.stages.hands.filters import Detections
@@ -363,11 +363,12 @@ def hand_boxes(
         raise NoHandLabelsError("regressor_boxes 'given' needs the clip's hand_joints labels")
     if clip.world_from_cam is None:
         raise NoHandLabelsError("regressor_boxes 'given' needs camera poses to project labels")
-    cam_from_world = invert_se3(clip.world_from_cam)  # (T, 4, 4)
-    uv = np.full((t, 2, NUM_HAND_JOINTS, 2), np.nan)
-    for f in range(t):
-        points_cam = transform_points(cam_from_world[f], clip.hand_joints[f])  # (2, 21, 3)
-        uv[f] = project_points(points_cam, clip.intrinsics)[0]  # (2, 21, 2)
+    uv = np.stack(
+        [
+            project_world_points(clip.hand_joints[f], clip.world_from_cam[f], clip.intrinsics)[0]
+            for f in range(t)
+        ]
+    )  # (T, 2, 21, 2)
     present = (
         np.asarray(clip.hand_valid, dtype=bool)
         if clip.hand_valid is not None
