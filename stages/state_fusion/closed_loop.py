@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 
 from egosim.pipeline import media
-from egosim.pipeline.shards import ShardReader, ShardWriter, read_shard_meta, shard_file_name
+from egosim.pipeline.shards import ShardReader, ShardWriter, shard_file_name
 from egosim.pipeline.stage import ClipRejected, ConfigError, StageConfig, get_stage
 from egosim.schemas import CLIPS
 from egosim.schemas.ids import path_under, validate_id
@@ -98,9 +98,8 @@ def read_rows(paths: Sequence[Path]) -> list[tuple[str, dict[str, Any]]]:
     """``(schema name, row)`` of every row of ``paths`` in order (files, then rows)."""
     out = []
     for path in paths:
-        schema = read_shard_meta(Path(path)).schema
         with ShardReader(Path(path)) as reader:
-            out += [(schema, row) for row in reader.iter_rows()]
+            out += [(reader.meta.schema, row) for row in reader.iter_rows()]
     return out
 
 
