@@ -45,7 +45,6 @@ MediaPipe's selfie-segmentation model alone as a hand+arm cue (see :func:`selfie
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import importlib.util
 import json
 import time
@@ -55,19 +54,15 @@ from typing import Any
 import cv2
 import numpy as np
 
-from bench.real_video import _psnr
+from bench.real_video import DEFAULT_DATA, HAND_DILATE_PX, HAND_RENDER_THRESHOLD, ROOT, _psnr
 from egosim.pipeline import media
 from egosim.stages.hand_mask.stage import HandMaskConfig, HandMaskStage, masks_from_keypoints
 from egosim.stages.inpaint.reproject_fill import dilate, opencv_fill
 from egosim.stages.inpaint.stage import InpaintStage
 from egosim.stages.world import WorldConfig, render_clip
 
-ROOT = Path(__file__).resolve().parents[1]
-DEFAULT_DATA = ROOT.parent / "shared" / "data"
 DWM = "dwm_realworld/realworld_dynamic"
-HAND_THRESHOLD = 30  # a videos_hands pixel brighter than this (any channel) is hand
 FAR_PX = 50  # mask farther than this from a hand or its arm corridor is a false positive
-HAND_DILATE_PX = 15  # hand region of the PSNR figure: the hand truth grown by this
 MIN_HAND_FRACTION = 0.003  # a frame "shows a hand" when this fraction of it is hand truth
 
 
@@ -92,11 +87,7 @@ def mediapipe_keypoints(frames: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     )
 
     # Tracking through misses needs a TFLite runtime that may not be installed: off without it.
-    names = {f.name for f in dataclasses.fields(MediaPipeParams)}
-    runtime = importlib.util.find_spec("ai_edge_litert") is not None
-    params = MediaPipeParams(
-        **({} if runtime or "track_misses" not in names else {"track_misses": False})
-    )
+    params = MediaPipeParams(track_misses=importlib.util.find_spec("ai_edge_litert") is not None)
     raw = drop_overlapping(detect_landmarks(frames, params), params.duplicate_distance)
     sides = bridge_and_smooth(raw, assign_sides(raw, frames.shape[2], params), params)
     return sides.uv, sides.present
@@ -177,7 +168,7 @@ def dwm_case(cid: str, data: Path, out: Path) -> dict:
     video, _ = media.read_video_file(folder / "videos" / f"{cid}.mp4")
     static, _ = media.read_video_file(folder / "videos_static" / f"{cid}.mp4")
     hands_video, _ = media.read_video_file(folder / "videos_hands" / f"{cid}.mp4")
-    hands = hands_video.max(axis=3) > HAND_THRESHOLD  # (T, H, W)
+    hands = hands_video.max(axis=3) > HAND_RENDER_THRESHOLD  # (T, H, W)
     start = time.perf_counter()
     uv, present = mediapipe_keypoints(video)
     masks = masks_from_keypoints(video, uv, present, HandMaskConfig()) > 0  # (T, H, W)
@@ -291,7 +282,7 @@ def selfie_cases(worlds: list[tuple[str, str, int]], size: tuple[int, int], fram
         for cid in ("00013", "00017"):
             video, _ = media.read_video_file(data / DWM / "videos" / f"{cid}.mp4")
             hands_video, _ = media.read_video_file(data / DWM / "videos_hands" / f"{cid}.mp4")
-            hands = hands_video.max(axis=3) > HAND_THRESHOLD  # (T, H, W)
+            hands = hands_video.max(axis=3) > HAND_RENDER_THRESHOLD  # (T, H, W)
             masks = selfie_masks(video)
             shown = np.nonzero(hands.reshape(len(hands), -1).mean(axis=1) >= MIN_HAND_FRACTION)[0]
             far = [float((masks[t] & ~allowed_region(hands[t])).sum()) for t in shown]
