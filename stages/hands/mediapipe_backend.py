@@ -171,7 +171,7 @@ def detect_landmarks(frames: np.ndarray, params: MediaPipeParams | None = None) 
     finally:
         for hands in (full, *tiled):
             hands.close()
-    if params.track_misses:
+    if params.track_misses and out.present.any():  # nothing found: nothing to follow
         model = LandmarkModel(params.model_complexity)
         out.tracked = track_through_misses(
             frames, out.uv, out.world, out.label_right, out.present, model, params.track
