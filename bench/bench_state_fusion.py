@@ -33,7 +33,7 @@ import numpy as np
 from egosim.model.metrics import psnr, ssim
 from egosim.pipeline import media
 from egosim.pipeline.clip_io import row_from_clip
-from egosim.pipeline.geometry import invert_se3, transform_points, unproject_depth
+from egosim.pipeline.geometry import project_world_points, transform_points, unproject_depth
 from egosim.pipeline.records import Clip
 from egosim.schemas.state import state_for_clip
 from egosim.stages.state_fusion.config import StateFusionConfig
@@ -209,17 +209,16 @@ def render_state(
     figures do not move with ``scene_render``'s own settings.
     """
     h, w = state.height, state.width
-    fx, fy, cx, cy = state.intrinsics
+    fx = float(state.intrinsics[0])
     rgb = np.zeros((len(world_from_cam), h, w, 3), np.uint8)
     depth = np.zeros((len(world_from_cam), h, w), np.float32)
     for i, cam in enumerate(world_from_cam):
-        cfw = invert_se3(cam)
-        pc = state.points @ cfw[:3, :3].T + cfw[:3, 3]  # (N, 3)
-        ok = pc[:, 2] > 0.01
-        pc, col, size = pc[ok], state.colours[ok], state.point_size[ok]
-        u = np.floor(fx * pc[:, 0] / pc[:, 2] + cx).astype(np.int64)
-        v = np.floor(fy * pc[:, 1] / pc[:, 2] + cy).astype(np.int64)
-        radius = np.clip(np.ceil(0.5 * size * fx / pc[:, 2] - 0.5), 0, max_radius).astype(int)
+        uv, z = project_world_points(state.points, cam, state.intrinsics)  # (N, 2), (N,)
+        ok = z > 0.01
+        uv, z, col, size = uv[ok], z[ok], state.colours[ok], state.point_size[ok]
+        u = np.floor(uv[:, 0]).astype(np.int64)
+        v = np.floor(uv[:, 1]).astype(np.int64)
+        radius = np.clip(np.ceil(0.5 * size * fx / z - 0.5), 0, max_radius).astype(int)
         pix, zs, idx = [], [], []
         for dy in range(-max_radius, max_radius + 1):
             for dx in range(-max_radius, max_radius + 1):
@@ -227,7 +226,7 @@ def render_state(
                 uu, vv = u[sel] + dx, v[sel] + dy
                 inside = (uu >= 0) & (uu < w) & (vv >= 0) & (vv < h)
                 pix.append((vv * w + uu)[inside])
-                zs.append(pc[sel, 2][inside])
+                zs.append(z[sel][inside])
                 idx.append(np.flatnonzero(sel)[inside])
         pix_a, z_a, idx_a = np.concatenate(pix), np.concatenate(zs), np.concatenate(idx)
         order = np.lexsort((z_a, pix_a))
