@@ -151,24 +151,23 @@ def _dwm_recall(name: str) -> dict[str, float]:
     """Per-side recall, false-positive frames and wrong-side frames of the default backend on one
     real DWM clip against its hand render (green = left, red = right; a side is shown on a frame
     with >= 150 pixels of its colour; a detection is on a hand when its keypoint centroid is
-    within 40 px of that colour). Frames whose render leaves out a visible hand (by eye, as in
-    ``bench/hands_real.py``) are left out of the false positives."""
+    within 40 px of that colour: ``bench/hands_real.py``'s masks and thresholds). Frames whose
+    render leaves out a visible hand (its ``RENDER_GAPS``, by eye) are left out of the false
+    positives."""
     pytest.importorskip("mediapipe")
     pytest.importorskip("ai_edge_litert")
+    from bench.hands_real import FAR_PX, MIN_RENDER_PIXELS, RENDER_GAPS, render_masks
     from egosim.pipeline.media import read_video_file
     from egosim.stages.hands.mediapipe_backend import mediapipe_hands
 
     folder = shared_data("dwm_realworld", "realworld_dynamic")
     frames, _ = read_video_file(folder / "videos" / f"{name}.mp4")
     render, _ = read_video_file(folder / "videos_hands" / f"{name}.mp4")
-    r, g, b = (render[..., c].astype(np.int16) for c in range(3))
-    masks = np.stack(
-        [(g > 100) & (g > r + 50) & (g > b + 50), (r > 100) & (r > g + 50) & (r > b + 50)], axis=1
-    )  # (T, 2, H, W) left, right
-    shown = masks.sum(axis=(2, 3)) >= 150  # (T, 2)
+    masks = render_masks(render)  # (T, 2, H, W) left, right
+    shown = masks.sum(axis=(2, 3)) >= MIN_RENDER_PIXELS  # (T, 2)
     k = np.array([360.0, 360.0, frames.shape[2] / 2, frames.shape[1] / 2])
     res = mediapipe_hands(frames, k)
-    gaps = {"00013": (7, 8, 21, 22, 35), "00017": (*range(20, 33), *range(36, 43), 47)}[name]
+    gaps = RENDER_GAPS[name]
     out: dict[str, float] = {}
     for s in range(2):
         found = wrong = false = 0
@@ -180,7 +179,7 @@ def _dwm_recall(name: str) -> dict[str, float]:
             for hand in range(2):
                 rows, cols = np.nonzero(masks[f, hand])
                 d = np.hypot(cols + 0.5 - c[0], rows + 0.5 - c[1]).min() if rows.size else np.inf
-                near.append(d <= 40.0)
+                near.append(d <= FAR_PX)
             found += int(near[s] and shown[f, s])
             wrong += int(near[1 - s] and not near[s])
             false += int(not any(near) and f not in gaps)
