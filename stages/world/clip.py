@@ -103,14 +103,15 @@ def render_clip(config: WorldConfig, clip_id: str | None = None) -> Clip:
     scene, intrinsics, world_from_cam = _setup(config)  # world_from_cam (T, 4, 4)
     inter = script_interaction(scene, config.seed, t, config.articulated)
     joints = hand_joints(inter)  # (T, 2, 21, 3)
-    alt_body = AltBody(config.seed) if config.variant == "alt" else None
-    if alt_body is None:
+    if config.variant == "alt":
+        alt_body = AltBody(config.seed)
+        body, part_colours = alt_body.parts, alt_body.colours  # colours (4, 3)
+    else:
+        body = _default_parts
         rng = np.random.default_rng([config.seed, 4])
         skin = SKIN_TONES[int(rng.integers(0, len(SKIN_TONES)))] * rng.uniform(0.95, 1.05, 3)
         sleeve = rng.uniform(0.1, 0.6, 3)
         part_colours = np.stack([skin, sleeve, skin, sleeve]).astype(np.float32)  # (4, 3)
-    else:
-        part_colours = alt_body.colours  # (4, 3)
 
     renderer = WorldRenderer(scene, intrinsics, h, w)
     n_bg = len(scene.background)
@@ -132,7 +133,6 @@ def render_clip(config: WorldConfig, clip_id: str | None = None) -> Clip:
             moving = static
         else:
             moving = renderer.render_static(cam, inter.object_poses[k], rays)
-        body = _default_parts if alt_body is None else alt_body.parts
         parts = body(joints[k], inter.world_from_hand[k], cam)  # 2 meshes per hand, left first
         hands = renderer.render_meshes(cam, parts, part_colours)
         on_hand = hands.depth < moving.depth  # (H, W)
