@@ -50,7 +50,7 @@ from egosim.stages.ingest.standardise import Window, WindowPolicy, plan_resize, 
 DEFAULT_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 MIN_RENDER_PIXELS = 150  # a render shows a hand when at least this many pixels have its colour
 FAR_PX = 40.0  # a detection this far (px) from every rendered hand pixel is a false positive
-FPS, NUM_FRAMES, HEIGHT, WIDTH = 16.0, 61, 480, 832  # the egosim clip preset
+EGOSIM = CLIP_PRESETS["egosim"]  # the clip format real videos are cut to (ingest's default)
 SIDES = ("left", "right")
 # Frames whose render leaves out a hand that is plainly in view (checked by eye on the real frames;
 # 00013 frame 8 renders only the right hand): a detection there away from the rendered hands is
@@ -140,9 +140,8 @@ def ingest_windows(path: Path) -> list[Window]:
     cover 480x832 and centre-cropped, full windows then a ``1 + 4k`` tail): ingest's own
     :func:`~egosim.stages.ingest.standardise.resample_windows`; none when it rejects the video."""
     frames, stamps = read_video_file(path)
-    plan = plan_resize(frames.shape[2], frames.shape[1], WIDTH, HEIGHT)
-    preset = CLIP_PRESETS["egosim"]
-    policy = WindowPolicy(preset.fps, preset.num_frames, preset.min_frames, preset="egosim")
+    plan = plan_resize(frames.shape[2], frames.shape[1], EGOSIM.width, EGOSIM.height)
+    policy = WindowPolicy(EGOSIM.fps, EGOSIM.num_frames, EGOSIM.min_frames, preset="egosim")
     pairs = ((float(t), plan.apply(frame)) for t, frame in zip(stamps, frames, strict=True))
     try:
         return list(resample_windows(pairs, policy, what=path.name))
@@ -160,7 +159,7 @@ def count_figures(path: Path) -> list[dict[str, float]]:
         res = _run(frames)
         seconds, cpu = time.perf_counter() - start, time.process_time() - cpu
         n = res.valid.sum(axis=1)  # (T,)
-        first = float(window.index * NUM_FRAMES)
+        first = float(window.index * EGOSIM.num_frames)
         fig = {"start": first, "frames": float(len(frames)), "seconds": seconds, "cpu_s": cpu}
         for c in range(3):
             fig[f"{c}_hands"] = float((n == c).sum())
