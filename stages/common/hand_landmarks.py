@@ -68,7 +68,8 @@ class HandLandmarks:
     present: np.ndarray  # (T, K) bool
 
 
-def _import_mediapipe():
+def import_mediapipe():
+    """The ``mediapipe`` module; :class:`MediaPipeUnavailableError` naming the install if absent."""
     try:
         import mediapipe as mp
     except ImportError as exc:
@@ -84,7 +85,7 @@ def detect_hand_landmarks(
 ) -> HandLandmarks:
     """Run MediaPipe Hands on ``frames (T, H, W, 3)`` uint8 RGB, in order."""
     params = params or HandLandmarkParams()
-    mp = _import_mediapipe()
+    mp = import_mediapipe()
     t, h, w = frames.shape[:3]
     out = HandLandmarks(
         uv=np.full((t, MAX_HANDS, NUM_JOINTS, 2), np.nan),

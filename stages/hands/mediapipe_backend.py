@@ -56,7 +56,7 @@ from egosim.pipeline.geometry import transform_points
 from egosim.pipeline.records import LEFT, NUM_HAND_JOINTS, RIGHT, Clip
 from egosim.stages.common.hand_landmarks import (  # shared with the metric scale
     MediaPipeUnavailableError,  # noqa: F401 (raised by detect_landmarks, importable here)
-    _import_mediapipe,
+    import_mediapipe,
     place_in_camera,
 )
 from egosim.stages.common.roi_landmarks import LandmarkModel, TrackParams, track_through_misses
@@ -130,7 +130,7 @@ class SideLandmarks:
 def detect_landmarks(frames: np.ndarray, params: MediaPipeParams | None = None) -> RawLandmarks:
     """Run MediaPipe Hands on ``frames (T, H, W, 3)`` uint8 RGB, in order (full frame + tiles)."""
     params = params or MediaPipeParams()
-    mp = _import_mediapipe()
+    mp = import_mediapipe()
     t, h, w = frames.shape[:3]
     out = RawLandmarks(
         uv=np.full((t, 2, NUM_HAND_JOINTS, 2), np.nan),
