@@ -1,0 +1,1 @@
+"""encode: precompute the frozen encoders' outputs (VAE latents, text and image features) from pack shards."""
