@@ -1,1 +1,1 @@
-"""Exports of a run to other tools' formats and viewers (MCAP for Foxglove, VideoX-Fun, EgoSim CSV, DWM)."""
+"""Exports of a run: MCAP for Foxglove, VideoX-Fun, the EgoSim CSV and DWM folder layouts."""

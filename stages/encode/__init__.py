@@ -1,1 +1,1 @@
-"""encode: precompute the frozen encoders' outputs (VAE latents, text and image features) from pack shards."""
+"""encode: precompute the frozen encoders' outputs (latents, text, image features) from packs."""
