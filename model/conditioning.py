@@ -254,6 +254,33 @@ def condition_latents(vae: torch.nn.Module, pix: PixelConditions) -> torch.Tenso
     return torch.cat([mask, scene, skeleton], dim=1)
 
 
+@dataclass
+class EncodedBatch:
+    """A training micro-batch in latent space: what the denoiser's loss needs (built by
+    :func:`encode_batch`)."""
+
+    x0: torch.Tensor  # (B, 16, T', h, w) clean target latent
+    condition: torch.Tensor  # (B, 36, T', h, w) packed mask + scene + skeleton latents
+    prompts: list[str]  # B prompts
+    text_embeddings: list[torch.Tensor | None]  # per-sample precomputed text features or None
+    image_embeddings: list[torch.Tensor | None]  # per-sample precomputed image features or None
+
+
+def encode_batch(vae: torch.nn.Module, batch: list[TrainingSample]) -> EncodedBatch:
+    """Encode a micro-batch of pixel training samples with the frozen ``vae`` (no gradients).
+
+    The single place the training loop turns samples into latents, so samples that arrive
+    already encoded can be handled here without touching the loop.
+    """
+    pix = collate(batch)
+    device = next(iter(vae.buffers()), torch.zeros(0)).device
+    with torch.no_grad():
+        target = video_to_tensor([s.target_video for s in batch])  # (B, 3, T, H, W)
+        x0 = vae.encode(target.to(device))  # (B, 16, T', h, w)
+        cond = condition_latents(vae, pix)  # (B, 36, T', h, w)
+    return EncodedBatch(x0, cond, pix.prompts, pix.text_embeddings, pix.image_embeddings)
+
+
 def null_conditions(
     cond: torch.Tensor,
     context: torch.Tensor,

@@ -37,8 +37,7 @@ from egosim.model.conditioning import (
     GUIDANCE_TARGETS,
     TrainingSample,
     assemble_input,
-    collate,
-    condition_latents,
+    encode_batch,
     null_conditions,
 )
 from egosim.model.errors import CheckpointMismatchError, ModelConfigError
@@ -475,14 +474,10 @@ def _micro_step(
 ) -> torch.Tensor:
     """Flow-matching loss of one micro-batch (encodes targets and conditions on the fly)."""
     den = bundle.denoiser
-    pix = collate(batch)
-    with torch.no_grad():
-        target = torch.stack([torch.as_tensor(np.asarray(s.target_video)) for s in batch])
-        target = target.permute(0, 4, 1, 2, 3).float().div(127.5).sub(1.0)  # (B, 3, T, H, W)
-        x0 = bundle.vae.encode(target.to(device))  # (B, 16, T', h, w)
-        cond = condition_latents(bundle.vae, pix)  # (B, 36, T', h, w)
-    context = den.encode_text(pix.prompts, pix.text_embeddings)  # (B, L, D)
-    image_ctx = den.image_context(pix.image_embeddings)
+    enc = encode_batch(bundle.vae, batch)
+    x0, cond = enc.x0.to(device), enc.condition.to(device)  # (B,16,T',h,w), (B,36,T',h,w)
+    context = den.encode_text(enc.prompts, enc.text_embeddings)  # (B, L, D)
+    image_ctx = den.image_context(enc.image_embeddings)
     dropped = torch.rand(len(batch), generator=generator) < config.cond_dropout
     cond, context, image_ctx = null_conditions(
         cond, context, image_ctx, config.dropout_targets, dropped
