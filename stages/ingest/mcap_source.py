@@ -6,7 +6,8 @@ What is read (messages are found by schema name, whatever their topic):
   ``foxglove.RawImage`` (``rgb8``, ``bgr8``, ``rgba8``, ``bgra8``, ``mono8``). With several image
   topics, ``image_topic`` picks one; by default the topic with the most messages.
 - Intrinsics: the first ``foxglove.CameraCalibration`` (preferring one whose ``frame_id`` is the
-  images' ``frame_id``): ``K`` gives ``fx, fy, cx, cy``, rescaled when the calibration's
+  images' ``frame_id``): ``K`` gives ``fx, fy, cx, cy`` (``cx, cy`` + 0.5: ROS/Foxglove put pixel
+  centres at integers, egosim at integer + 0.5), rescaled when the calibration's
   ``width x height`` differs from the images' size. Non-zero distortion ``D`` is removed at ingest:
   frames are undistorted with OpenCV (``plumb_bob``/``rational_polynomial``/empty model:
   ``cv2.undistort``; ``kannala_brandt``/``equidistant``/``fisheye``: ``cv2.fisheye``) onto the
@@ -38,6 +39,7 @@ import numpy as np
 from mcap.reader import make_reader
 from mcap_protobuf.decoder import DecoderFactory
 
+from egosim.pipeline.export.foxglove import intrinsics_from_k
 from egosim.pipeline.geometry import (
     invert_se3,
     make_se3,
@@ -258,7 +260,7 @@ def read_mcap_clip(
     kmat = np.asarray(calib.K, dtype=np.float64)
     if kmat.size != 9 or not np.all(np.isfinite(kmat)) or kmat[0] <= 0 or kmat[4] <= 0:
         raise ClipRejected(f"{path}: CameraCalibration K is not a valid 3x3 matrix: {list(kmat)}")
-    intrinsics = np.array([kmat[0], kmat[4], kmat[2], kmat[5]])
+    intrinsics = intrinsics_from_k(kmat)  # ROS/Foxglove integer pixel centres -> egosim's + 0.5
     if calib.width and calib.height and (calib.width, calib.height) != (width, height):
         intrinsics = scale_intrinsics(intrinsics, width / calib.width, height / calib.height)
     undistort = _undistorter(calib, intrinsics, width, height, str(path))
