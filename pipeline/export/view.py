@@ -1,0 +1,305 @@
+"""``egosim view``: one Foxglove MCAP per clip of a run, every step's output aligned.
+
+Everything is stamped with the clip's own timestamps (``clips.timestamps``, seconds, as
+integer nanoseconds; log, publish and header time alike) and placed in one ``world`` frame:
+
+Topics (schema; frame; what, from the step that wrote which schema):
+
+- ``/camera/image`` (CompressedImage; ``camera``): the real video (``clips``);
+- ``/camera/calibration`` (CameraCalibration; ``camera``): intrinsics (``depth_camera``, else
+  ``clips``), every frame;
+- ``/tf`` (FrameTransform): ``world`` -> ``camera``, the poses the conditions were rendered with
+  (``poses`` > ``depth_camera`` > ``clips``, the stages' rule); ``world`` -> ``camera_raw``, the
+  estimate before cleaning (``depth_camera``); ``world`` -> ``camera_source``, the source's own
+  poses (``clips``);
+- ``/camera/trajectory``, ``/camera_raw/trajectory`` (PosesInFrame; ``world``): the whole
+  ``camera`` and ``camera_raw`` paths, every frame;
+- ``/scene/image`` (CompressedImage; ``camera``): the scene video (``scene_render``);
+- ``/scene/visible`` (PNG mono; ``camera``): white = a scene point landed (``scene_render``);
+- ``/hands/skeleton_image`` (CompressedImage; ``camera``): the skeleton video (``keypoints``);
+- ``/hands/mask`` (PNG mono; ``camera``): white = hand or arm (``hand_mask``, else ``clips``);
+- ``/inpaint/first_frame`` (PNG; ``camera``): the hand-free first frame, at frame 0 (``inpaint``);
+- ``/scene/cloud`` (PointCloud; ``world``): the scene cloud at frame 0 with a uint8
+  ``confidence`` field (``scene_cloud``);
+- ``/state/cloud`` (PointCloud; ``world``): the world state at frame 0 with a uint8 ``source``
+  field (``state``);
+- ``/hands/skeleton`` (SceneUpdate; ``world``): the 3D hand bones per frame (``hands``, else
+  ``clips``).
+
+A topic whose step the run lacks (or that has no row for the clip) is left out; the file's
+``egosim`` metadata record says which step each topic came from, the clip id and the prompt.
+Calibrations use the ROS/Foxglove pixel-centre convention (``cx - 0.5``; see
+:mod:`egosim.pipeline.export.foxglove`).
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+from mcap_protobuf.writer import Writer
+
+from egosim.pipeline import media
+from egosim.pipeline.clip_io import clip_from_row
+from egosim.pipeline.export import foxglove as fx
+from egosim.pipeline.export.run_index import ExportError, RunIndex
+from egosim.pipeline.stage import ConfigError
+from egosim.schemas import CLIPS, DEPTH_CAMERA, POSES
+from egosim.schemas.captions import CAPTIONS
+from egosim.schemas.hand_mask import HAND_MASK
+from egosim.schemas.hands import HANDS
+from egosim.schemas.ids import path_under, validate_id
+from egosim.schemas.inpaint import INPAINT
+from egosim.schemas.keypoints import KEYPOINTS
+from egosim.schemas.scene import SCENE_CLOUD, SCENE_RENDER
+from egosim.schemas.state import STATE
+
+CAMERA_FRAME = "camera"  # frame of every image: the camera the conditions were rendered with
+RAW_CAMERA_FRAME = "camera_raw"  # depth_camera's estimate, before pose_clean
+SOURCE_CAMERA_FRAME = "camera_source"  # the source's own poses (clips)
+METADATA_NAME = "egosim"  # name of the MCAP metadata record describing the clip
+
+
+@dataclass(frozen=True)
+class ViewConfig:
+    """How ``egosim view`` encodes a clip."""
+
+    image_format: Literal["jpeg", "png"] = "jpeg"  # RGB videos' frames (masks are always PNG)
+    jpeg_quality: int = 90  # JPEG quality 1-100 of the RGB frames
+    max_cloud_points: int = 0  # subsample point clouds to at most this many points (0 = all)
+
+    def __post_init__(self) -> None:
+        problems = []
+        if self.image_format not in ("jpeg", "png"):
+            problems.append(f"image_format must be 'jpeg' or 'png', got {self.image_format!r}")
+        if not 1 <= self.jpeg_quality <= 100:
+            problems.append(f"jpeg_quality must be in 1..100, got {self.jpeg_quality}")
+        if self.max_cloud_points < 0:
+            problems.append(f"max_cloud_points must be >= 0, got {self.max_cloud_points}")
+        if problems:
+            raise ConfigError("view: " + "; ".join(problems))
+
+
+def _subsample(n: int, limit: int) -> slice:
+    """Every k-th point so that at most ``limit`` of ``n`` remain (``limit`` 0 = all)."""
+    return slice(None, None, max(1, int(np.ceil(n / limit)))) if limit else slice(None)
+
+
+def _poses(row: dict[str, Any], t: int, what: str) -> np.ndarray:
+    poses = np.asarray(row["world_from_cam"], dtype=np.float64)
+    if poses.shape != (t, 16):
+        raise ExportError(f"{what}: world_from_cam is {poses.shape}, expected ({t}, 16)")
+    return poses.reshape(t, 4, 4)
+
+
+def write_clip_view(
+    index: RunIndex, clip_id: str, path: Path, config: ViewConfig | None = None
+) -> Path:
+    """Write clip ``clip_id`` of the indexed run to ``path`` as one Foxglove MCAP.
+
+    Topics in the module docstring. Written to ``path.tmp`` and renamed. Raises
+    :class:`ExportError` when the run has no clips step or no row for ``clip_id``, or a step's
+    row disagrees with the clip (frame count, size).
+    """
+    config = config or ViewConfig()
+    clip_row = index.row(CLIPS, clip_id)
+    if clip_row is None:
+        raise ExportError(f"{index.root}: no clip {clip_id!r} in the clips step")
+    clip = clip_from_row(clip_row)
+    t, h, w = clip.num_frames, clip.height, clip.width
+    what = f"clip {clip_id!r}"
+    rows = {
+        s.name: index.row(s, clip_id)
+        for s in (
+            DEPTH_CAMERA,
+            POSES,
+            HANDS,
+            KEYPOINTS,
+            HAND_MASK,
+            INPAINT,
+            SCENE_CLOUD,
+            SCENE_RENDER,
+            STATE,
+            CAPTIONS,
+        )
+    }
+    used: dict[str, str] = {"/camera/image": index.steps[CLIPS.name]}
+
+    def step(schema_name: str) -> str:
+        return index.steps[schema_name]
+
+    cams, cleaned = rows["depth_camera"], rows["poses"]
+    intrinsics = np.asarray((cams or clip_row)["intrinsics"], dtype=np.float64)
+    used["/camera/calibration"] = step("depth_camera") if cams else step("clips")
+    frames: dict[str, np.ndarray] = {}  # child frame -> (T, 4, 4) world_from_child
+    trajectories: dict[str, str] = {}  # topic -> child frame
+    camera_from = next(
+        (n for n, r in (("poses", cleaned), ("depth_camera", cams)) if r is not None),
+        "clips" if clip.world_from_cam is not None else None,
+    )
+    if camera_from == "clips":
+        frames[CAMERA_FRAME] = clip.world_from_cam
+    elif camera_from is not None:
+        frames[CAMERA_FRAME] = _poses(rows[camera_from], t, f"{what} {camera_from}")
+    if camera_from is not None:
+        used["/tf:" + CAMERA_FRAME] = step(camera_from)
+        trajectories["/camera/trajectory"] = CAMERA_FRAME
+    if cams is not None:
+        frames[RAW_CAMERA_FRAME] = _poses(cams, t, f"{what} depth_camera")
+        used["/tf:" + RAW_CAMERA_FRAME] = step("depth_camera")
+        trajectories["/camera_raw/trajectory"] = RAW_CAMERA_FRAME
+    if clip.world_from_cam is not None:
+        frames[SOURCE_CAMERA_FRAME] = clip.world_from_cam
+        used["/tf:" + SOURCE_CAMERA_FRAME] = step("clips")
+
+    videos: dict[str, np.ndarray] = {"/camera/image": clip.frames}  # topic -> (T, H, W[, 3])
+    masks: dict[str, np.ndarray] = {}  # topic -> (T, H, W) {0, 1}
+    if (render := rows["scene_render"]) is not None:
+        videos["/scene/image"] = media.decode_rgb_video(
+            render["scene_video"], h, w, f"{what} scene_video"
+        )
+        masks["/scene/visible"] = media.decode_lossless_video(render["visible"], f"{what} visible")
+        used["/scene/image"] = used["/scene/visible"] = step("scene_render")
+    if (keypoints := rows["keypoints"]) is not None:
+        videos["/hands/skeleton_image"] = media.decode_rgb_video(
+            keypoints["skeleton_video"], h, w, f"{what} skeleton_video"
+        )
+        used["/hands/skeleton_image"] = step("keypoints")
+    if (hand_mask := rows["hand_mask"]) is not None:
+        masks["/hands/mask"] = media.decode_lossless_video(
+            hand_mask["hand_mask"], f"{what} hand_mask"
+        )
+        used["/hands/mask"] = step("hand_mask")
+    elif clip.hand_mask is not None:
+        masks["/hands/mask"] = clip.hand_mask
+        used["/hands/mask"] = step("clips")
+    bad = {
+        topic: tuple(arr.shape[:3])
+        for topic, arr in (*videos.items(), *masks.items())
+        if tuple(arr.shape[:3]) != (t, h, w)
+    }
+    if bad:
+        raise ExportError(f"{what}: videos disagree with the clip's {(t, h, w)}: {bad}")
+
+    joints = valid = None
+    if (hands := rows["hands"]) is not None:
+        joints = np.asarray(hands["hand_joints"], dtype=np.float64).reshape(t, 2, 21, 3)
+        valid = np.asarray(hands["hand_valid"], dtype=bool).reshape(t, 2)
+        used["/hands/skeleton"] = step("hands")
+    elif clip.hand_joints is not None and clip.hand_valid is not None:
+        joints, valid = clip.hand_joints, clip.hand_valid
+        used["/hands/skeleton"] = step("clips")
+
+    first_frame = None
+    if (inpaint := rows["inpaint"]) is not None:
+        first_frame = media.decode_png(inpaint["first_frame"], f"{what} inpaint first_frame")
+        used["/inpaint/first_frame"] = step("inpaint")
+    clouds: dict[str, Callable[[int], object]] = {}
+    if (cloud := rows["scene_cloud"]) is not None:
+        clouds["/scene/cloud"] = _cloud(cloud, "confidence", "point_confidence", config)
+        used["/scene/cloud"] = step("scene_cloud")
+    if (state := rows["state"]) is not None:
+        clouds["/state/cloud"] = _cloud(state, "source", "point_source", config)
+        used["/state/cloud"] = step("state")
+
+    times = [fx.time_ns(s) for s in clip.timestamps]
+    path = Path(path)
+    tmp = path.with_name(path.name + ".tmp")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fmt, quality = config.image_format, config.jpeg_quality
+    try:
+        with open(tmp, "wb") as f, Writer(f) as writer:
+
+            def write(topic: str, message: object, ns: int) -> None:
+                writer.write_message(topic, message, log_time=ns, publish_time=ns)
+
+            for i, ns in enumerate(times):
+                write(
+                    "/camera/calibration",
+                    fx.calibration_message(ns, CAMERA_FRAME, intrinsics, w, h),
+                    ns,
+                )
+                for child, poses in frames.items():
+                    write("/tf", fx.frame_transform(ns, fx.WORLD_FRAME, child, poses[i]), ns)
+                for topic, child in trajectories.items():
+                    write(topic, fx.poses_in_frame(ns, frames[child]), ns)
+                for topic, video in videos.items():
+                    write(topic, fx.image_message(ns, CAMERA_FRAME, video[i], fmt, quality), ns)
+                for topic, mask in masks.items():
+                    write(topic, fx.mask_message(ns, CAMERA_FRAME, mask[i]), ns)
+                if joints is not None:
+                    write("/hands/skeleton", fx.skeleton_message(ns, joints[i], valid[i]), ns)
+                if i == 0:
+                    if first_frame is not None:
+                        write(
+                            "/inpaint/first_frame",
+                            fx.image_message(ns, CAMERA_FRAME, first_frame, "png"),
+                            ns,
+                        )
+                    for topic, message in clouds.items():
+                        write(topic, message(ns), ns)
+            prompt = (rows["captions"] or {}).get("text") or clip.text or ""
+            writer.add_metadata(
+                METADATA_NAME,
+                {
+                    "clip_id": clip_id,
+                    "run": str(index.root),
+                    "prompt": prompt,
+                    "fps": repr(clip.fps),
+                    "camera_from": camera_from or "none",
+                    "sources": json.dumps(used, sort_keys=True),
+                    "pixel_centres": "ROS/Foxglove: integers (egosim cx, cy minus 0.5)",
+                },
+            )
+        tmp.replace(path)
+    finally:
+        tmp.unlink(missing_ok=True)
+    return path
+
+
+def _cloud(
+    row: dict[str, Any], field_name: str, column: str, config: ViewConfig
+) -> Callable[[int], object]:
+    """A builder of the point cloud message of a ``scene_cloud`` or ``state`` row at ``ns``."""
+    n = int(row["num_points"])
+    xyz = np.frombuffer(row["points_xyz"], dtype="<f4").reshape(n, 3)
+    rgb = np.frombuffer(row["points_rgb"], dtype=np.uint8).reshape(n, 3)
+    extra = np.frombuffer(row[column], dtype=np.uint8)
+    keep = _subsample(n, config.max_cloud_points)
+    return lambda ns: fx.point_cloud_message(ns, xyz[keep], rgb[keep], {field_name: extra[keep]})
+
+
+def write_run_view(
+    run: Path,
+    out: Path,
+    clip_ids: Sequence[str] = (),
+    config: ViewConfig | None = None,
+) -> list[Path]:
+    """Write one MCAP per clip of ``run`` (``clip_ids``, default every clip of the clips step).
+
+    ``out`` is the file when one clip is written and ``out`` ends in ``.mcap``; otherwise a
+    folder receiving ``<clip_id>.mcap`` per clip. Raises :class:`ExportError` for an unknown
+    clip id or a run without a clips step.
+    """
+    index = RunIndex.open(run)
+    if index.step_of(CLIPS) is None:
+        raise ExportError(f"{run}: no step wrote clips shards (steps: {index.steps})")
+    known = index.clip_ids(CLIPS)
+    wanted = list(clip_ids) or known
+    missing = [c for c in wanted if c not in known]
+    if missing:
+        raise ExportError(f"{run}: no clip {missing} in the clips step (clips: {known})")
+    out = Path(out)
+    if len(wanted) == 1 and out.suffix == ".mcap":
+        return [write_clip_view(index, wanted[0], out, config)]
+    if out.suffix == ".mcap":
+        raise ExportError(f"--out {out} is one file but {len(wanted)} clips were asked for")
+    out.mkdir(parents=True, exist_ok=True)
+    return [
+        write_clip_view(index, cid, path_under(out, f"{validate_id(cid)}.mcap"), config)
+        for cid in wanted
+    ]
