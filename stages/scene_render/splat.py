@@ -31,6 +31,11 @@ import cv2
 import numpy as np
 import torch
 
+# The model's inpainting mask (1 = synthesise) from ``visible`` lives in pipeline so that the
+# exporters share it; re-exported here, where it was first defined.
+from egosim.pipeline.export.pack_rows import (
+    inpaint_mask_from_visible as inpaint_mask_from_visible,
+)
 from egosim.pipeline.geometry import invert_se3, project_world_points_torch, se3_problems
 
 INDEX_BITS = 24  # low bits of the z-buffer key that hold the point index
@@ -334,26 +339,3 @@ def render_point_cloud(
                 rgb[i], visible[i], depth[i], max_crack_px, max_crack_width
             )
     return SplatResult(rgb=rgb, visible=visible, depth=depth)
-
-
-def inpaint_mask_from_visible(visible: np.ndarray, dilate: int = 0) -> np.ndarray:
-    """The model's inpainting mask from a visibility mask; the one place the polarity flips.
-
-    Input ``visible (..., H, W)``: 1 = a scene point landed on the pixel (observed), 0 = none.
-    Output ``(..., H, W)`` uint8: **1 = unobserved, the model must synthesise this pixel**,
-    0 = the scene render is to be kept. This is the paper's "binary mask video that indicates the
-    unobserved regions that require visual synthesis". ``dilate`` grows the synthesise region by
-    that many pixels (a square neighbourhood), so thin seams around holes are regenerated too.
-    """
-    visible = np.asarray(visible)
-    if visible.ndim < 2:
-        raise SplatError(f"visible must be (..., H, W), got shape {visible.shape}")
-    if dilate < 0:
-        raise SplatError(f"dilate must be >= 0, got {dilate}")
-    mask = (visible == 0).astype(np.uint8)  # (..., H, W)
-    if dilate > 0:
-        from scipy.ndimage import maximum_filter
-
-        size = [1] * (mask.ndim - 2) + [2 * dilate + 1, 2 * dilate + 1]
-        mask = maximum_filter(mask, size=size)
-    return mask
