@@ -243,13 +243,15 @@ def probe_video_file(path: Path) -> VideoFileInfo:
         raise MediaError(f"cannot read video file {path}: {exc}") from exc
 
 
-def iter_video_file(path: Path) -> Iterator[tuple[float, np.ndarray]]:
+def iter_video_file(path: Path, start: float = 0.0) -> Iterator[tuple[float, np.ndarray]]:
     """Stream ``(time in seconds, (H, W, 3) uint8 RGB)`` from a video file, one frame at a time.
 
     Frames without a usable timestamp get ``index / fps``. The display rotation of the file
-    (its display matrix) is applied, so frames come out upright. Raises :class:`MediaError`
-    naming the file when it cannot be opened or decoding fails part way (frames already yielded
-    stand).
+    (its display matrix) is applied, so frames come out upright. ``start`` > 0 seeks to the
+    keyframe at or before ``start`` seconds and decodes from there (frames before ``start``
+    minus half a frame are skipped), so reading the end of a long file does not decode all of
+    it; after a seek every frame must carry a timestamp. Raises :class:`MediaError` naming the
+    file when it cannot be opened or decoding fails part way (frames already yielded stand).
     """
     info = probe_video_file(path)
     last = -np.inf
@@ -257,7 +259,15 @@ def iter_video_file(path: Path) -> Iterator[tuple[float, np.ndarray]]:
         with av.open(str(path), mode="r") as container:
             stream = container.streams.video[0]
             stream.thread_type = "AUTO"
+            if start > 0 and stream.time_base is not None:
+                # backward=True (default): land on the keyframe at or before the target
+                container.seek(int(start / stream.time_base), stream=stream)
             for index, frame in enumerate(container.decode(stream)):
+                if start > 0:
+                    if frame.time is None:
+                        raise MediaError(f"cannot seek in video file {path}: no frame timestamps")
+                    if frame.time < start - 0.5 / info.fps:
+                        continue
                 time = float(frame.time) if frame.time is not None else index / info.fps
                 if not time > last:  # broken or repeated timestamps: fall back to the rate
                     time = last + 1.0 / info.fps

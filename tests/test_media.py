@@ -71,3 +71,12 @@ def test_video_file_timestamps_follow_the_source_rate(video_file) -> None:
     frames, stamps = media.read_video_file(video_file)
     assert frames.shape == (60, 96, 128, 3)
     np.testing.assert_allclose(stamps, np.arange(60) / 30.0, atol=1e-6)
+
+
+def test_video_file_seek_gives_the_same_frames_as_decoding_from_the_start(video_file) -> None:
+    frames, stamps = media.read_video_file(video_file)
+    # 1.5 s into a 30 fps file: frame 45 on, identical pixels (the same decoder output)
+    tail = list(media.iter_video_file(video_file, start=1.5))
+    assert len(tail) == 15
+    np.testing.assert_allclose([t for t, _ in tail], stamps[45:], atol=1e-6)
+    np.testing.assert_array_equal(np.stack([f for _, f in tail]), frames[45:])

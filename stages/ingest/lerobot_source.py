@@ -250,7 +250,10 @@ def _read_frames(
         raise _reject(root, index, f"video {path} is missing")
     frames, n = [], 0  # frames kept; frames of this episode seen (v2.x: the whole file)
     try:
-        for i, (_, frame) in enumerate(iter_video_file(path)):
+        # v3.0: seek to the episode's first frame (decoding the shared file from its start for
+        # every episode made reading a dataset quadratic in its episode count)
+        for t, frame in iter_video_file(path, start=start / fps):
+            i = round(t * fps)  # frame index in the file
             if _v3(info) and i >= start + length:
                 break  # the next episode's frames
             if i >= start:
