@@ -25,6 +25,10 @@ the frame axis is not resampled because it already has the latent frame count).
 
 First-frame conditioning: the (hand-free) first frame replaces frame 0 of the scene video and
 frame 0 is marked fully known, which is how Wan-Fun-InP conditions on a start image.
+
+Training samples come in two kinds: :class:`TrainingSample` (pixels, encoded on the fly) and
+:class:`LatentSample` (precomputed by the ``encode`` stage); :func:`encode_batch` is the one seam
+that turns either into an :class:`EncodedBatch`.
 """
 
 from __future__ import annotations
@@ -254,6 +258,46 @@ def condition_latents(vae: torch.nn.Module, pix: PixelConditions) -> torch.Tenso
     return torch.cat([mask, scene, skeleton], dim=1)
 
 
+@dataclass(frozen=True, kw_only=True)
+class LatentSample:
+    """One training clip already in latent space: what the ``encode`` stage precomputes.
+
+    ``x0`` and ``condition`` are exactly what :func:`encode_batch` computes from the pixel
+    :class:`TrainingSample` (target latent; :func:`condition_latents`' 36 channels), so a batch
+    of these skips the frozen VAE (and, with features, the text and image encoders).
+    """
+
+    x0: np.ndarray | torch.Tensor  # (16, T', h, w) clean target latent
+    condition: np.ndarray | torch.Tensor  # (36, T', h, w) packed mask + scene + skeleton latents
+    prompt: str  # text prompt (the hashed encoder of `tiny` reads it; features win otherwise)
+    text_embedding: np.ndarray | torch.Tensor | None = None  # (L, text_dim) real UMT5 tokens
+    image_embedding: np.ndarray | torch.Tensor | None = None  # (N, image_dim) CLIP features
+    clip_id: str = ""  # where it came from, for error messages
+
+    def __post_init__(self) -> None:
+        problems = []
+        x0, cond = _shape(self.x0), _shape(self.condition)
+        if len(x0) != 4 or x0[0] != LATENT_CHANNELS:
+            problems.append(f"x0 must be ({LATENT_CHANNELS}, T', h, w), got {x0}")
+        want = (CONDITION.stop - CONDITION.start, *x0[1:])
+        if len(cond) != 4 or cond != want:
+            problems.append(f"condition must be {want} (36 channels, x0's T', h, w), got {cond}")
+        for name in ("text_embedding", "image_embedding"):
+            value = getattr(self, name)
+            if value is not None and len(_shape(value)) != 2:
+                problems.append(f"{name} must be (tokens, dim), got {_shape(value)}")
+        if not isinstance(self.prompt, str):
+            problems.append(f"prompt must be a str, got {type(self.prompt).__name__}")
+        if problems:
+            where = f" {self.clip_id!r}" if self.clip_id else ""
+            raise SampleError(f"LatentSample{where}: " + "; ".join(problems))
+
+    @property
+    def latent_shape(self) -> tuple[int, int, int]:
+        """(T', h, w) of the latents."""
+        return _shape(self.x0)[1:]  # type: ignore[return-value]
+
+
 @dataclass
 class EncodedBatch:
     """A training micro-batch in latent space: what the denoiser's loss needs (built by
@@ -266,13 +310,45 @@ class EncodedBatch:
     image_embeddings: list[torch.Tensor | None]  # per-sample precomputed image features or None
 
 
-def encode_batch(vae: torch.nn.Module, batch: list[TrainingSample]) -> EncodedBatch:
-    """Encode a micro-batch of pixel training samples with the frozen ``vae`` (no gradients).
+def _float_tensor(x: np.ndarray | torch.Tensor | None) -> torch.Tensor | None:
+    return None if x is None else torch.as_tensor(x).float()
 
-    The single place the training loop turns samples into latents, so samples that arrive
-    already encoded can be handled here without touching the loop.
+
+def _latent_batch(batch: list[LatentSample]) -> EncodedBatch:
+    """Stack precomputed latents (float32, CPU); every sample must have the same latent shape."""
+    shapes = sorted({s.latent_shape for s in batch})
+    if len(shapes) > 1:
+        raise SampleError(
+            f"micro-batch latents differ in (T', h, w): {shapes} (clips "
+            f"{[s.clip_id for s in batch]}); use batch_size 1 or one packed size"
+        )
+    x0 = torch.stack([_float_tensor(s.x0) for s in batch])  # (B, 16, T', h, w)
+    cond = torch.stack([_float_tensor(s.condition) for s in batch])  # (B, 36, T', h, w)
+    return EncodedBatch(
+        x0,
+        cond,
+        [s.prompt for s in batch],
+        [_float_tensor(s.text_embedding) for s in batch],
+        [_float_tensor(s.image_embedding) for s in batch],
+    )
+
+
+def encode_batch(
+    vae: torch.nn.Module, batch: list[TrainingSample] | list[LatentSample]
+) -> EncodedBatch:
+    """Turn a micro-batch into latents: pixel samples through the frozen ``vae`` (no gradients),
+    precomputed :class:`LatentSample` items passed straight through (float32).
+
+    The single place the training loop turns samples into latents. A batch must be all pixel
+    samples or all latent samples (:class:`SampleError` otherwise).
     """
-    pix = collate(batch)
+    latent = [isinstance(s, LatentSample) for s in batch]
+    if any(latent) and not all(latent):
+        kinds = [type(s).__name__ for s in batch]
+        raise SampleError(f"micro-batch mixes precomputed latents and pixel samples: {kinds}")
+    if batch and all(latent):
+        return _latent_batch(batch)  # type: ignore[arg-type]
+    pix = collate(batch)  # type: ignore[arg-type]
     device = next(iter(vae.buffers()), torch.zeros(0)).device
     with torch.no_grad():
         target = video_to_tensor([s.target_video for s in batch])  # (B, 3, T, H, W)

@@ -151,6 +151,31 @@ PRESETS: dict[str, ModelPreset] = {
         width=32,
         notes="CPU test size; not a published model",
     ),
+    # The Wan architecture at CPU test size: the Wan VAE layout (x8 spatial, x4 temporal), 512
+    # precomputed text tokens and the CLIP image branch, with widths that tiny random encoders
+    # (egosim.model.encoders.write_tiny_wan_folder) match: UMT5 d_model 32 = text_dim, CLIP
+    # hidden size 32 = image_dim. Trains from random weights or a tiny random folder; it exists
+    # to run the Wan code paths (encode stage, image/text features, widening) in tests.
+    "tiny-wan": ModelPreset(
+        name="tiny-wan",
+        transformer=TransformerSpec(
+            num_attention_heads=2,
+            attention_head_dim=16,
+            ffn_dim=64,
+            num_layers=2,
+            text_dim=32,
+            image_dim=32,
+            added_kv_proj_dim=32,  # = inner dim, as in the published I2V configs
+            freq_dim=32,
+        ),
+        vae=VAESpec(kind="wan"),
+        text=TextSpec(kind="precomputed", max_tokens=512),
+        sample_shift=3.0,
+        num_frames=9,
+        height=64,
+        width=64,
+        notes="Wan architecture at CPU test size (tiny random encoders); not a published model",
+    ),
     "wan2.1-fun-1.3b-inp": ModelPreset(
         name="wan2.1-fun-1.3b-inp",
         transformer=TransformerSpec(

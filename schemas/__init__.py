@@ -17,6 +17,7 @@ from egosim.schemas.hand_mask import HAND_MASK
 from egosim.schemas.hands import HANDS
 from egosim.schemas.inpaint import INPAINT
 from egosim.schemas.keypoints import KEYPOINTS
+from egosim.schemas.latents import LATENTS
 from egosim.schemas.pack import EVALUATION, PACK, SIMULATION
 from egosim.schemas.poses import POSES
 from egosim.schemas.rejects import REJECTS
@@ -38,6 +39,7 @@ SCHEMAS: dict[str, ShardSchema] = {
         HAND_MASK,
         INPAINT,
         PACK,
+        LATENTS,
         SIMULATION,
         EVALUATION,
         STATE,

@@ -3,6 +3,7 @@
 from egosim.pipeline.stage import register_stage
 from egosim.stages.caption.stage import CaptionStage
 from egosim.stages.depth_camera.stage import DepthCameraStage
+from egosim.stages.encode.stage import EncodeStage
 from egosim.stages.evaluate.stage import EvaluateStage
 from egosim.stages.hand_mask.stage import HandMaskStage
 from egosim.stages.hands.stage import HandsStage
@@ -27,6 +28,7 @@ register_stage(HandMaskStage)
 register_stage(InpaintStage)
 register_stage(DepthCameraStage)
 register_stage(PackStage)
+register_stage(EncodeStage)
 register_stage(SimulateStage)
 register_stage(EvaluateStage)
 register_stage(StateFusionStage)
