@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import re
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -224,3 +225,44 @@ def test_reasons_group_and_the_table_fits_100_columns() -> None:
     assert "4 units" in text and "ALL REJECTED" in text
     assert "1 more reason(s), 1 reject(s)" in text
     assert "e.g. …" + "x" * 20 in text and "x.mp4\n" in text  # long ids keep their end
+
+
+def test_closing_table_numbers_match_the_runs_outputs_rejects_and_manifest(
+    tmp_path: Path, scheduler: str
+) -> None:
+    videos = tmp_path / "videos"
+    videos.mkdir()
+    for i in range(3):
+        write_video_file(videos / f"v{i}.mp4", smooth_frames(12, 48, 80, seed=i), fps=8.0)
+    _corrupt(videos / "zz_bad.mp4")
+    out = tmp_path / "run"
+    args = ["run", str(_workflow(tmp_path, True)), "--input", str(videos), "--out", str(out)]
+    result = CliRunner().invoke(app, [*args, "--scheduler", scheduler])
+    assert result.exit_code == 0, result.output
+    summary = json.loads((out / "summary.json").read_text())
+    manifest = json.loads((out / "manifest.json").read_text())
+    rejects = pq.read_table(out / "rejects.parquet").to_pylist()
+    table = result.output.split("run summary", 1)[1]
+    for step in summary["steps"]:
+        name = step["step"]
+        rows = sum(pq.read_metadata(p).num_rows for p in (out / name).glob("shard-*.parquet"))
+        rejected = [r for r in rejects if r["step"] == name]
+        seconds = sum(r["seconds"] for r in manifest["results"] if r["step"] == name)
+        assert step["clips_out"] == rows and step["rejected"] == len(rejected)
+        assert step["seconds"] == pytest.approx(seconds) and seconds > 0
+        assert step["skipped_shards"] == 0
+        # The printed row: step, in, out, rejected, unmatched, seconds.
+        clips_in = f"{step['clips_in']} units" if step["source"] else str(step["clips_in"])
+        row = rf"\n{name}\s+{clips_in}\s+{rows}\s+{len(rejected)}\s+0\s+{seconds:.1f}\s"
+        assert re.search(row, table), (row, table)
+    ingest, captions = summary["steps"]
+    assert (ingest["clips_in"], ingest["clips_out"], ingest["rejected"]) == (4, 3, 1)
+    assert captions["clips_in"] == 3 == captions["clips_out"]
+    # A second run skips every shard: no seconds, and the table says so.
+    result = CliRunner().invoke(app, [*args, "--scheduler", scheduler])
+    assert result.exit_code == 0, result.output
+    again = json.loads((out / "summary.json").read_text())
+    assert [s["seconds"] for s in again["steps"]] == [0.0, 0.0]
+    assert [s["skipped_shards"] for s in again["steps"]] == [2, 2]
+    assert [s["clips_out"] for s in again["steps"]] == [3, 3]  # from disk, not from this run
+    assert re.search(r"\ncaptions\s+3\s+3\s+0\s+0\s+0\.0\s+final, 2 skipped", result.output)
