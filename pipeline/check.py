@@ -12,13 +12,14 @@ from __future__ import annotations
 from collections import defaultdict
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from egosim.pipeline import storage
 from egosim.pipeline.clip_io import clip_from_row
-from egosim.pipeline.shards import TMP_MARKER, CorruptShardError, ShardReader
+from egosim.pipeline.shards import CorruptShardError, ShardReader
+from egosim.pipeline.storage import Location
 from egosim.schemas import SCHEMAS, SchemaError, schema_identity
 
 
@@ -52,20 +53,20 @@ CONTENT_CHECKS: dict[str, Callable[[Mapping[str, Any]], list[str]]] = {
 class ShardReport:
     """What checking one shard found."""
 
-    path: Path  # the shard file
+    path: Location  # the shard file (a local path or an fsspec URL)
     problems: list[str] = field(default_factory=list)  # every violation, readable
     schema: str | None = None  # schema name, when the file could be opened
     clip_ids: list[str] = field(default_factory=list)  # clip ids of the rows that could be read
 
 
-def check_shard(path: Path, allow_empty: bool = False) -> list[str]:
+def check_shard(path: Location, allow_empty: bool = False) -> list[str]:
     """Every violation in one shard file, as ``"<file> [clip <id>]: <problem>"`` strings."""
     return inspect_shard(path, allow_empty).problems
 
 
-def inspect_shard(path: Path, allow_empty: bool = False) -> ShardReport:
+def inspect_shard(path: Location, allow_empty: bool = False) -> ShardReport:
     """Check one shard; never raises (an unexpected error is reported as a violation)."""
-    report = ShardReport(Path(path))
+    report = ShardReport(path)
     try:
         _inspect(report, allow_empty)
     except Exception as exc:  # the promise: no traceback, whatever the input
@@ -122,7 +123,7 @@ def _inspect(report: ShardReport, allow_empty: bool) -> None:
                 problems += [f"{where}: {p}" for p in row_problems]
 
 
-def check_paths(paths: list[Path], allow_empty: bool = False) -> tuple[int, list[str]]:
+def check_paths(paths: list[Location], allow_empty: bool = False) -> tuple[int, list[str]]:
     """Check every shard under ``paths``: ``(shards checked, every violation)``. Never raises.
 
     Besides each file's own problems: a clip id in two shards of the same folder and schema
@@ -133,17 +134,17 @@ def check_paths(paths: list[Path], allow_empty: bool = False) -> tuple[int, list
     except OSError as exc:
         return 0, [f"cannot list shards under {[str(p) for p in paths]}: {exc}"]
     problems: list[str] = []
-    owners: dict[tuple[Path, str], dict[str, Path]] = defaultdict(dict)
+    owners: dict[tuple[Location, str], dict[str, Location]] = defaultdict(dict)
     for shard in shards:
         report = inspect_shard(shard, allow_empty)
         problems += report.problems
         if report.schema is None or report.schema == "rejects":
             continue
-        seen = owners[(shard.parent, report.schema)]
+        seen = owners[(storage.parent(shard), report.schema)]
         for clip_id in dict.fromkeys(report.clip_ids):
             if clip_id in seen:
                 problems.append(
-                    f"{shard} clip {clip_id!r}: clip id also in {seen[clip_id].name} "
+                    f"{shard} clip {clip_id!r}: clip id also in {storage.name(seen[clip_id])} "
                     "(clip ids must be unique across the shards of a step)"
                 )
             else:
@@ -151,12 +152,18 @@ def check_paths(paths: list[Path], allow_empty: bool = False) -> tuple[int, list
     return len(shards), problems
 
 
-def find_shards(paths: list[Path]) -> list[Path]:
-    """Expand folders into the ``.parquet`` files under them (sorted); files stay as given."""
-    found: list[Path] = []
-    for path in paths:
-        if Path(path).is_dir():
-            found += sorted(p for p in Path(path).rglob("*.parquet") if TMP_MARKER not in p.name)
+def find_shards(paths: list[Location]) -> list[Location]:
+    """Expand folders into the ``.parquet`` files under them (sorted); files stay as given.
+
+    Paths may be fsspec URLs. Folders list committed shards only: a temporary file or key
+    left by a killed write, or a remote shard without its completion marker, is not checked
+    (it is not part of the run; the next run removes or rewrites it).
+    """
+    found: list[Location] = []
+    for raw in paths:
+        path = storage.location(raw)
+        if storage.is_dir(path):
+            found += storage.list_files(path, "*.parquet", recursive=True)
         else:
-            found.append(Path(path))
+            found.append(path)
     return found

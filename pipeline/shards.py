@@ -8,7 +8,9 @@ Layout of one shard file (see docs/design.md):
   object with the producing stage, its parameters, the fingerprints of its inputs, the output
   fingerprint and the package version;
 - written to a temporary file in the same folder and renamed into place on success, so a killed
-  write never leaves a partial shard under the final name;
+  write never leaves a partial shard under the final name; on an object store (an fsspec URL
+  such as ``s3://``) to a temporary key, moved into place, then given a completion marker
+  (:mod:`egosim.pipeline.storage`), and listings ignore a shard without its marker;
 - integrity (docs/design.md, "Integrity"): Parquet page checksums (CRC32) are written and
   verified on every read; the file footer's ``egosim.content`` key holds a SHA-256 per row of
   everything the row holds (all columns, encoded media included; :func:`row_content_hash`) and
@@ -18,10 +20,9 @@ Layout of one shard file (see docs/design.md):
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
-import os
-import uuid
 from collections.abc import Iterable, Iterator, Mapping, Sequence
 from dataclasses import asdict, dataclass, field
 from importlib.metadata import PackageNotFoundError, version
@@ -32,13 +33,15 @@ from typing import Any
 import pyarrow as pa
 import pyarrow.parquet as pq
 
+from egosim.pipeline import storage
+from egosim.pipeline.storage import TMP_MARKER, Location
 from egosim.schemas import SchemaCompatibilityError, ShardSchema, schema_identity
 from egosim.schemas.base import check_compatible
 
 SHARD_META_KEY = b"egosim.shard"
 CONTENT_KEY = b"egosim.content"  # footer key: per-row content hashes (see module doc)
 CONTENT_FORMAT = 1  # layout of the CONTENT_KEY JSON
-TMP_MARKER = ".tmp-"
+__all__ = ["TMP_MARKER"]  # re-exported: the temporary-file infix lives in storage
 
 
 class ShardError(Exception):
@@ -104,14 +107,14 @@ class ShardWriter:
 
     def __init__(
         self,
-        path: Path,
+        path: Location,
         schema: ShardSchema,
         stage: str,
         params: Mapping[str, Any] | None = None,
         inputs: Mapping[str, str] | None = None,
         fingerprint: str = "",
     ) -> None:
-        self.path = Path(path)
+        self.path = storage.location(path)
         self.schema = schema
         self.meta = ShardMeta(
             schema=schema.name,
@@ -122,7 +125,7 @@ class ShardWriter:
             fingerprint=fingerprint,
         )
         self.rows_written = 0
-        self._tmp = self.path.with_name(f"{self.path.name}{TMP_MARKER}{uuid.uuid4().hex[:8]}")
+        self._sink: contextlib.AbstractContextManager[Any] | None = None  # storage.atomic_write
         self._arrow = schema.arrow.with_metadata(
             {
                 **(schema.arrow.metadata or {}),
@@ -133,17 +136,23 @@ class ShardWriter:
         self._hashes: list[str] = []  # content hash of each row written, in order
 
     def __enter__(self) -> ShardWriter:
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._writer = pq.ParquetWriter(
-            self._tmp, self._arrow, compression="zstd", write_page_checksum=True
-        )
+        self._sink = storage.atomic_write(self.path)
+        sink = self._sink.__enter__()
+        try:
+            self._writer = pq.ParquetWriter(
+                sink, self._arrow, compression="zstd", write_page_checksum=True
+            )
+        except BaseException as exc:
+            self._sink.__exit__(type(exc), exc, exc.__traceback__)
+            raise
         return self
 
     def write_row(self, row: Mapping[str, Any]) -> None:
         """Validate one row and append it as its own row group."""
         if self._writer is None:
             raise ShardError("ShardWriter.write_row called outside its with-block")
-        self.schema.validate_row(row, where=f"{self.path.name} row {row.get('clip_id', '?')}")
+        where = f"{storage.name(self.path)} row {row.get('clip_id', '?')}"
+        self.schema.validate_row(row, where=where)
         table = pa.Table.from_pylist([dict(row)], schema=self._arrow)
         self._hashes.append(row_content_hash(table.to_pylist()[0], self._arrow.names))
         self._writer.write_table(table)
@@ -155,7 +164,7 @@ class ShardWriter:
         exc: BaseException | None,
         tb: TracebackType | None,
     ) -> None:
-        assert self._writer is not None  # set in __enter__
+        assert self._writer is not None and self._sink is not None  # set in __enter__
         if exc_type is None:
             content = {
                 "format": CONTENT_FORMAT,
@@ -164,11 +173,14 @@ class ShardWriter:
                 "rows": self._hashes,
             }
             self._writer.add_key_value_metadata({CONTENT_KEY: json.dumps(content)})
-        self._writer.close()
-        if exc_type is None:
-            os.replace(self._tmp, self.path)
-        else:
-            self._tmp.unlink(missing_ok=True)
+        try:
+            self._writer.close()
+        except BaseException as close_exc:
+            if exc_type is None:  # the write failed now: nothing may be committed
+                self._sink.__exit__(type(close_exc), close_exc, close_exc.__traceback__)
+                raise
+        # Commits (rename, or move + marker) on success; deletes the temporary on an error.
+        self._sink.__exit__(exc_type, exc, tb)
 
 
 class ShardReader:
@@ -180,12 +192,23 @@ class ShardReader:
     existed have none to compare (``hashed`` is False) and are read as they are.
     """
 
-    def __init__(self, path: Path, schema: ShardSchema | None = None, verify: bool = True) -> None:
-        self.path = Path(path)
-        if not self.path.is_file():
+    def __init__(
+        self, path: Location, schema: ShardSchema | None = None, verify: bool = True
+    ) -> None:
+        self.path = storage.location(path)
+        if not storage.exists(self.path):
             raise CorruptShardError(f"{self.path}: shard file does not exist")
+        self._handle = storage.open_read(self.path)
         try:
-            self._file = pq.ParquetFile(self.path, page_checksum_verification=True)
+            self._open(schema, verify)
+        except BaseException:
+            self._handle.close()
+            raise
+
+    def _open(self, schema: ShardSchema | None, verify: bool) -> None:
+        """Read and check the footer, schema and provenance (``__init__`` closes on error)."""
+        try:
+            self._file = pq.ParquetFile(self._handle, page_checksum_verification=True)
             arrow = self._file.schema_arrow
             footer = self._file.metadata.metadata or {}
         except Exception as exc:  # pyarrow raises many types for a damaged footer
@@ -303,14 +326,15 @@ class ShardReader:
 
     def __exit__(self, *exc: object) -> None:
         self._file.close()
+        self._handle.close()
 
 
-def open_shard(path: Path, schema: ShardSchema | None = None) -> ShardReader:
+def open_shard(path: Location, schema: ShardSchema | None = None) -> ShardReader:
     """Open a shard for reading; checks ``schema`` name and version when given."""
     return ShardReader(path, schema)
 
 
-def verify_shard(path: Path) -> None:
+def verify_shard(path: Location) -> None:
     """Read every row of a shard and verify it; raises :class:`CorruptShardError` on damage.
 
     A shard without content hashes (written before they existed) raises too: its content
@@ -323,7 +347,7 @@ def verify_shard(path: Path) -> None:
             pass
 
 
-def read_shard_meta(path: Path) -> ShardMeta:
+def read_shard_meta(path: Location) -> ShardMeta:
     """Read only a shard's provenance metadata (raises :class:`CorruptShardError`)."""
     with open_shard(path) as reader:
         return reader.meta
@@ -342,21 +366,25 @@ def rejects_file_name(index: int) -> str:
     return f"rejects-{index:05d}.parquet"
 
 
-def find_shards(paths: Iterable[str | Path], step: str) -> list[Path]:
+def find_shards(paths: Iterable[str | Path], step: str) -> list[Location]:
     """Shard files under ``paths``: files, folders of shards, or run folders with a ``step/``.
 
-    Raises :class:`FileNotFoundError` naming the paths when nothing is found.
+    Each path is a local path or an fsspec URL (:func:`egosim.pipeline.storage.location`). A
+    file named directly is taken as it is; in folders only committed shards are listed (never a
+    temporary file or, remote, a shard without its completion marker). Raises
+    :class:`FileNotFoundError` naming the paths when nothing is found.
     """
-    found: list[Path] = []
+    found: list[Location] = []
     for raw in paths:
-        path = Path(raw)
-        if path.is_file():
+        path = storage.location(raw)
+        if storage.exists(path):
             found.append(path)
             continue
-        if not path.is_dir():
+        if not storage.is_dir(path):
             raise FileNotFoundError(f"no {step} shard or folder at {path}")
-        folder = path / step if (path / step).is_dir() else path
-        found += sorted(folder.glob(SHARD_GLOB))
+        sub = storage.join(path, step)
+        folder = sub if storage.is_dir(sub) else path
+        found += storage.list_files(folder, SHARD_GLOB)
     if not found:
         raise FileNotFoundError(
             f"no {step} shards under {[str(p) for p in paths]} (expected {SHARD_GLOB} files, "
