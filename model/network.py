@@ -23,6 +23,7 @@ from egosim.model.presets import (
 )
 from egosim.model.text import HashedTextEncoder, PrecomputedTextEncoder
 from egosim.model.vae import build_vae
+from egosim.model.weights import read_weights_folder
 
 IMAGE_TOKENS = 257  # CLIP ViT-H/14 tokens Wan's image branch takes (CLS + 16 x 16 patches)
 _IGNORED_KEYS = ("norm_added_q",)  # keys diffusers itself drops when loading Wan checkpoints
@@ -133,27 +134,20 @@ def load_transformer(
     in_channels: int = EGOSIM_IN_CHANNELS,
     dtype: torch.dtype | None = None,
 ) -> WanTransformer3DModel:
-    """Load a diffusers-format transformer folder into the preset's architecture (on CPU).
+    """Load a transformer folder into the preset's architecture (on CPU).
 
-    Shapes are checked before any tensor is read; a 36-channel patch embedding is widened with
-    zero-initialised new channels. ``dtype`` casts (default: keep the stored dtype).
+    The folder may use diffusers' key names or the original Wan / VideoX-Fun ones (converted
+    by ``egosim.model.weights``). Shapes are checked before any tensor is read; a 36-channel
+    patch embedding is widened with zero-initialised new channels. ``dtype`` casts (default:
+    keep the stored dtype).
     """
-    from safetensors import safe_open
-
     preset = get_preset(preset) if isinstance(preset, str) else preset
-    folder = _weights_folder(Path(folder))
-    shapes = read_weight_shapes(folder)
+    weights = read_weights_folder(folder)  # headers only; original keys renamed to diffusers'
+    shapes = weights.shapes
     check_weight_shapes(preset, shapes, in_channels)
     stored_in = shapes["patch_embedding.weight"][1]
     model = build_transformer(preset, stored_in, device="meta")
-    state: dict[str, torch.Tensor] = {}
-    for path in sorted(folder.glob("*.safetensors")):
-        with safe_open(path, framework="pt") as f:
-            for key in f.keys():  # noqa: SIM118
-                if not key.endswith(_IGNORED_KEYS):
-                    t = f.get_tensor(key)
-                    state[key] = t if dtype is None else t.to(dtype)
-    model.load_state_dict(state, strict=True, assign=True)
+    model.load_state_dict(weights.load_state_dict(dtype), strict=True, assign=True)
     # Rotary tables are non-persistent buffers: rebuild them (they stayed on the meta device).
     spec = preset.transformer
     model.rope = WanRotaryPosEmbed(spec.attention_head_dim, spec.patch_size, spec.rope_max_seq_len)

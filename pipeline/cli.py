@@ -21,10 +21,18 @@ from typing import Annotated
 
 import typer
 
+from egosim.pipeline import storage
 from egosim.pipeline.check import check_paths
 from egosim.pipeline.media import MediaError
 from egosim.pipeline.records import ClipValueError
-from egosim.pipeline.runner import IN_PROCESS, RunError, plan_stage, run_tasks_here, run_workflow
+from egosim.pipeline.runner import (
+    IN_PROCESS,
+    RunError,
+    local_source,
+    plan_stage,
+    run_tasks_here,
+    run_workflow,
+)
 from egosim.pipeline.shards import ShardError, ShardReader, find_shards
 from egosim.pipeline.stage import SourceStage, StageError, get_stage, registered_stages
 from egosim.pipeline.summary import (
@@ -107,9 +115,15 @@ def _scheduler(name: str) -> str | None:
 @app.command()
 def run(
     workflow: Annotated[Path, typer.Argument(help="Workflow YAML file.")],
-    out: Annotated[Path, typer.Option("--out", help="Run folder for every step's shards.")],
+    out: Annotated[
+        str,
+        typer.Option(
+            "--out", help="Run folder for every step's shards: a path or URL (s3://bucket/run)."
+        ),
+    ],
     input: Annotated[
-        str | None, typer.Option("--input", help="Input path for source steps (ingest).")
+        str | None,
+        typer.Option("--input", help="Input path or URL for source steps (ingest)."),
     ] = None,
     scheduler: Annotated[
         str | None,
@@ -135,24 +149,20 @@ def run(
     3  a step rejected every clip it was given (or the source made no clip)
     4  a final step wrote no clip
     """
-    from rich.progress import Progress
+    from egosim.pipeline.observe import ConsoleObserver, log_path
 
     try:
+        run_out = storage.location(out)
         wf = load_workflow(workflow, set_ or [])
-        with Progress(transient=False) as bar:
-            job = bar.add_task(f"{wf.name}", total=None)
-
-            def progress(result, done: int, total: int) -> None:
-                bar.update(job, completed=done, total=total)
-                state = "skipped" if result.skipped else f"{result.seconds:.1f}s"
-                bar.console.print(
-                    f"{result.step}[{result.shard_index}]: {result.rows} rows, "
-                    f"{result.rejected} rejected ({state})"
-                )
-
-            summary = run_workflow(
-                wf, out, source=input, scheduler=scheduler, n_workers=workers, progress=progress
-            )
+        # Live progress per step on a terminal (stderr), plain lines otherwise.
+        summary = run_workflow(
+            wf,
+            run_out,
+            source=input,
+            scheduler=scheduler,
+            n_workers=workers,
+            observer=ConsoleObserver(),
+        )
     except USER_ERRORS as exc:
         if isinstance(exc, RunError) and exc.report is not None:
             typer.echo(format_report(exc.report))
@@ -160,7 +170,8 @@ def run(
     skipped = sum(r.skipped for r in summary.results)
     typer.echo(
         f"done: {len(summary.results)} shard tasks ({skipped} skipped), "
-        f"{summary.rejected} clips rejected in this run; outputs in {out}"
+        f"{summary.rejected} clips rejected in this run; outputs in {out}, log in "
+        f"{log_path(storage.scratch_dir(run_out))}"
     )
     _finish_with_report(summary.report)
 
@@ -168,7 +179,7 @@ def run(
 @app.command()
 def stage(
     name: Annotated[str, typer.Argument(help="Stage name (see `egosim stages`).")],
-    output: Annotated[Path, typer.Option("--output", help="Output shard path.")],
+    output: Annotated[str, typer.Option("--output", help="Output shard path or URL.")],
     input: Annotated[
         list[str] | None,
         typer.Option("--input", help="Input shard, role=path for several roles, or ingest path."),
@@ -189,15 +200,17 @@ def stage(
     try:
         stage_cls = get_stage(name)
         params = _settings(set_, param)
+        output_at = storage.location(output)
         if issubclass(stage_cls, SourceStage):
-            task = plan_stage(name, params, output, source=input or None)
+            source = local_source(input) if input else None
+            task = plan_stage(name, params, output_at, source=source)
         else:
             roles = list(stage_cls.inputs)
             given = dict(i.split("=", 1) if "=" in i else (roles[0], i) for i in input or [])
-            inputs = {role: Path(p) for role, p in given.items()}
-            task = plan_stage(name, params, output, inputs=inputs)
+            inputs = {role: storage.location(p) for role, p in given.items()}
+            task = plan_stage(name, params, output_at, inputs=inputs)
         (result,) = run_tasks_here([task])
-        report = summarize_tasks([task])
+        report = summarize_tasks([task], [result])
     except USER_ERRORS as exc:
         raise _fail(exc) from exc
     typer.echo(f"{output}: {result.rows} rows, {result.rejected} rejected (see {task.rejects})")
@@ -206,7 +219,9 @@ def stage(
 
 @app.command()
 def check(
-    paths: Annotated[list[Path], typer.Argument(help="Shard files or folders of shards.")],
+    paths: Annotated[
+        list[str], typer.Argument(help="Shard files or folders of shards (paths or URLs).")
+    ],
     allow_empty: Annotated[bool, typer.Option(help="Accept shards with no rows.")] = False,
 ) -> None:
     """Validate shards; lists every violation and exits non-zero if there is any.
@@ -320,7 +335,8 @@ def _model_errors() -> tuple[type[BaseException], ...]:
 @app.command()
 def train(
     data: Annotated[
-        list[Path], typer.Option("--data", help="Pack shards, folders of them, or a run folder.")
+        list[str],
+        typer.Option("--data", help="Pack shards, folders of them, or a run folder (or URLs)."),
     ],
     out: Annotated[Path, typer.Option("--out", help="Run directory (resumed when it exists).")],
     preset: Annotated[str, typer.Option("--preset", help="Model preset (tiny, wan2.1-...).")] = (
@@ -539,6 +555,319 @@ def report(
     try:
         typer.echo(format_table(read_evaluations(paths)))
     except USER_ERRORS as exc:
+        raise _fail(exc) from exc
+
+
+cluster_app = typer.Typer(
+    help="Start Dask clusters for `egosim run --scheduler` (SLURM via dask-jobqueue).",
+    no_args_is_help=True,
+)
+app.add_typer(cluster_app, name="cluster")
+
+
+@cluster_app.command("slurm")
+def cluster_slurm(
+    cores: Annotated[int, typer.Option("--cores", help="CPU cores per job.")] = 4,
+    memory: Annotated[str, typer.Option("--memory", help="Memory per job (16GB, 64GiB).")] = (
+        "16GB"
+    ),
+    gpus: Annotated[
+        int, typer.Option("--gpus", help="GPUs per job: 0 or 1 (the worker declares GPU=1).")
+    ] = 0,
+    walltime: Annotated[
+        str, typer.Option("--walltime", help="Job time limit HH:MM:SS or D-HH:MM:SS.")
+    ] = "04:00:00",
+    jobs: Annotated[int, typer.Option("--jobs", help="Worker jobs to submit.")] = 1,
+    partition: Annotated[str, typer.Option("--partition", help="SLURM partition.")] = "",
+    account: Annotated[str, typer.Option("--account", help="SLURM account.")] = "",
+    prologue: Annotated[
+        list[str] | None,
+        typer.Option("--prologue", help="Shell line run before the worker (repeatable)."),
+    ] = None,
+    job_extra: Annotated[
+        list[str] | None,
+        typer.Option("--job-extra", help="Extra #SBATCH directive, e.g. --constraint=a100."),
+    ] = None,
+    python: Annotated[
+        str, typer.Option("--python", help="Python on the nodes (default: this one).")
+    ] = "",
+    local_directory: Annotated[
+        str, typer.Option("--local-directory", help="Worker scratch folder on the node.")
+    ] = "",
+    log_directory: Annotated[
+        str, typer.Option("--log-directory", help="Folder of the jobs' output files.")
+    ] = "",
+    print_job_script: Annotated[
+        bool,
+        typer.Option("--print-job-script", help="Print one job's sbatch script; submit nothing."),
+    ] = False,
+) -> None:
+    """Start a SLURM-backed Dask cluster (dask-jobqueue) and keep it up until Ctrl-C.
+
+    Prints the scheduler address to pass to `egosim run --scheduler`; each job runs one Dask
+    worker, and with --gpus 1 it books one GPU and declares the GPU=1 resource that GPU steps
+    need. With --print-job-script it prints the sbatch script of one job and exits.
+    """
+    from egosim.pipeline.cluster import ClusterError, SlurmConfig, slurm_cluster, slurm_job_script
+
+    try:
+        config = SlurmConfig(
+            cores=cores,
+            memory=memory,
+            gpus=gpus,
+            walltime=walltime,
+            jobs=jobs,
+            partition=partition,
+            account=account,
+            prologue=tuple(prologue or ()),
+            job_extra=tuple(job_extra or ()),
+            python=python,
+            local_directory=local_directory,
+            log_directory=log_directory,
+        )
+        if print_job_script:
+            typer.echo(slurm_job_script(config))
+            return
+        cluster = slurm_cluster(config)
+    except (ClusterError, OSError, ValueError) as exc:
+        raise _fail(exc) from exc
+    try:
+        cluster.scale(jobs=config.jobs)
+        typer.echo(f"scheduler: {cluster.scheduler_address}")
+        typer.echo(f"dashboard: {cluster.dashboard_link}")
+        typer.echo(
+            f"submitted {config.jobs} job(s); run: egosim run WORKFLOW --out OUT "
+            f"--scheduler {cluster.scheduler_address}   (Ctrl-C stops the cluster)"
+        )
+        import time
+
+        while True:
+            time.sleep(3600)
+    except KeyboardInterrupt:
+        typer.echo("stopping the cluster and its jobs")
+    finally:
+        cluster.close()
+
+
+# --- egosim view and egosim export (issue 16): Foxglove MCAPs and other tools' layouts ------
+
+export_app = typer.Typer(
+    help="Export a run's packed samples for another tool: videox-fun, egosim-csv, dwm.",
+    no_args_is_help=True,
+)
+app.add_typer(export_app, name="export")
+
+
+def _export_errors() -> tuple[type[BaseException], ...]:
+    from egosim.pipeline.export.foxglove import FoxgloveExportError
+    from egosim.pipeline.export.run_index import ExportError
+
+    return (*USER_ERRORS, ExportError, FoxgloveExportError)
+
+
+@app.command()
+def view(
+    run: Annotated[Path, typer.Argument(help="Run folder (egosim run --out).")],
+    out: Annotated[
+        Path, typer.Option("--out", help="FILE.mcap for one clip, else a folder of CLIP.mcap.")
+    ],
+    clip: Annotated[
+        list[str] | None, typer.Option("--clip", help="Clip id to export (repeat; default all).")
+    ] = None,
+    set_: Annotated[
+        list[str] | None,
+        typer.Option("--set", help="image_format=png, jpeg_quality=N, max_cloud_points=N."),
+    ] = None,
+) -> None:
+    """Write one Foxglove MCAP per clip: every step's output aligned in time and space.
+
+    Real, scene, visibility, skeleton and hand-mask videos, the inpainted first frame,
+    calibration, raw/cleaned/source camera transforms, scene and state clouds and the 3D hand
+    skeleton (topics: egosim.pipeline.export.view). Open the file in Foxglove.
+    """
+    from egosim.pipeline.export.view import ViewConfig, write_run_view
+    from egosim.pipeline.stage import build_config
+
+    try:
+        config = build_config(ViewConfig, _params(set_ or [], "--set"), where="view")
+        paths = write_run_view(run, out, clip or (), config)
+    except _export_errors() as exc:
+        raise _fail(exc) from exc
+    for path in paths:
+        typer.echo(f"wrote {path}")
+
+
+def _run_export(kind: str, run: Path, out: Path, set_: list[str] | None) -> None:
+    """Build the exporter's config from ``--set`` and export; exit 3 when no clip was written."""
+    from egosim.pipeline.export import dwm, egosim_csv, videox_fun
+    from egosim.pipeline.stage import build_config
+
+    exporters = {
+        "videox-fun": (videox_fun.VideoXFunConfig, videox_fun.export_videox_fun),
+        "egosim-csv": (egosim_csv.EgoSimCsvConfig, egosim_csv.export_egosim_csv),
+        "dwm": (dwm.DwmConfig, dwm.export_dwm),
+    }
+    config_class, export = exporters[kind]
+    try:
+        config = build_config(config_class, _params(set_ or [], "--set"), where=kind)
+        result = export(run, out, config)
+    except _export_errors() as exc:
+        raise _fail(exc) from exc
+    for cid, why in result.skipped.items():
+        typer.secho(f"skipped {cid}: {why}", fg=typer.colors.YELLOW, err=True)
+    typer.echo(
+        f"{kind}: {len(result.written)} clip(s) in {out} (index {result.index}), "
+        f"{len(result.skipped)} skipped"
+    )
+    if not result.written:
+        typer.secho(f"error: no clip of {run} was exported", fg=typer.colors.RED, err=True)
+        raise typer.Exit(code=EXIT_STEP_REJECTED_ALL)
+
+
+RUN_ARGUMENT = typer.Argument(help="Run folder, folder of pack shards, or one pack shard.")
+EXPORT_OUT = typer.Option("--out", help="Output folder.")
+
+
+@export_app.command("videox-fun")
+def export_videox_fun(
+    run: Annotated[Path, RUN_ARGUMENT],
+    out: Annotated[Path, EXPORT_OUT],
+    set_: Annotated[
+        list[str] | None, typer.Option("--set", help="crf=N, absolute_paths=true, overwrite=true.")
+    ] = None,
+) -> None:
+    """VideoX-Fun: metadata.json + videos/, control/, masks/, skeletons/, first_frames/."""
+    _run_export("videox-fun", run, out, set_)
+
+
+@export_app.command("egosim-csv")
+def export_egosim_csv(
+    run: Annotated[Path, RUN_ARGUMENT],
+    out: Annotated[Path, EXPORT_OUT],
+    set_: Annotated[list[str] | None, typer.Option("--set", help="crf=N, overwrite=true.")] = None,
+) -> None:
+    """The EgoSim release: metadata.csv + one folder per clip (video, ego prior, mask, ...)."""
+    _run_export("egosim-csv", run, out, set_)
+
+
+@export_app.command("dwm")
+def export_dwm(
+    run: Annotated[Path, RUN_ARGUMENT],
+    out: Annotated[Path, EXPORT_OUT],
+    set_: Annotated[
+        list[str] | None,
+        typer.Option(
+            "--set", help="fps, num_frames, height, width, resize=pad|crop, short=pad|reject."
+        ),
+    ] = None,
+) -> None:
+    """DWM: GROUP/videos, videos_static, videos_hands, prompts + dataset_files/GROUP.txt."""
+    _run_export("dwm", run, out, set_)
+
+
+# --- egosim weights and egosim presets (issue 14): published weights, export, memory plan -----
+
+weights_app = typer.Typer(
+    help="Inspect a transformer weights folder, or export a trained run's transformer.",
+    no_args_is_help=True,
+)
+app.add_typer(weights_app, name="weights")
+
+
+@weights_app.command("check")
+def weights_check(
+    folder: Annotated[Path, typer.Argument(help="Weights folder (diffusers or Wan/VideoX-Fun).")],
+    preset: Annotated[
+        list[str] | None, typer.Option("--preset", help="Check only these presets (repeat).")
+    ] = None,
+) -> None:
+    """Report what a weights folder holds and which preset it fits, reading headers only.
+
+    Exit 0 when it fits a preset, 2 when it fits none or cannot be read.
+    """
+    from egosim.model.weights import check_weights_folder
+
+    try:
+        report = check_weights_folder(folder, preset or None)
+    except _model_errors() as exc:
+        raise _fail(exc) from exc
+    typer.echo(report.format())
+    if not report.fits:
+        names = ", ".join(report.problems)
+        raise _fail(ValueError(f"{report.weights.folder} fits no preset ({names})"))
+
+
+@weights_app.command("export")
+def weights_export(
+    run: Annotated[Path, typer.Argument(help="Run directory (latest checkpoint) or checkpoint.")],
+    out: Annotated[Path, typer.Option("--out", help="New folder for the diffusers transformer.")],
+    ema: Annotated[bool, typer.Option("--ema/--no-ema", help="Use the EMA weights if any.")] = True,
+    dtype: Annotated[
+        str, typer.Option("--dtype", help="Stored dtype: keep, bf16, fp16 or fp32.")
+    ] = "keep",
+) -> None:
+    """Write a trained run's transformer as a diffusers folder (LoRA merged).
+
+    ``WanTransformer3DModel.from_pretrained(OUT)`` loads it.
+    """
+    import torch
+
+    from egosim.model.weights import export_transformer
+
+    dtypes = {"keep": None, "bf16": torch.bfloat16, "fp16": torch.float16, "fp32": torch.float32}
+    try:
+        if dtype not in dtypes:
+            raise ValueError(f"--dtype must be one of {sorted(dtypes)}, got {dtype!r}")
+        written = export_transformer(run, out, use_ema=ema, dtype=dtypes[dtype])
+    except _model_errors() as exc:
+        raise _fail(exc) from exc
+    typer.echo(f"wrote {written} (WanTransformer3DModel.from_pretrained loads it)")
+
+
+@app.command()
+def presets(
+    memory: Annotated[
+        bool, typer.Option("--memory", help="Also print the per-GPU memory plan (Wan presets).")
+    ] = False,
+    gpus: Annotated[int, typer.Option("--gpus", help="GPUs FSDP2 shards over (--memory).")] = 8,
+    markdown: Annotated[
+        bool, typer.Option("--markdown", help="Memory plan as the Markdown table of the docs.")
+    ] = False,
+) -> None:
+    """List the model presets: parameters, latent size at the default clip, weights layout."""
+    from egosim.model.memory_plan import (
+        GIB,
+        default_plans,
+        format_table,
+        latent_shape,
+        parameter_count,
+        sequence_length,
+    )
+    from egosim.model.presets import EGOSIM_IN_CHANNELS, PRESETS
+    from egosim.model.weights import expected_layout
+
+    try:
+        for name, p in PRESETS.items():
+            count = parameter_count(p.transformer, EGOSIM_IN_CHANNELS).total
+            latent = "x".join(map(str, latent_shape(p, p.num_frames, p.height, p.width)))
+            tokens = sequence_length(p, p.num_frames, p.height, p.width)
+            typer.echo(
+                f"{name} params {count:,} (in 52); clip {p.num_frames}x{p.height}x{p.width} -> "
+                f"latent {latent} (CxTxHxW), {tokens:,} tokens; weights: {expected_layout(p)}"
+            )
+        if memory:
+            plans = default_plans(gpus)
+            if markdown:
+                typer.echo(format_table(plans))
+                return
+            typer.echo(f"\nper-GPU memory (GiB), full fine-tuning, AdamW, FSDP2 over {gpus} GPUs:")
+            for plan in plans:
+                typer.echo(
+                    f"  {plan.preset} batch {plan.setup.batch_per_gpu}: "
+                    f"{plan.total / GIB:.1f} (model states {plan.model_states / GIB:.1f}, "
+                    f"activations {plan.activations / GIB:.1f})"
+                )
+    except _model_errors() as exc:
         raise _fail(exc) from exc
 
 
