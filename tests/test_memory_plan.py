@@ -147,12 +147,16 @@ def test_plan_terms() -> None:
 
 
 def test_docs_table_is_current() -> None:
-    """docs/memory_plan.md holds the table `egosim presets --memory` prints (regenerate with
-    `egosim presets --memory --markdown` and paste it between the markers)."""
+    """docs/memory_plan.md holds the tables `egosim presets --memory` prints (regenerate with
+    `egosim presets --memory --markdown [--gpus 1]`, pasted between the markers)."""
     text = DOC.read_text()
-    match = re.search(r"<!-- plan:begin -->\n(.*?)\n<!-- plan:end -->", text, re.S)
-    assert match, "docs/memory_plan.md lacks the plan markers"
-    assert match[1].strip() == format_table(default_plans()).strip()
+    for marker, plans in (
+        ("plan", default_plans()),
+        ("plan-1gpu", [p for p in default_plans(1) if p.preset == "wan2.1-fun-1.3b-inp"]),
+    ):
+        match = re.search(rf"<!-- {marker}:begin -->\n(.*?)\n<!-- {marker}:end -->", text, re.S)
+        assert match, f"docs/memory_plan.md lacks the {marker} markers"
+        assert match[1].strip() == format_table(plans).strip()
 
 
 def test_presets_cli_lists_every_preset() -> None:
