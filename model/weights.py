@@ -31,6 +31,7 @@ import re
 import shutil
 import uuid
 from collections import Counter
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -118,7 +119,13 @@ _INVERSE = (
 )
 
 
-def _rename(key: str, top: dict, block: dict, top_params: dict, block_params: dict) -> str | None:
+def _rename(
+    key: str,
+    top: dict[str, str],
+    block: dict[str, str],
+    top_params: dict[str, str],
+    block_params: dict[str, str],
+) -> str | None:
     match = _BLOCK.fullmatch(key)
     prefix, rest, modules, params = "", key, top, top_params
     if match:
@@ -141,7 +148,9 @@ def diffusers_to_original_key(key: str) -> str | None:
     return _rename(key, *_INVERSE)
 
 
-def _convert(state: dict, rename, direction: str) -> dict:
+def _convert(
+    state: dict[str, torch.Tensor], rename: Callable[[str], str | None], direction: str
+) -> dict[str, torch.Tensor]:
     out, unknown = {}, []
     for key, value in state.items():
         new = rename(key)
@@ -175,7 +184,7 @@ class TensorEntry:
     """Where one tensor of a weights folder lives and what its header says."""
 
     file: Path  # the safetensors file holding it
-    stored_key: str  # its name in that file (original layout, prefix included)
+    stored_key: str  # its name in that file, as stored (either layout, prefix included)
     shape: tuple[int, ...]  # shape from the header
     dtype: str  # safetensors dtype name from the header ("BF16", "F32", ...)
 
@@ -457,26 +466,6 @@ def expected_layout(preset: ModelPreset) -> str:
     )
 
 
-def plain_transformer(transformer: torch.nn.Module) -> torch.nn.Module:
-    """``transformer`` with every LoRA adapter (egosim's or peft's) folded into its base layer.
-
-    Works in place; returns the same module.
-    """
-    from egosim.model.lora import merge_lora
-
-    merge_lora(transformer)
-    try:
-        from peft.tuners.tuners_utils import BaseTunerLayer
-    except ImportError:  # peft absent: only egosim's own adapters can be present
-        return transformer
-    for name, module in list(transformer.named_modules()):
-        if isinstance(module, BaseTunerLayer):
-            module.merge()
-            parent, _, child = name.rpartition(".")
-            setattr(transformer.get_submodule(parent), child, module.get_base_layer())
-    return transformer
-
-
 EXPORT_RECORD = "egosim_export.json"  # provenance file written beside the exported weights
 
 
@@ -493,13 +482,15 @@ def export_transformer(
     refused. ``out/egosim_export.json`` records the checkpoint, step, preset and EMA choice.
     """
     from egosim.model.inference import load_trained
+    from egosim.model.lora import merge_lora
     from egosim.model.network import build_transformer
 
     out = Path(out)
     if out.exists():
         raise WeightsMismatchError(f"export folder {out} already exists; choose a new --out")
     loaded = load_trained(run, device="cpu", use_ema=use_ema)
-    trained = plain_transformer(loaded.bundle.denoiser.transformer)
+    trained = loaded.bundle.denoiser.transformer
+    merge_lora(trained)  # LoRA runs: adapters folded into the base weights, in place
     state = {k: v.detach() for k, v in trained.state_dict().items()}
     # A fresh plain module of the same architecture: whatever wrapped the trained one is gone.
     preset = loaded.bundle.preset

@@ -191,6 +191,18 @@ def test_a_folder_of_pickles_is_refused_without_opening_them(tmp_path: Path) -> 
         read_weights_folder(tmp_path)
 
 
+def test_a_truncated_file_is_refused_before_loading(tmp_path: Path) -> None:
+    build_transformer("tiny", 36).save_pretrained(tmp_path)
+    path = tmp_path / "diffusion_pytorch_model.safetensors"
+    with path.open("r+b") as f:
+        f.truncate(path.stat().st_size - 10)  # a download cut short
+    with pytest.raises(WeightsMismatchError, match=r"diffusion_pytorch_model.*truncated"):
+        check_weights_folder(tmp_path)
+    path.write_bytes(b"\xff" * 16)
+    with pytest.raises(WeightsMismatchError, match="not a safetensors file"):
+        read_weights_folder(tmp_path)
+
+
 def _write_header_only(shapes: dict[str, tuple[int, ...]], path: Path) -> int:
     """A valid bf16 safetensors file whose data is a hole (sparse): only the header is real."""
     header, offset = {}, 0
