@@ -36,7 +36,7 @@ POSED_BY_PNP = 1  # PnP on the model's points tracked into the frame
 POSED_BY_MOTION_MODEL = 2  # rotation-only model, or the static camera (every pose the first)
 POSED_BY_INTERPOLATION = 3  # not estimated: interpolated (or held at the ends) from neighbours
 POSED_BY_SOURCE = 4  # the source's own poses (given backend) or the da3 network
-SCALE_SOURCES = ("source", "hand_size", "none")  # where metric_scale came from
+SCALE_SOURCES = ("source", "hand_size", "hand_size_wide", "none")  # where metric_scale came from
 
 
 def _check_counts(row: Mapping[str, Any]) -> list[str]:
@@ -232,7 +232,8 @@ DEPTH_CAMERA = ShardSchema(
         Column(
             "scale_source",
             pa.string(),
-            "Where metric_scale came from: source, hand_size or none.",
+            "Where metric_scale came from: source, hand_size, hand_size_wide (the hand-size "
+            "estimate with its wide-window fallback) or none.",
             True,
         ),
         Column(

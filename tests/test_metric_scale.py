@@ -162,12 +162,13 @@ def test_hand_resting_on_a_plane_gives_the_scale() -> None:
 def test_too_few_detections_give_no_scale_with_a_reason(small_world: Clip) -> None:
     world_from_cam, depth0 = sfm_units(small_world, 2.9)
     lm = oracle_landmarks(small_world)
-    lm.present[3:] = False  # at most 3 frames x 2 hands
+    lm.present[2:] = False  # at most 2 frames x 2 hands
     est = scale_from_landmarks(
         lm, small_world.frames, small_world.intrinsics, world_from_cam, depth0, None
     )
     assert est.scale is None and est.spread is None
     assert est.num_samples < MetricScaleParams().min_detections
+    assert "strict window" in est.reason and "wide window" in est.reason
     assert "usable hand detections" in est.reason
     none = scale_from_landmarks(
         lm, small_world.frames, small_world.intrinsics, world_from_cam, None, None
@@ -214,6 +215,51 @@ def test_oracle_landmarks_recover_the_scale(small_world: Clip, factor: float) ->
     assert est.scale is not None, est.reason
     assert est.scale * factor == pytest.approx(1.0, abs=0.05)
     assert 0.0 <= est.spread < 0.1
+
+
+@pytest.mark.parametrize("factor", [0.37, 2.9])
+def test_wide_window_recovers_the_scale_from_sparse_depth(small_world: Clip, factor: float) -> None:
+    """A low-texture scene: confident depth on 5% of pixels, scattered.
+
+    The strict 3 px window finds too few known depths under the joints; the wide-window fallback
+    still gets the scale and says so.
+    """
+    world_from_cam, depth0 = sfm_units(small_world, factor)
+    rng = np.random.default_rng(3)
+    sparse = np.where(rng.random(depth0.shape) < 0.05, depth0, 0.0)  # (H, W)
+    args = (
+        oracle_landmarks(small_world),
+        small_world.frames,
+        small_world.intrinsics,
+        world_from_cam,
+        sparse,
+        None,
+    )
+    strict = scale_from_landmarks(*args, MetricScaleParams(wide_window_px=0))
+    assert strict.scale is None and "usable hand detections" in strict.reason
+    est = scale_from_landmarks(*args)
+    assert est.scale is not None, est.reason
+    assert est.source == "hand_size_wide"
+    assert est.scale * factor == pytest.approx(1.0, abs=0.05)
+    assert 0.0 <= est.spread < 0.1
+    # The fallback does not replace a strict estimate that succeeds.
+    full = scale_from_landmarks(*args[:4], depth0, None)
+    assert full.source == "hand_size"
+
+
+def test_wide_window_skips_windows_across_a_depth_edge() -> None:
+    """Wide windows: the median of known depths, none where the quartiles straddle an edge."""
+    depth = np.zeros((60, 60))
+    depth[::3, :40:3] = 2.0  # sparse known depths on one plane, left of column 40
+    depth[::3, 40::3] = 4.0  # a farther surface from column 40 on
+    params = MetricScaleParams(wide_window_px=10, wide_min_window_pixels=10)
+    uv = np.array([[15.5, 30.5], [38.5, 30.5], [52.5, 30.5]])
+    out = surface_depth(depth, uv, params, wide=True)
+    np.testing.assert_allclose(out[[0, 2]], [2.0, 4.0])
+    assert np.isnan(out[1])  # the window holds both surfaces: no sample
+    # Strict window at the same pixels: 2 px finds no known depth off the grid.
+    strict = surface_depth(depth, uv + 1.0, MetricScaleParams(window_px=0))
+    assert np.isnan(strict).all()
 
 
 def test_depth_camera_puts_sfm_units_in_metres(
@@ -282,7 +328,7 @@ def world_scale_errors(config: WorldConfig, factors: tuple[float, ...] = (0.37, 
             rows.append(
                 f"{config.mode:8s} seed {config.seed}  {path:9s} x{factor:<5} "
                 f"detections {int(landmarks.present.sum()):3d} used {est.num_samples:3d} "
-                f"error {err} spread {spread}"
+                f"error {err} spread {spread} ({est.source})"
             )
     return rows
 

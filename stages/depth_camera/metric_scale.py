@@ -30,6 +30,15 @@ Method, for one clip (:func:`estimate_metric_scale`):
    ones below it, and the top decile is left out as outliers. ``spread`` is the MAD / median of
    the per-detection estimates at or above their median (how well the contact half agrees).
    Fewer than ``min_detections`` usable detections: ``scale`` is None and ``reason`` says why.
+6. **Wide-window fallback** (``source`` ``hand_size_wide``): when step 5 finds too few
+   detections, steps 3-5 run again with ``z_s`` the median of the known depths within
+   ``wide_window_px`` of the joint, and a window counted as spanning a depth edge when its 75th
+   depth percentile exceeds its 25th by more than ``wide_max_spread_rel``. A low-texture surface
+   (a plain drawer front, a wall) has confident plane-sweep depth only at its edges and marks,
+   rarely right under a joint; the wider window reaches them. The result is less local (a
+   neighbouring surface can answer for the touched one), so it is used only when the strict
+   window fails, and the row says which one it came from. Both failing: ``scale`` None, the
+   reason names both.
 
 ``contact_offset_m`` (3 cm), ``joint_quantile`` and ``contact_quantile`` were tuned on the
 synthetic world, tabletop seeds 0-1 (61 frames, 480x832, poses and depth scaled by 0.37 and 2.9,
@@ -67,7 +76,8 @@ from egosim.stages.common.hand_landmarks import (
     place_in_camera,
 )
 
-SOURCE_HAND_SIZE = "hand_size"  # ScaleEstimate.source of this estimator
+SOURCE_HAND_SIZE = "hand_size"  # ScaleEstimate.source: strict window (steps 1-5)
+SOURCE_HAND_SIZE_WIDE = "hand_size_wide"  # ScaleEstimate.source: wide-window fallback (step 6)
 ALL_JOINTS = tuple(range(21))  # MANO/MediaPipe joint indices
 
 
@@ -100,6 +110,11 @@ class MetricScaleParams:
     contact_quantile: float = 0.9  # per clip: this quantile of the per-detection estimates (tuned)
     spread_from_quantile: float = 0.5  # spread: MAD/median of the estimates above this quantile
     min_detections: int = 5  # fewer usable detections: no scale
+    wide_window_px: int = 25  # fallback (step 6): z_s from the known depths within this many
+    # pixels when the strict window gives fewer than min_detections; 0 = no fallback
+    wide_max_spread_rel: float = 0.3  # fallback: window's depth 75th/25th percentile above
+    # 1 + this = a depth edge, no sample (the strict max/min test fails on noisy wide windows)
+    wide_min_window_pixels: int = 10  # fallback: fewer known depths in the window = no sample
 
     def __post_init__(self) -> None:
         problems: list[str] = []
@@ -109,16 +124,27 @@ class MetricScaleParams:
             value = getattr(self, name)
             if not 0.0 <= value <= 1.0:
                 problems.append(f"{name} must be in [0, 1], got {value!r}")
-        for name in ("contact_offset_m", "max_edge_rel", "min_confidence", "min_hand_px"):
+        for name in (
+            "contact_offset_m",
+            "max_edge_rel",
+            "min_confidence",
+            "min_hand_px",
+            "wide_max_spread_rel",
+        ):
             value = getattr(self, name)
             if not (np.isfinite(value) and value >= 0):
                 problems.append(f"{name} must be finite and >= 0, got {value!r}")
-        for name in ("window_px", "colour_window_px"):
+        for name in ("window_px", "colour_window_px", "wide_window_px"):
             if getattr(self, name) < 0:
                 problems.append(f"{name} must be >= 0, got {getattr(self, name)!r}")
         if not 0.0 <= self.min_colour_diff <= 255.0:
             problems.append(f"min_colour_diff must be in [0, 255], got {self.min_colour_diff!r}")
-        for name in ("min_window_pixels", "min_joint_samples", "min_detections"):
+        for name in (
+            "min_window_pixels",
+            "min_joint_samples",
+            "min_detections",
+            "wide_min_window_pixels",
+        ):
             if getattr(self, name) < 1:
                 problems.append(f"{name} must be >= 1, got {getattr(self, name)!r}")
         if problems:
@@ -172,14 +198,20 @@ def splat_depth(
     return depth.reshape(h, w), source.reshape(h, w)
 
 
-def surface_depth(depth: np.ndarray, uv: np.ndarray, params: MetricScaleParams) -> np.ndarray:
+def surface_depth(
+    depth: np.ndarray, uv: np.ndarray, params: MetricScaleParams, wide: bool = False
+) -> np.ndarray:
     """Scene depth ``(N,)`` under pixels ``uv (N, 2)`` of ``depth (H, W)``; NaN = no sample.
 
-    The median of the known depths within ``window_px``; NaN where fewer than
-    ``min_window_pixels`` are known or the window spans a depth edge.
+    Strict (``wide`` False): the median of the known depths within ``window_px``; NaN where
+    fewer than ``min_window_pixels`` are known or the window spans a depth edge (max/min above
+    ``1 + max_edge_rel``). Wide (step 6 of the module docstring): the median within
+    ``wide_window_px``; NaN where fewer than ``wide_min_window_pixels`` are known or the 75th
+    percentile exceeds the 25th by more than ``wide_max_spread_rel``.
     """
     h, w = depth.shape
-    r = params.window_px
+    r = params.wide_window_px if wide else params.window_px
+    min_pixels = params.wide_min_window_pixels if wide else params.min_window_pixels
     out = np.full(len(uv), np.nan)
     for n, (u, v) in enumerate(uv):
         if not (np.isfinite(u) and np.isfinite(v)):
@@ -189,9 +221,13 @@ def surface_depth(depth: np.ndarray, uv: np.ndarray, params: MetricScaleParams) 
             continue
         patch = depth[max(0, row - r) : row + r + 1, max(0, col - r) : col + r + 1]
         values = patch[np.isfinite(patch) & (patch > 0)]  # (M,)
-        if values.size < params.min_window_pixels:
+        if values.size < min_pixels:
             continue
-        if values.max() > (1.0 + params.max_edge_rel) * values.min():
+        if wide:
+            low, high = np.quantile(values, [0.25, 0.75])
+            if high > (1.0 + params.wide_max_spread_rel) * low:
+                continue
+        elif values.max() > (1.0 + params.max_edge_rel) * values.min():
             continue
         out[n] = float(np.median(values))
     return out
@@ -233,13 +269,15 @@ def detection_samples(
     world_from_cam: np.ndarray,
     depth0: np.ndarray,
     params: MetricScaleParams,
+    wide: bool = False,
 ) -> list[tuple[np.ndarray, np.ndarray]]:
     """Per usable detection, its joints' metric and surface depths: ``(z_m (J,), z_s (J,))``.
 
     ``landmarks`` holds ``uv (T, K, 21, 2)`` pixels and metric ``world (T, K, 21, 3)``;
     ``frames (T, H, W, 3)`` uint8 RGB; ``depth0 (H, W)`` is frame 0's depth in reconstruction
     units (0 or NaN = unknown). Joints hidden behind the scene (:func:`scene_visible`) are
-    dropped from frames after the first.
+    dropped from frames after the first. ``wide``: surface depths from the wide window
+    (:func:`surface_depth`).
     """
     joints = np.asarray(params.joints)
     out: list[tuple[np.ndarray, np.ndarray]] = []
@@ -264,7 +302,7 @@ def detection_samples(
                 continue
             points_cam = place_in_camera(uv, world, intrinsics)  # (21, 3) metres
             z_m = points_cam[joints, 2]  # (J,)
-            z_s = surface_depth(depth_t, uv[joints], params)  # (J,)
+            z_s = surface_depth(depth_t, uv[joints], params, wide)  # (J,)
             ok = np.isfinite(z_s) & (z_m > 0)
             if scene_t is not None:
                 seen = source >= 0  # (H, W) a known frame-0 pixel landed here
@@ -276,9 +314,14 @@ def detection_samples(
 
 
 def scale_from_samples(
-    samples: list[tuple[np.ndarray, np.ndarray]], params: MetricScaleParams
+    samples: list[tuple[np.ndarray, np.ndarray]],
+    params: MetricScaleParams,
+    source: str = SOURCE_HAND_SIZE,
 ) -> ScaleEstimate:
-    """Apply the contact rule (module docstring, steps 4-5) to :func:`detection_samples`."""
+    """Apply the contact rule (module docstring, steps 4-5) to :func:`detection_samples`.
+
+    ``source`` names the cue in the returned :class:`ScaleEstimate`.
+    """
     per_detection = np.array(
         [
             np.quantile((z_m + params.contact_offset_m) / z_s, params.joint_quantile)
@@ -291,13 +334,14 @@ def scale_from_samples(
             scale=None,
             spread=None,
             num_samples=n,
+            source=source,
             reason=f"{n} usable hand detections, need {params.min_detections}",
         )
     scale = float(np.quantile(per_detection, params.contact_quantile))
     top = per_detection[per_detection >= np.quantile(per_detection, params.spread_from_quantile)]
     median = float(np.median(top))
     spread = float(np.median(np.abs(top - median)) / median)
-    return ScaleEstimate(scale=scale, spread=spread, num_samples=n)
+    return ScaleEstimate(scale=scale, spread=spread, num_samples=n, source=source)
 
 
 def _check_inputs(
@@ -333,7 +377,7 @@ def scale_from_landmarks(
     confidence0: np.ndarray | None,
     params: MetricScaleParams | None = None,
 ) -> ScaleEstimate:
-    """Steps 2-5 of the module docstring on given landmarks (MediaPipe's, or an oracle's).
+    """Steps 2-6 of the module docstring on given landmarks (MediaPipe's, or an oracle's).
 
     Shapes as :func:`estimate_metric_scale`; ``landmarks`` has ``T`` frames. Raises
     :class:`MetricScaleInputError` when the shapes disagree.
@@ -349,8 +393,20 @@ def scale_from_landmarks(
         return ScaleEstimate(None, None, 0, reason="frame-0 depth has no known pixel")
     if not landmarks.present.any():
         return ScaleEstimate(None, None, 0, reason="no hand detected")
-    samples = detection_samples(landmarks, frames, intrinsics, world_from_cam, depth0, params)
-    return scale_from_samples(samples, params)
+    args = (landmarks, frames, intrinsics, world_from_cam, depth0, params)
+    strict = scale_from_samples(detection_samples(*args), params)
+    if strict.scale is not None or params.wide_window_px == 0:
+        return strict
+    wide = scale_from_samples(detection_samples(*args, wide=True), params, SOURCE_HAND_SIZE_WIDE)
+    if wide.scale is not None:
+        return wide
+    return ScaleEstimate(
+        None,
+        None,
+        wide.num_samples,
+        source=SOURCE_HAND_SIZE_WIDE,
+        reason=f"strict window: {strict.reason}; wide window: {wide.reason}",
+    )
 
 
 def estimate_metric_scale(

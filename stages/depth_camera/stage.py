@@ -273,7 +273,7 @@ class CameraEstimate:
     posed_by: np.ndarray | None = None  # (T,) int8 schema codes; None: 0 / 3 from registered
     focal_prior_px: float | None = None  # focal prior the estimate was checked against
     metric_scale: float | None = None  # metres per unit, already applied; None = unknown
-    scale_source: str | None = None  # source, hand_size or none
+    scale_source: str | None = None  # source, hand_size, hand_size_wide or none
     scale_spread: float | None = None  # relative spread of the scale estimate
 
     def posed_by_codes(self) -> np.ndarray:
@@ -649,11 +649,13 @@ class DepthCameraStage(ClipStage):
 
     name = "depth_camera"
     description = "intrinsics, poses, frame-0 depth, metric scale: static/SfM/rotation, or given"
+    # 6: metric scale falls back to a wide surface window (scale_source hand_size_wide) when
+    # the strict one finds too few hand detections
     # 5: sfm poses and depth in metres from the hands' size prior (metric_scale); static test
     # takes still corners as the background, skips occluded frames, tolerates an end bump
     # 4: schema v2, background-motion static test, PnP tracking, rotation model, focal prior
     # 3: one SfM thread (reproducible); 2: visibility-aware depth confidence
-    version = 5
+    version = 6
     config_class = DepthCameraConfig
     inputs: ClassVar[Mapping[str, ShardSchema]] = {"clips": CLIPS}
     output = DEPTH_CAMERA
