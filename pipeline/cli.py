@@ -547,14 +547,41 @@ def evaluate(
 
 @app.command()
 def report(
-    paths: Annotated[list[Path], typer.Argument(help="Evaluation shards or folders of them.")],
+    paths: Annotated[
+        list[Path], typer.Argument(help="A run folder (with --out), or evaluation shards/folders.")
+    ],
+    out: Annotated[
+        Path | None,
+        typer.Option(
+            "--out", help="Write the HTML report of the run folder PATH into this folder."
+        ),
+    ] = None,
+    max_clips: Annotated[
+        int, typer.Option("--max-clips", help="Clips that get a contact sheet and a video.")
+    ] = 24,
 ) -> None:
-    """Print the per-clip and overall table of evaluation shards."""
+    """Print the evaluation table of evaluation shards, or (--out) write a run's HTML report.
+
+    `egosim report RUN --out DIR` writes DIR/index.html (open it in a browser; no server):
+    per-step counts and seconds, rejects grouped by reason, quality histograms, a contact
+    sheet and side-by-side video per clip, and the evaluation table when the run has one.
+    """
     from egosim.stages.evaluate.report import format_table, read_evaluations
 
     try:
-        typer.echo(format_table(read_evaluations(paths)))
-    except USER_ERRORS as exc:
+        if out is None:
+            typer.echo(format_table(read_evaluations(paths)))
+            return
+        from egosim.pipeline.report import ReportConfig, load_run, write_report
+
+        if len(paths) != 1:
+            raise StageError(f"--out takes one run folder, got {len(paths)}: {paths}")
+        run_dir = paths[0]
+        evaluations = [run_dir / s.step for s in load_run(run_dir).steps_of("evaluate")]
+        table = format_table(read_evaluations(evaluations)) if evaluations else None
+        index = write_report(run_dir, out, ReportConfig(max_clips=max_clips), table)
+        typer.echo(f"report written: {index} (open it in a browser)")
+    except (*USER_ERRORS, ValueError) as exc:
         raise _fail(exc) from exc
 
 

@@ -7,6 +7,13 @@
 - Steps with ``resources: {GPU: 1}`` only run on workers that declare a ``GPU`` resource. A local
   cluster gives one worker per visible CUDA device that resource; with none, GPU steps run on
   the CPU workers (with a warning) instead of waiting forever.
+- ``OUT`` (and ``--input``) may be an fsspec URL (``s3://bucket/run``): shards and records are
+  written through :mod:`egosim.pipeline.storage` (temporary key, move, completion marker); the
+  run's lock and log live in a local scratch folder (:func:`~egosim.pipeline.storage.scratch_dir`;
+  the log is copied to ``OUT/logs/run.log`` at the end), and a remote input is first copied to
+  the local cache (:func:`~egosim.pipeline.storage.local_copy`) for readers that need files.
+  The local cluster comes from :mod:`egosim.pipeline.cluster` (dask-cuda GPU workers when
+  installed).
 - Output layout: ``OUT/<step>/shard-00000.parquet`` and ``rejects-00000.parquet``,
   ``OUT/rejects.parquet`` (all rejects), ``OUT/manifest.json`` (per-shard results),
   ``OUT/summary.json`` (per step: clips in, out, rejected, top reasons; see
@@ -22,6 +29,10 @@
   fingerprint. ``egosim stage`` plans a one-step workflow (:func:`plan_stage`) and runs it here
   (:func:`run_tasks_here`); ``simulate`` and ``evaluate`` run their workflow files with the given
   shards as the workflow's ``inputs``, in this process (``scheduler=IN_PROCESS``) or on Dask.
+- Observable: a run appends its log to ``OUT/logs/run.log`` (Dask workers forward their
+  records), starts the local cluster's dashboard (when bokeh is importable) and tells a
+  :class:`~egosim.pipeline.observe.RunObserver` the dashboard's address (or why it is off),
+  every clip settled and every task finished (see :mod:`egosim.pipeline.observe`).
 """
 
 from __future__ import annotations
@@ -33,18 +44,35 @@ import json
 import logging
 import math
 import os
-import uuid
+import socket
 import warnings
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import asdict, dataclass, field
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 from typing import Any
 
 import yaml
 
-from egosim.pipeline.execute import ShardResult, ShardTask, run_shard_task, task_fingerprint
+from egosim.pipeline import cluster as clusters
+from egosim.pipeline import storage
+from egosim.pipeline.execute import (
+    ClipCallback,
+    ShardResult,
+    ShardTask,
+    run_shard_task,
+    task_fingerprint,
+)
+from egosim.pipeline.observe import (
+    LOG_TOPIC,
+    PROGRESS_TOPIC,
+    RunObserver,
+    dashboard_unavailable,
+    forward_logs,
+    handle_forwarded,
+    log_path,
+    run_log,
+)
 from egosim.pipeline.shards import (
-    TMP_MARKER,
     CorruptShardError,
     ShardReader,
     ShardWriter,
@@ -54,10 +82,15 @@ from egosim.pipeline.shards import (
     verify_shard,
 )
 from egosim.pipeline.stage import SourceStage, StageError, config_to_data, get_stage
+from egosim.pipeline.storage import Location
 from egosim.pipeline.summary import RunReport, summarize_tasks
 from egosim.pipeline.workflow import Step, Workflow
 from egosim.schemas import REJECTS, SchemaError
 from egosim.schemas.ids import path_under, validate_id
+
+log = logging.getLogger(__name__)
+
+DASHBOARD_ADDRESS = ":8787"  # the local cluster's dashboard (Dask's usual port; another if taken)
 
 
 class RunError(StageError):
@@ -76,14 +109,17 @@ LOCK_NAME = ".lock"  # lock file of a run folder
 
 
 @contextlib.contextmanager
-def run_lock(out: Path) -> Iterator[Path]:
+def run_lock(out: Location) -> Iterator[Path]:
     """Hold an exclusive lock on ``out/.lock`` for the ``with`` block, or raise at once.
 
     ``fcntl.flock`` is released by the kernel when the process dies, so a killed run never
     leaves a stale lock. (On network filesystems without flock support, two runs from different
-    machines are not kept apart.)
+    machines are not kept apart.) A remote ``out`` is locked in its local scratch folder: two
+    runs on this machine are kept apart, runs from two machines are not.
     """
-    path = Path(out) / LOCK_NAME
+    scratch = storage.scratch_dir(out)
+    scratch.mkdir(parents=True, exist_ok=True)
+    path = scratch / LOCK_NAME
     fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
     try:
         try:
@@ -101,14 +137,9 @@ def run_lock(out: Path) -> Iterator[Path]:
         os.close(fd)  # releases the lock
 
 
-def remove_stale_temporaries(out: Path) -> list[Path]:
-    """Delete the ``*.tmp-*`` files under ``out`` (call only while holding :func:`run_lock`)."""
-    removed = []
-    for path in sorted(Path(out).rglob(f"*{TMP_MARKER}*")):
-        if path.is_file() and not path.is_symlink():
-            path.unlink(missing_ok=True)
-            removed.append(path)
-    return removed
+def remove_stale_temporaries(out: Location) -> list[Location]:
+    """Delete the ``*.tmp-*`` files or keys under ``out`` (only while holding :func:`run_lock`)."""
+    return storage.remove_temporaries(out)
 
 
 def discard_if_damaged(task: ShardTask) -> bool:
@@ -117,7 +148,7 @@ def discard_if_damaged(task: ShardTask) -> bool:
     Returns True when it was removed (the task then recomputes it). Outputs with another
     fingerprint are recomputed anyway and are not read here.
     """
-    if not task.output.is_file():
+    if not storage.exists(task.output):
         return False
     try:
         if read_shard_meta(task.output).fingerprint != task.fingerprint:
@@ -128,7 +159,7 @@ def discard_if_damaged(task: ShardTask) -> bool:
         verify_shard(task.output)
     except CorruptShardError as exc:
         warnings.warn(f"recomputing {task.output}: {exc}", stacklevel=2)
-        task.output.unlink(missing_ok=True)
+        storage.remove(task.output)
         return True
     return False
 
@@ -137,7 +168,7 @@ def discard_if_damaged(task: ShardTask) -> bool:
 class RunSummary:
     """What a run did, per shard task."""
 
-    out: Path  # output folder
+    out: Location  # output folder (a local path or an fsspec URL)
     results: list[ShardResult]  # one per task, in completion order
     report: RunReport  # per step: clips in, out, rejected, reasons (also OUT/summary.json)
     workers: dict[str, str] = field(default_factory=dict)  # task key -> worker that ran it
@@ -148,18 +179,24 @@ class RunSummary:
         return sum(r.rejected for r in self.results)
 
 
-def shard_path(out: Path, step: str, index: int) -> Path:
+def shard_path(out: Location, step: str, index: int) -> Location:
     """Where shard ``index`` of ``step`` lives under the run folder.
 
     ``step`` must be a valid identifier and the path must stay under ``out``
-    (:class:`~egosim.schemas.ids.InvalidIdError`, :class:`~egosim.schemas.ids.PathEscapeError`).
+    (:class:`~egosim.schemas.ids.InvalidIdError`, :class:`~egosim.schemas.ids.PathEscapeError`;
+    a URL ``out`` is joined by :func:`egosim.pipeline.storage.join`, which refuses separators).
     """
-    return path_under(out, validate_id(step, "step name"), shard_file_name(index))
+    return _under(out, validate_id(step, "step name"), shard_file_name(index))
 
 
-def rejects_path(out: Path, step: str, index: int) -> Path:
+def rejects_path(out: Location, step: str, index: int) -> Location:
     """Where the rejects of shard ``index`` of ``step`` live (checked like :func:`shard_path`)."""
-    return path_under(out, validate_id(step, "step name"), rejects_file_name(index))
+    return _under(out, validate_id(step, "step name"), rejects_file_name(index))
+
+
+def _under(out: Location, *parts: str) -> Location:
+    """``out / parts``, checked to stay under ``out`` (links resolved for local paths)."""
+    return path_under(out, *parts) if storage.is_local(out) else storage.join(out, *parts)
 
 
 # A step's shards as its readers see them: (path, fingerprint) per shard index.
@@ -234,7 +271,8 @@ def _given_inputs(workflow: Workflow, inputs: Mapping[str, Sequence[Path]]) -> d
     for name, paths in inputs.items():
         if not paths:
             raise RunError(f"workflow input {name!r}: no shards given")
-        given[name] = [(Path(p), read_shard_meta(Path(p)).fingerprint) for p in paths]
+        located = [storage.location(p) for p in paths]
+        given[name] = [(p, read_shard_meta(p).fingerprint) for p in located]
     return given
 
 
@@ -254,8 +292,8 @@ def _source_shards(
 def plan_stage(
     stage: str,
     params: Mapping[str, Any],
-    output: Path,
-    inputs: Mapping[str, Path] | None = None,
+    output: Location,
+    inputs: Mapping[str, Location] | None = None,
     source: Sequence[str] | None = None,
 ) -> ShardTask:
     """The task of ``egosim stage``: a one-step workflow, planned by :func:`plan_tasks`.
@@ -282,33 +320,65 @@ def plan_stage(
     (task,) = plan_tasks(
         workflow,
         source[0] if source and len(source) == 1 else source,
-        output.parent,
+        storage.parent(output),
         inputs={role: [path] for role, path in given.items()},
         one_shard=True,
     )
-    rejects = output.with_name(output.stem + ".rejects.parquet")
+    stem = PurePosixPath(storage.name(output)).stem
+    rejects = storage.with_name(output, stem + ".rejects.parquet")
     return dataclasses.replace(task, output=output, rejects=rejects)
 
 
 def run_tasks_here(
     tasks: Sequence[ShardTask],
     progress: Callable[[ShardResult, int, int], None] | None = None,
+    observer: RunObserver | None = None,
 ) -> list[ShardResult]:
     """Run ``tasks`` one after another in this process (dependency order), no Dask.
 
-    Like a worker, a finished output is verified before it is skipped.
+    Like a worker, a finished output is verified before it is skipped. ``observer`` hears of
+    every clip and task.
     """
     results = []
     for task in tasks:
         discard_if_damaged(task)
-        results.append(run_shard_task(task))
+        on_clip = None
+        if observer is not None:
+            on_clip = _clip_reporter(observer.clip_settled, task)
+        results.append(run_shard_task(task, on_clip=on_clip))
+        if observer is not None:
+            observer.task_finished(results[-1])
         if progress is not None:
             progress(results[-1], len(results), len(tasks))
     return results
 
 
-def _run_and_name_worker(task: ShardTask, *deps: Any) -> tuple[ShardResult, str]:
-    """Worker-side wrapper: run the task and say which worker ran it."""
+def _clip_reporter(report: Callable[[str, int, str, str], None], task: ShardTask) -> ClipCallback:
+    """An ``on_clip`` callback of ``task`` that calls ``report(step, shard, clip, outcome)``."""
+
+    def on_clip(clip_id: str, outcome: str) -> None:
+        report(task.step, task.shard_index, clip_id, outcome)
+
+    return on_clip
+
+
+def _post_progress(step: str, shard_index: int, clip_id: str, outcome: str) -> None:
+    """Worker side: send one settled clip to the client as a Dask event."""
+    from distributed import get_worker
+
+    message = {"step": step, "shard_index": shard_index, "clip_id": clip_id, "outcome": outcome}
+    get_worker().log_event(PROGRESS_TOPIC, message)
+
+
+def _run_and_name_worker(
+    task: ShardTask, client_process: tuple[str, int], *deps: Any
+) -> tuple[ShardResult, str]:
+    """Worker-side wrapper: run the task and say which worker ran it.
+
+    A worker in another process than the client's (``client_process`` = host, pid) forwards
+    the task's log records to the client as Dask events; one in the client's process logs
+    straight to the run log.
+    """
     from distributed import get_worker
 
     try:
@@ -317,34 +387,35 @@ def _run_and_name_worker(task: ShardTask, *deps: Any) -> tuple[ShardResult, str]
         torch.set_num_threads(1)
     except ImportError:  # pragma: no cover - torch is a hard dependency
         pass
-    discard_if_damaged(task)
-    return run_shard_task(task), get_worker().name
+    worker = get_worker()
+    here = (socket.gethostname(), os.getpid()) == tuple(client_process)
+    forwarding = contextlib.nullcontext() if here else forward_logs(_post_log)
+    with forwarding:
+        discard_if_damaged(task)
+        result = run_shard_task(task, on_clip=_clip_reporter(_post_progress, task))
+    return result, worker.name
 
 
-def local_cluster(n_workers: int | None = None, gpu_workers: int | None = None) -> Any:
+def _post_log(attrs: dict[str, Any]) -> None:
+    """Worker side: send one log record's attributes to the client as a Dask event."""
+    from distributed import get_worker
+
+    get_worker().log_event(LOG_TOPIC, attrs)
+
+
+def local_cluster(
+    n_workers: int | None = None,
+    gpu_workers: int | None = None,
+    dashboard_address: str | None = DASHBOARD_ADDRESS,
+) -> Any:
     """A local cluster of process workers; ``gpu_workers`` of them declare ``GPU: 1``.
 
-    ``gpu_workers`` defaults to the number of visible CUDA devices.
+    ``gpu_workers`` defaults to the number of visible CUDA devices; with dask-cuda installed
+    they come from ``LocalCUDACluster`` (:func:`egosim.pipeline.cluster.local_cluster`). The
+    scheduler's HTTP server (the dashboard, when bokeh is importable) listens on
+    ``dashboard_address``.
     """
-    from distributed import Nanny, Scheduler, SpecCluster
-
-    if gpu_workers is None:
-        import torch
-
-        gpu_workers = torch.cuda.device_count()
-    if n_workers is None:
-        n_workers = max(1, min(os.cpu_count() or 1, 8))
-    workers: dict[str, dict[str, Any]] = {}
-    for i in range(n_workers):
-        options: dict[str, Any] = {"nthreads": 1, "silence_logs": logging.WARNING}
-        if i < gpu_workers:
-            options["resources"] = {"GPU": 1}
-            options["env"] = {"CUDA_VISIBLE_DEVICES": str(i)}
-        workers[f"{'gpu' if i < gpu_workers else 'cpu'}-{i}"] = {"cls": Nanny, "options": options}
-    scheduler = {"cls": Scheduler, "options": {"dashboard_address": None}}
-    return SpecCluster(
-        workers=workers, scheduler=scheduler, silence_logs=logging.WARNING, asynchronous=False
-    )
+    return clusters.local_cluster(n_workers, gpu_workers, dashboard_address)
 
 
 IN_PROCESS = "here"  # scheduler value of run_workflow: run every task in this process, no Dask
@@ -359,35 +430,73 @@ def run_workflow(
     gpu_workers: int | None = None,
     progress: Callable[[ShardResult, int, int], None] | None = None,
     inputs: Mapping[str, Sequence[Path]] | None = None,
+    observer: RunObserver | None = None,
 ) -> RunSummary:
     """Run every (step, shard) task of ``workflow``; see the module doc.
 
     ``scheduler``: None for a local Dask cluster, ``tcp://HOST:PORT`` for an existing one, or
     :data:`IN_PROCESS` to run the tasks one after another in this process. ``inputs`` gives the
-    shards of the workflow's declared inputs. Raises :class:`RunLockedError` at once when
-    another run holds ``out``.
+    shards of the workflow's declared inputs. ``observer`` hears of the run as it goes
+    (progress displays); the run's log goes to ``out/logs/run.log``. Raises
+    :class:`RunLockedError` at once when another run holds ``out``.
     """
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    with run_lock(out):
-        remove_stale_temporaries(out)
-        write_text_atomic(
-            out / "workflow.resolved.yaml",
-            yaml.safe_dump(
-                {
-                    **workflow.to_dict(),
-                    "input": source,
-                    **({"given": _given_record(inputs)} if inputs else {}),
-                },
-                sort_keys=False,
-            ),
-        )
-        tasks = plan_tasks(workflow, source, out, inputs)
-        if scheduler == IN_PROCESS:
-            results = run_tasks_here(tasks, progress)
-            report = _write_run_records(out, tasks, results)
-            return RunSummary(out=out, results=results, report=report)
-        return _run_on_dask(workflow, out, tasks, scheduler, n_workers, gpu_workers, progress)
+    out = storage.location(out)
+    storage.makedirs(out)
+    observer = observer or RunObserver()
+    scratch = storage.scratch_dir(out)
+    with run_lock(out), run_log(scratch), _log_copied(scratch, out):
+        try:
+            return _run_locked(
+                workflow,
+                out,
+                source,
+                scheduler,
+                n_workers,
+                gpu_workers,
+                progress,
+                inputs,
+                observer,
+            )
+        except Exception:
+            log.exception("run of workflow %r in %s failed", workflow.name, out)
+            raise
+        finally:
+            observer.run_finished()
+
+
+def _run_locked(
+    workflow: Workflow,
+    out: Path,
+    source: str | None,
+    scheduler: str | None,
+    n_workers: int | None,
+    gpu_workers: int | None,
+    progress: Callable[[ShardResult, int, int], None] | None,
+    inputs: Mapping[str, Sequence[Path]] | None,
+    observer: RunObserver,
+) -> RunSummary:
+    """:func:`run_workflow` once the run holds its folder's lock and its log is open."""
+    log.info("run of workflow %r into %s, input %r", workflow.name, out, source)
+    remove_stale_temporaries(out)
+    write_text_atomic(
+        storage.join(out, "workflow.resolved.yaml"),
+        yaml.safe_dump(
+            {
+                **workflow.to_dict(),
+                "input": source,
+                **({"given": _given_record(inputs)} if inputs else {}),
+            },
+            sort_keys=False,
+        ),
+    )
+    tasks = plan_tasks(workflow, local_source(source), out, inputs)
+    log.info("planned %d shard task(s) in %d step(s)", len(tasks), len(workflow.steps))
+    observer.run_started(workflow.name, tasks)
+    if scheduler == IN_PROCESS:
+        results = run_tasks_here(tasks, progress, observer)
+        report = _write_run_records(out, tasks, results)
+        return RunSummary(out=out, results=results, report=report)
+    return _run_on_dask(workflow, out, tasks, scheduler, n_workers, gpu_workers, progress, observer)
 
 
 def _given_record(inputs: Mapping[str, Sequence[Path]]) -> dict[str, list[str]]:
@@ -402,6 +511,7 @@ def _run_on_dask(
     n_workers: int | None,
     gpu_workers: int | None,
     progress: Callable[[ShardResult, int, int], None] | None,
+    observer: RunObserver,
 ) -> RunSummary:
     """Run planned ``tasks`` on a Dask cluster once the run holds its folder's lock."""
     from distributed import Client, as_completed
@@ -413,6 +523,17 @@ def _run_on_dask(
     else:
         client = Client(scheduler)
     try:
+        link, reason = _dashboard(client)
+        log.info("Dask dashboard: %s", link or reason)
+        observer.dashboard(link, reason)
+
+        def on_progress(event: tuple[float, dict[str, Any]]) -> None:
+            msg = event[1]  # Dask adds the sending worker's address to it
+            observer.clip_settled(msg["step"], msg["shard_index"], msg["clip_id"], msg["outcome"])
+
+        client.subscribe_topic(PROGRESS_TOPIC, on_progress)
+        client.subscribe_topic(LOG_TOPIC, lambda event: handle_forwarded(event[1]))
+        client_process = (socket.gethostname(), os.getpid())
         gpu_capable = _workers_with_gpu(client)
         futures: dict[tuple[str, int], Any] = {}
         keys: dict[Any, str] = {}
@@ -433,7 +554,13 @@ def _run_on_dask(
             ]
             key = f"{task.step}-{task.shard_index:05d}-{task.fingerprint}"
             future = client.submit(
-                _run_and_name_worker, task, *deps, key=key, resources=resources or None, pure=False
+                _run_and_name_worker,
+                task,
+                client_process,
+                *deps,
+                key=key,
+                resources=resources or None,
+                pure=False,
             )
             futures[(task.step, task.shard_index)] = future
             keys[future] = key
@@ -446,9 +573,11 @@ def _run_on_dask(
                 result, worker = future.result()
             except Exception as exc:  # report every failed task, not just the first
                 failures.append(f"{key.rsplit('-', 1)[0]}: {type(exc).__name__}: {exc}")
+                log.error("task %s failed: %s: %s", key, type(exc).__name__, exc)
                 continue
             results.append(result)
             workers[key] = worker
+            observer.task_finished(result)
             if progress is not None:
                 progress(result, len(results) + len(failures), len(tasks))
     finally:
@@ -462,25 +591,62 @@ def _run_on_dask(
     return RunSummary(out=out, results=results, report=report, workers=workers)
 
 
+def _dashboard(client: Any) -> tuple[str, str]:
+    """The scheduler's dashboard address, or '' and the reason there is none.
+
+    The scheduler always serves HTTP, but the dashboard pages need bokeh where it runs.
+    """
+    if "dashboard" not in client.scheduler_info(n_workers=0).get("services", {}):
+        return "", "the Dask dashboard is off: the scheduler serves no HTTP"
+    try:
+        reason = client.run_on_scheduler(lambda: dashboard_unavailable())
+    except Exception as exc:  # e.g. egosim not importable where the scheduler runs
+        log.warning("could not ask the scheduler whether bokeh is installed: %s", exc)
+        reason = ""
+    if reason:
+        return "", f"{reason} on the scheduler"
+    return client.dashboard_link, ""
+
+
 def _workers_with_gpu(client: Any) -> bool:
     info = client.scheduler_info(n_workers=-1)["workers"]
     return any(w.get("resources", {}).get("GPU", 0) > 0 for w in info.values())
 
 
-def write_text_atomic(path: Path, text: str) -> None:
+def write_text_atomic(path: Location, text: str) -> None:
     """Write ``text`` to a temporary file next to ``path`` and rename it into place.
 
-    A reader sees the old file or the new one, never a half-written one.
+    A reader sees the old file or the new one, never a half-written one (on an object store:
+    a temporary key, moved, then its completion marker; see :mod:`egosim.pipeline.storage`).
     """
-    path = Path(path)
-    # Same naming as shard writes (and mode from the umask, unlike mkstemp's 0600).
-    tmp = path.with_name(f"{path.name}{TMP_MARKER}{uuid.uuid4().hex[:8]}")
+    storage.write_text_atomic(storage.location(path), text)
+
+
+def local_source(source: str | Sequence[str] | None) -> str | Sequence[str] | None:
+    """``source`` with every fsspec URL replaced by its local copy (downloaded once).
+
+    Source readers (PyAV, OpenCV, h5py, pycolmap) need local files: a remote ``--input`` is
+    copied to the local cache by :func:`egosim.pipeline.storage.local_copy`.
+    """
+    if source is None:
+        return None
+    if isinstance(source, str):
+        return str(storage.local_copy(source)) if storage.is_url(source) else source
+    return [str(storage.local_copy(s)) if storage.is_url(s) else s for s in source]
+
+
+@contextlib.contextmanager
+def _log_copied(scratch: Path, out: Location) -> Iterator[None]:
+    """On leaving, copy a remote run's local log to ``OUT/logs/run.log`` (local runs: no-op)."""
     try:
-        tmp.write_text(text)
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
+        yield
+    finally:
+        local_log = log_path(scratch)
+        if not storage.is_local(out) and local_log.is_file():
+            try:
+                storage.upload(local_log, storage.join(out, *local_log.relative_to(scratch).parts))
+            except OSError as exc:  # the run's outcome matters more than its log copy
+                warnings.warn(f"could not copy the run log to {out}: {exc}", stacklevel=2)
 
 
 def _write_run_records(
@@ -491,13 +657,25 @@ def _write_run_records(
         "tasks": [json.loads(json.dumps(asdict(t), default=str)) for t in tasks],
         "results": [asdict(r) for r in results],
     }
-    write_text_atomic(out / "manifest.json", json.dumps(manifest, indent=1, default=str))
-    with ShardWriter(out / "rejects.parquet", REJECTS, stage="runner") as writer:
+    write_text_atomic(
+        storage.join(out, "manifest.json"), json.dumps(manifest, indent=1, default=str)
+    )
+    with ShardWriter(storage.join(out, "rejects.parquet"), REJECTS, stage="runner") as writer:
         for task in tasks:
-            if task.rejects.is_file():
+            if storage.is_committed(task.rejects):
                 with ShardReader(task.rejects, REJECTS) as reader:
                     for row in reader.iter_rows():
                         writer.write_row(row)
-    report = summarize_tasks(tasks)
-    write_text_atomic(out / "summary.json", report.to_json())
+    report = summarize_tasks(tasks, results)
+    write_text_atomic(storage.join(out, "summary.json"), report.to_json())
+    for s in report.steps:
+        log.info(
+            "step %s: %d in, %d out, %d rejected, %d unmatched, %.2f s",
+            s.step,
+            s.clips_in,
+            s.clips_out,
+            s.rejected,
+            s.unmatched,
+            s.seconds,
+        )
     return report

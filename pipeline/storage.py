@@ -78,9 +78,12 @@ def filesystem(loc: Location) -> tuple[Any, str]:
     import fsspec.core
 
     try:
-        return fsspec.core.url_to_fs(str(loc))
+        fs, path = fsspec.core.url_to_fs(str(loc))
     except (ImportError, ValueError) as exc:  # unknown protocol, or its package missing
         raise StorageError(f"{loc}: no usable fsspec filesystem ({exc})") from exc
+    # Other processes (Dask workers) write here too: never answer from a cached listing.
+    fs.invalidate_cache()
+    return fs, path
 
 
 def is_local(loc: Location) -> bool:

@@ -16,19 +16,20 @@ Reject reasons are grouped once clip ids, paths and numbers are taken out, so "v
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import re
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 from enum import StrEnum
-from pathlib import Path
 
-from egosim.pipeline.execute import ShardTask, is_complete
+from egosim.pipeline import storage
+from egosim.pipeline.execute import ShardResult, ShardTask, is_complete
 from egosim.pipeline.shards import ShardReader
 from egosim.pipeline.stage import SourceStage, get_stage
 from egosim.schemas import REJECTS
 
-SUMMARY_VERSION = 1  # version of the summary.json layout
+SUMMARY_VERSION = 2  # version of the summary.json layout (2: per-step seconds, skipped_shards)
 
 # Absolute or relative file paths in a reason ("/data/a.mp4", "./x/y", "~/v.mp4").
 _PATH = re.compile(r"(?<![\w/])(?:~|\.{1,2})?/[^\s:,;'\"()\[\]]+")
@@ -89,6 +90,8 @@ class StepSummary:
     missing_shards: int  # shard tasks without their output (the task failed)
     final: bool  # True when no other step reads this step's output
     reasons: tuple[ReasonGroup, ...]  # every reject reason group, most frequent first
+    seconds: float = 0.0  # wall seconds this run's tasks of the step took (summed over shards)
+    skipped_shards: int = 0  # shard tasks this run skipped as already done (0 seconds each)
 
     @property
     def rejected_all(self) -> bool:
@@ -138,20 +141,28 @@ class RunReport:
             raise FinalStepEmptyError(self.problem, self)
 
 
-def summarize_tasks(tasks: Sequence[ShardTask]) -> RunReport:
+def summarize_tasks(tasks: Sequence[ShardTask], results: Sequence[ShardResult] = ()) -> RunReport:
     """Summarise what ``tasks`` left on disk, per step, in the order steps first appear.
 
     A step is final when no other task reads its output shards. An output that does not exist
     with the task's fingerprint (the task failed) counts as a missing shard; its step's figures
-    cover the shards that exist.
+    cover the shards that exist. ``results`` (what this run's tasks returned) give each step's
+    seconds and skipped shards; without them both are 0.
     """
     by_step: dict[str, list[ShardTask]] = {}
     for task in tasks:
         by_step.setdefault(task.step, []).append(task)
-    read = {Path(p) for t in tasks for p in t.inputs.values()}
+    timing: dict[str, list[ShardResult]] = {}
+    for result in results:
+        timing.setdefault(result.step, []).append(result)
+    read = {str(p) for t in tasks for p in t.inputs.values()}  # paths or URLs
     steps = tuple(
-        _summarize_step(step_tasks, final=not any(t.output in read for t in step_tasks))
-        for step_tasks in by_step.values()
+        dataclasses.replace(
+            _summarize_step(step_tasks, final=not any(str(t.output) in read for t in step_tasks)),
+            seconds=sum(r.seconds for r in timing.get(step, [])),
+            skipped_shards=sum(r.skipped for r in timing.get(step, [])),
+        )
+        for step, step_tasks in by_step.items()
     )
     outcome, problem = _verdict(steps)
     return RunReport(steps=steps, outcome=outcome, problem=problem)
@@ -171,7 +182,7 @@ def _summarize_step(tasks: list[ShardTask], final: bool) -> StepSummary:
         with ShardReader(task.output) as reader:
             out = reader.num_rows
         step_rejects: list[tuple[str, str]] = []
-        if task.rejects.is_file():
+        if storage.is_committed(task.rejects):
             with ShardReader(task.rejects, REJECTS) as reader:
                 step_rejects = [
                     (r["clip_id"], r["reason"]) for r in reader.iter_rows(["clip_id", "reason"])
@@ -273,11 +284,15 @@ def _fit(text: str, width: int, keep_end: bool = False) -> str:
 def format_report(report: RunReport, top: int = 3, width: int = 100) -> str:
     """The report as a plain-text table of at most ``width`` columns, with ``top`` reasons a step.
 
-    Source steps count input units in (``N units``) and clips out.
+    Source steps count input units in (``N units``) and clips out; ``seconds`` is the wall time
+    this run's tasks of the step took, summed over shards (skipped shards add none).
     """
     name_w = max([4, *(len(s.step) for s in report.steps)])
     name_w = min(name_w, 24)
-    head = f"{'step':<{name_w}}  {'in':>12}  {'out':>8}  {'rejected':>8}  {'unmatched':>9}  note"
+    head = (
+        f"{'step':<{name_w}}  {'in':>12}  {'out':>8}  {'rejected':>8}  {'unmatched':>9}  "
+        f"{'seconds':>8}  note"
+    )
     lines = ["run summary", head, "-" * min(width, len(head) + 20)]
     for s in report.steps:
         clips_in = f"{s.clips_in} units" if s.source else str(s.clips_in)
@@ -286,13 +301,15 @@ def format_report(report: RunReport, top: int = 3, width: int = 100) -> str:
             notes.append("final")
         if s.missing_shards:
             notes.append(f"{s.missing_shards} shard(s) missing")
+        if s.skipped_shards:
+            notes.append(f"{s.skipped_shards} skipped")
         if s.rejected_all:
             notes.append("ALL REJECTED")
         elif s.final and s.clips_out == 0 and not s.missing_shards:
             notes.append("EMPTY")
         row = (
             f"{_fit(s.step, name_w):<{name_w}}  {clips_in:>12}  {s.clips_out:>8}  "
-            f"{s.rejected:>8}  {s.unmatched:>9}  {', '.join(notes)}"
+            f"{s.rejected:>8}  {s.unmatched:>9}  {s.seconds:>8.1f}  {', '.join(notes)}"
         )
         lines.append(_fit(row, width).rstrip())
     with_reasons = [s for s in report.steps if s.reasons]
