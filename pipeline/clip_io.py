@@ -53,6 +53,7 @@ def row_from_clip(clip: Clip, crf: int = media.DEFAULT_CRF) -> dict[str, Any]:
             clip.hand_confidence, lambda a: a.astype(np.float32).reshape(t, -1).tolist()
         ),
         "hand_mask": _opt(clip.hand_mask, media.encode_mask_video),
+        "embodiment_mask": _opt(clip.embodiment_mask, media.encode_mask_video),
         "object_mask": _opt(clip.object_mask, media.encode_mask_video),
         "num_objects": n_obj,
         "object_poses": _opt(clip.object_poses, lambda a: a.reshape(-1, 16).tolist()),
@@ -110,6 +111,7 @@ def clip_from_row(row: Mapping[str, Any]) -> Clip:
             row.get("hand_confidence"), lambda v: _arr(v, np.float32).reshape(t, 2, -1)
         ),
         hand_mask=lossless("hand_mask"),
+        embodiment_mask=lossless("embodiment_mask"),
         object_mask=lossless("object_mask"),
         object_poses=_opt(row.get("object_poses"), lambda v: _arr(v).reshape(t, n_obj, 4, 4)),
         text=row.get("text"),

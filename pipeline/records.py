@@ -47,6 +47,7 @@ class Clip:
     source_frame_indices: np.ndarray | None = None  # (T,) int index of each frame in the source
     clip_policy: str | None = None  # what ingest's clip policy did: "full|short|tail[:preset]"
     gripper_opening: np.ndarray | None = None  # (T, 2) float32 metres per hand slot, NaN = none
+    embodiment_mask: np.ndarray | None = None  # (T, H, W) uint8 1 = robot arm (URDF + joints)
 
     @property
     def num_frames(self) -> int:
@@ -93,6 +94,7 @@ class Clip:
             "hand_confidence": (t, 2, NUM_HAND_JOINTS),
             "gripper_opening": (t, 2),
             "hand_mask": (t, h, w),
+            "embodiment_mask": (t, h, w),
             "object_mask": (t, h, w),
         }
         for name, shape in expected.items():

@@ -12,6 +12,10 @@ re-run ``ingest`` to rewrite them.
 
 Version 3 adds ``gripper_opening`` (robot clips: the opening of the gripper in each hand slot; see
 ``docs/design.md``, "Robot embodiments"). Version 2 shards are refused the same way.
+
+Version 4 adds ``embodiment_mask`` (robot clips: the arm's silhouette derived at ingest from the
+log's URDF and joint states; ``hand_mask`` unions it into its output). Version 3 shards are
+refused the same way: re-run ``ingest``.
 """
 
 from __future__ import annotations
@@ -143,7 +147,7 @@ def _check_policy(row: Mapping[str, Any]) -> list[str]:
 
 CLIPS = ShardSchema(
     name="clips",
-    version=3,
+    version=4,
     doc="Standardised clips: video, timing, intrinsics and optional ground truth, one per row.",
     columns=(
         Column("clip_id", pa.string(), "Unique clip id within the dataset."),
@@ -220,6 +224,13 @@ CLIPS = ShardSchema(
             "(T, 2) metres between the gripper's finger faces per hand slot (robot clips; the "
             "hand columns hold its skeleton); NaN where the slot holds no gripper; null for "
             "human clips.",
+            True,
+        ),
+        Column(
+            "embodiment_mask",
+            pa.binary(),
+            "(T, H, W) 1 = robot arm, lossless FFV1 video: derived at ingest from the log's URDF "
+            "and joint states (not ground truth); null for human clips and logs without them.",
             True,
         ),
     ),

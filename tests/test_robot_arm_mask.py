@@ -78,3 +78,38 @@ def test_bad_joint_states_are_refused(robot_clip) -> None:
     with pytest.raises(UrdfMaskError, match="cannot read URDF"):
         arm_masks("<robot><link></robot>", list(c.joint_names), c.joint_positions,
                   c.world_from_base, *cams)  # fmt: skip
+
+
+def test_synthetic_robot_clip_through_ingest() -> None:
+    """A robot unit of the synthetic source: the gripper skeleton lands on the rendered fingers
+    (1e-3 px) and the embodiment mask (URDF + joint states) covers the true arm mask."""
+    from egosim.pipeline.geometry import project_world_points
+    from egosim.stages.ingest import synthetic_source
+    from egosim.stages.ingest.stage import IngestConfig
+    from egosim.stages.world.robot import FINGER_LENGTH
+
+    cfg = IngestConfig(  # 1 px growth at half the default size (the default 2 px at 480x832)
+        synthetic_count=1, synthetic_robot_every=1, height=H, width=W, num_frames=5, fps=8.0,
+        robot_mask_dilate_px=1,
+    )  # fmt: skip
+    (unit,) = synthetic_source.list_units(cfg)
+    assert unit == "synthetic:tabletop:0:robot"
+    clip = synthetic_source.render_unit(unit.split(":", 1)[1], cfg)
+    robot = render_robot_clip(WorldConfig(seed=0, height=H, width=W, num_frames=5, fps=8.0))
+    tips = []  # the true inner-face fingertip centres: thumb (left finger), index (right)
+    for k, q in enumerate(robot.joint_positions):
+        poses = link_poses(q, robot.world_from_base)
+        left = poses["finger_left"] @ np.array([0.0, -0.006, FINGER_LENGTH, 1.0])
+        right = poses["finger_right"] @ np.array([0.0, 0.006, FINGER_LENGTH, 1.0])
+        tips.append([left[:3], right[:3]])
+        np.testing.assert_allclose(poses["palm"], robot.world_from_ee[k], atol=1e-12)
+    tips = np.asarray(tips)  # (T, 2, 3)
+    skeleton = clip.hand_joints[:, 1][:, [4, 8]].astype(np.float64)  # (T, 2, 3)
+    for k in range(len(tips)):
+        truth = project_world_points(tips[k], robot.world_from_cam[k], robot.intrinsics)[0]
+        got = project_world_points(skeleton[k], clip.world_from_cam[k], clip.intrinsics)[0]
+        assert np.abs(got - truth).max() < 1e-3, (k, got, truth)
+    np.testing.assert_allclose(clip.gripper_opening[:, 1], robot.opening, atol=1e-6)
+    assert clip.hand_valid[:, 1].all() and not clip.hand_valid[:, 0].any()
+    iou, recall = _iou_recall(clip.embodiment_mask, clip.hand_mask)
+    assert iou >= 0.9 and recall >= 0.999, (iou, recall)

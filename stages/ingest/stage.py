@@ -98,6 +98,8 @@ class IngestConfig(StageConfig):
     synthetic_mode: Literal["tabletop", "wild"] = "tabletop"  # synthetic camera motion
     synthetic_articulated_every: int = 3  # every k-th synthetic clip has a hinged lid; 0 = none
     synthetic_variant: Literal["default", "alt"] = "default"  # world variant (WorldConfig.variant)
+    synthetic_robot_every: int = 0  # every k-th synthetic clip shows the URDF robot arm; 0 = none
+    robot_mask_dilate_px: int = 2  # growth of URDF arm masks (embodiment_mask), stored pixels
     seed: int = 0  # first seed of the synthetic source
     robot: str = ""  # gripper geometry preset (gripper.GRIPPER_PRESETS); "" = the source's own
     robot_camera: str = ""  # AgiBot camera name / LeRobot video key; "" = the head camera
@@ -126,7 +128,13 @@ class IngestConfig(StageConfig):
                 problems.append(f"{name} must be >= 1, got {getattr(self, name)}")
         if self.tail not in ("keep", "drop"):
             problems.append(f"tail must be 'keep' or 'drop', got {self.tail!r}")
-        for name in ("stride", "max_clips_per_source", "synthetic_count"):
+        for name in (
+            "stride",
+            "max_clips_per_source",
+            "synthetic_count",
+            "synthetic_robot_every",
+            "robot_mask_dilate_px",
+        ):
             if getattr(self, name) < 0:
                 problems.append(f"{name} must be >= 0, got {getattr(self, name)}")
         if self.intrinsics and len(self.intrinsics) != 4:
@@ -153,7 +161,8 @@ class IngestStage(SourceStage):
     # 2: clip policy (short and tail clips, source rate kept), clips v2 columns;
     # 3: clip ids sanitised to the identifier rule and unique across a run (schemas.ids).
     # 4: clips v3 (gripper_opening; robot sources agibot and lerobot).
-    version = 4
+    # 5: clips v4 (embodiment_mask; synthetic robot clips).
+    version = 5
     config: IngestConfig
 
     def list_units(self, source: str | None) -> list[str]:

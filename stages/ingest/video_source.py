@@ -168,6 +168,7 @@ def standardise_clip(clip: Clip, cfg: ClipFormat) -> Iterator[Clip]:
             hand_confidence=pick(clip.hand_confidence),
             gripper_opening=pick(clip.gripper_opening),
             hand_mask=image(clip.hand_mask, nearest=True),
+            embodiment_mask=image(clip.embodiment_mask, nearest=True),
             object_mask=image(clip.object_mask, nearest=True),
             object_poses=pick(clip.object_poses),
             source_fps=clip.source_fps if clip.source_fps is not None else float(clip.fps),

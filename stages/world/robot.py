@@ -74,6 +74,8 @@ class Arm:
 
 FINGER_TRAVEL = 0.04  # each finger's prismatic travel (m): max opening 0.08 m
 PALM_TO_TIP = 0.085  # palm base to fingertip centre along the approach axis (m)
+FINGER_BASE = 0.03  # palm origin to the finger joints along the approach axis (m)
+FINGER_LENGTH = 0.055  # finger length along the approach axis (m)
 
 ARM = Arm(
     name="egosim_arm",
@@ -85,8 +87,8 @@ ARM = Arm(
         "wrist_1": (Shape("cylinder", (0.035, 0.05), (0.0, 0.0, 0.025)),),
         "wrist_2": (Shape("cylinder", (0.032, 0.04), (0.0, 0.0, 0.02)),),
         "palm": (Shape("box", (0.035, 0.11, 0.03), (0.0, 0.0, 0.015)),),
-        "finger_left": (Shape("box", (0.018, 0.012, 0.055), (0.0, 0.0, 0.0275)),),
-        "finger_right": (Shape("box", (0.018, 0.012, 0.055), (0.0, 0.0, 0.0275)),),
+        "finger_left": (Shape("box", (0.018, 0.012, FINGER_LENGTH), (0, 0, FINGER_LENGTH / 2)),),
+        "finger_right": (Shape("box", (0.018, 0.012, FINGER_LENGTH), (0, 0, FINGER_LENGTH / 2)),),
         "tool": (),
     },
     joints=(
@@ -97,11 +99,11 @@ ARM = Arm(
         Joint("wrist_roll", "revolute", "wrist_1", "wrist_2", (0.0, 0.0, 0.05)),
         Joint("wrist_yaw", "revolute", "wrist_2", "palm", (0.0, 0.0, 0.04), axis=(1, 0, 0)),
         Joint(
-            "finger_left_joint", "prismatic", "palm", "finger_left", (0.0, 0.006, 0.03),
+            "finger_left_joint", "prismatic", "palm", "finger_left", (0.0, 0.006, FINGER_BASE),
             axis=(0, 1, 0), lower=0.0, upper=FINGER_TRAVEL,
         ),
         Joint(
-            "finger_right_joint", "prismatic", "palm", "finger_right", (0.0, -0.006, 0.03),
+            "finger_right_joint", "prismatic", "palm", "finger_right", (0.0, -0.006, FINGER_BASE),
             axis=(0, -1, 0), lower=0.0, upper=FINGER_TRAVEL,
         ),
         Joint("tool_joint", "fixed", "palm", "tool", (0.0, 0.0, PALM_TO_TIP)),
@@ -228,6 +230,9 @@ class RobotClip:
     """A rendered robot episode with exact ground truth (world metres, OpenCV camera axes)."""
 
     frames: np.ndarray  # (T, H, W, 3) uint8 RGB: the scene with the arm
+    depth: np.ndarray  # (T, H, W) float32 z-depth of the frames, metres (0 = nothing hit)
+    static_frames: np.ndarray  # (T, H, W, 3) uint8: the same views without the arm
+    static_depth: np.ndarray  # (T, H, W) float32 z-depth of the static views, metres
     arm_mask: np.ndarray  # (T, H, W) uint8, 1 = a pixel of the arm (any link) in front of the scene
     intrinsics: np.ndarray  # (4,) fx, fy, cx, cy in pixels
     world_from_cam: np.ndarray  # (T, 4, 4) head camera poses
@@ -235,9 +240,11 @@ class RobotClip:
     joint_names: tuple[str, ...]  # names of the joint-state columns (ARM.moving_joints)
     joint_positions: np.ndarray  # (T, J) radians / metres in joint_names order
     world_from_tool: np.ndarray  # (T, 4, 4) tool frame (between the fingertips)
+    world_from_ee: np.ndarray  # (T, 4, 4) end-effector (palm) frame: the gripper skeleton's wrist
     opening: np.ndarray  # (T,) distance between the fingers' inner faces, metres
     urdf: str  # the URDF document the arm was built from
     fps: float  # frames per second
+    target: str  # name of the object the arm reaches for ("" when the scene has none)
 
 
 def _tool_path(scene_objects: list, base: np.ndarray, t: int) -> np.ndarray:
@@ -281,8 +288,11 @@ def render_robot_clip(config: WorldConfig) -> RobotClip:
     renderer = WorldRenderer(scene, intrinsics, h, w)
     initial = scene.initial_object_poses
     frames = np.zeros((t, h, w, 3), np.uint8)
+    static_frames = np.zeros((t, h, w, 3), np.uint8)
+    depth = np.zeros((t, h, w), np.float32)
+    static_depth = np.zeros((t, h, w), np.float32)
     arm_mask = np.zeros((t, h, w), np.uint8)
-    tools = np.zeros((t, 4, 4))
+    tools, palms = np.zeros((t, 4, 4)), np.zeros((t, 4, 4))
     for k in range(t):
         cam = world_from_cam[k]
         static = renderer.render_static(cam, initial)
@@ -291,11 +301,18 @@ def render_robot_clip(config: WorldConfig) -> RobotClip:
         arm = renderer.render_meshes(cam, parts, np.tile(ARM_COLOURS, (len(parts), 1)))
         on_arm = arm.depth < static.depth
         frames[k] = to_uint8(np.where(on_arm[..., None], arm.rgb, static.rgb))
+        static_frames[k] = to_uint8(static.rgb)
+        scene_z = np.where(np.isfinite(static.depth), static.depth, 0.0)
+        static_depth[k] = scene_z
+        depth[k] = np.where(on_arm, arm.depth, scene_z)
         arm_mask[k] = on_arm
-        tools[k] = poses["tool"]
+        tools[k], palms[k] = poses["tool"], poses["palm"]
     gap = 2 * finger  # inner faces: joint offset 0.006 + travel - half the 0.012 finger width
     return RobotClip(
         frames=frames,
+        depth=depth,
+        static_frames=static_frames,
+        static_depth=static_depth,
         arm_mask=arm_mask,
         intrinsics=np.asarray(intrinsics, dtype=np.float64),
         world_from_cam=world_from_cam,
@@ -303,7 +320,9 @@ def render_robot_clip(config: WorldConfig) -> RobotClip:
         joint_names=ARM.moving_joints,
         joint_positions=q,
         world_from_tool=tools,
+        world_from_ee=palms,
         opening=gap,
         urdf=arm_urdf(),
         fps=float(config.fps),
+        target=scene.objects[0].name if scene.objects else "",
     )
