@@ -240,7 +240,7 @@ def check(
 
 
 @app.command()
-def inspect(path: Annotated[Path, typer.Argument(help="A shard file.")]) -> None:
+def inspect(path: Annotated[str, typer.Argument(help="A shard file (path or URL).")]) -> None:
     """Print a readable summary of one shard: schema, provenance and its rows."""
     try:
         with ShardReader(path) as reader:
@@ -390,8 +390,8 @@ def _bundled_workflow(workflow: Path | None, file_name: str) -> Path:
 def simulate(
     out: Annotated[Path, typer.Option("--out", help="Run folder for simulation shards, videos.")],
     data: Annotated[
-        list[Path] | None,
-        typer.Option("--data", help="Pack shards, folders of them, or a run folder."),
+        list[str] | None,
+        typer.Option("--data", help="Pack shards, folders of them, or a run folder (or URLs)."),
     ] = None,
     checkpoint: Annotated[
         str,
@@ -506,10 +506,12 @@ def _simulate_continuous(
 @app.command()
 def evaluate(
     data: Annotated[
-        list[Path], typer.Option("--data", help="Pack shards, folders of them, or a run folder.")
+        list[str],
+        typer.Option("--data", help="Pack shards, folders of them, or a run folder (or URLs)."),
     ],
     simulation: Annotated[
-        Path, typer.Option("--simulation", help="Run folder written by `egosim simulate`.")
+        str,
+        typer.Option("--simulation", help="Run folder written by `egosim simulate` (or URL)."),
     ],
     out: Annotated[Path, typer.Option("--out", help="Run folder for evaluation shards.")],
     set_: Annotated[

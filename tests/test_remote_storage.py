@@ -273,6 +273,31 @@ def test_run_reads_and_writes_s3_and_check_and_resume_behave(s3: str, tmp_path: 
     assert {s.step: s.clips_out for s in again.report.steps} == {"ingest": 2, "caption": 2}
 
 
+def test_stage_command_reads_and_writes_urls(s3: str, tmp_path: Path) -> None:
+    videos = tiny_videos(tmp_path / "videos")
+    fs, root = storage.filesystem(s3)
+    fs.put_file(str(videos / "v0.mp4"), f"{root}/in/v0.mp4")
+    cli = CliRunner()
+    clips = storage.join(s3, "one", "clips.parquet")
+    params = [a for k, v in SMALL.items() for a in ("--set", f"{k}={v}")]
+    args = ["stage", "ingest", "--input", f"{s3}/in/v0.mp4", "--output", clips, *params]
+    result = cli.invoke(app, args)
+    assert result.exit_code == 0, result.output
+    captions = storage.join(s3, "one", "captions.parquet")
+    result = cli.invoke(app, ["stage", "caption", "--input", clips, "--output", captions])
+    assert result.exit_code == 0, result.output
+    assert s3_keys(storage.join(s3, "one")) == sorted(
+        f"{name}{end}"
+        for name in ("clips", "clips.rejects", "captions", "captions.rejects")
+        for end in (".parquet", ".parquet.complete")
+    )
+    result = cli.invoke(app, ["inspect", captions])
+    assert result.exit_code == 0 and "schema: captions" in result.output, result.output
+    assert "clip_id=v0-w000" in result.output
+    result = cli.invoke(app, ["check", storage.join(s3, "one")])
+    assert result.exit_code == 0 and "checked 4 shard(s): 0 violation(s)" in result.output
+
+
 def test_remote_input_is_downloaded_once_into_the_cache(s3: str, tmp_path: Path) -> None:
     videos = tiny_videos(tmp_path / "videos")
     fs, root = storage.filesystem(s3)
