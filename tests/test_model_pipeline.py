@@ -177,7 +177,7 @@ def run_dir(chain) -> Path:
 def test_train_writes_run_and_resumes(chain, run_dir: Path, tmp_path: Path) -> None:
     for name in ("config.json", "metrics.jsonl", "data.json", "sample.mp4", "summary.json"):
         assert (run_dir / name).is_file(), name
-    assert list((run_dir / "checkpoints").glob("step_*.safetensors"))
+    assert list((run_dir / "checkpoints").glob("step_*/state.json"))
     assert list((run_dir / "previews").glob("*.png"))
     assert (
         json.loads((run_dir / "data.json").read_text())["clip_ids"]
