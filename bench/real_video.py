@@ -11,6 +11,11 @@
 - ``model``: the camera model each window used (sfm, rotation, static, given);
 - ``fov``: horizontal field of view of the estimated focal, beside the nominal one the clip came
   with (the ingest prior: source metadata or the 70 degree guess);
+- ``f err``: estimated focal against the true one where it is known (``RealCase.true_focal_px``):
+  the DWM Aria clips were undistorted to a linear camera of 1024x1024 px with focal 300 px,
+  rotated and centre-cropped to 720x480 without resizing (snuvclab/dwm
+  ``data_processing/aria/1_get_images_and_cameras.py``), so f = 300 px, a 100.4 degree
+  horizontal FOV, not the 70 degree guess. Nothing in the pipeline reads it;
 - ``scale``: metres per reconstruction unit and where it came from;
 - ``hand/surf``: hand-to-surface depth ratio at contact: for each valid hand and frame, the median
   over the five fingertips of fingertip depth / depth of the scene cloud under the fingertip
@@ -50,6 +55,7 @@ WORKFLOW = ROOT / "workflows" / "dataset.yaml"
 FINGERTIPS = (4, 8, 12, 16, 20)  # MANO order
 HAND_DILATE_PX = 15  # ground-truth hand renders grow by this before leaving pixels out
 HAND_RENDER_THRESHOLD = 30  # a videos_hands pixel brighter than this (any channel) is hand
+DWM_ARIA_FOCAL_PX = 300.0  # DWM Aria clips (720x480): linear camera focal (module docstring)
 
 
 @dataclass(frozen=True)
@@ -61,6 +67,7 @@ class RealCase:
     preset: str  # ingest preset
     static_truth: str = ""  # ground-truth static-scene video (DWM dynamic clips)
     hands_truth: str = ""  # ground-truth hand renders on black (DWM dynamic clips)
+    true_focal_px: float = 0.0  # true focal in pixels of the source video; 0 = unknown
 
 
 CASES = (
@@ -72,6 +79,7 @@ CASES = (
             "dwm",
             f"dwm_realworld/realworld_dynamic/videos_static/{cid}.mp4",
             f"dwm_realworld/realworld_dynamic/videos_hands/{cid}.mp4",
+            DWM_ARIA_FOCAL_PX,
         )
         for cid in ("00013", "00017")
     ),
@@ -233,9 +241,19 @@ def _fov_deg(fx: float, width: int) -> float:
     return float(np.degrees(2 * np.arctan(width / (2 * fx))))
 
 
+def _clip_scale(case: RealCase, data: Path, clip: dict[str, Any]) -> float:
+    """Pixels of the clip per pixel of the source video (ingest's cover-and-crop rule)."""
+    from egosim.stages.ingest.standardise import plan_resize
+
+    info = media.probe_video_file(data / case.video)
+    return plan_resize(info.width, info.height, int(clip["width"]), int(clip["height"])).scale
+
+
 def summarise(case: RealCase, run: Path, data: Path, seconds: float) -> dict[str, Any]:
     """The table row of one video from the shards its run wrote."""
-    clips = read_step(run, "ingest", ["clip_id", "intrinsics", "width", "num_frames", "fps"])
+    clips = read_step(
+        run, "ingest", ["clip_id", "intrinsics", "width", "height", "num_frames", "fps"]
+    )
     cams = read_step(run, "cameras")
     packed = read_step(run, "pack", ["clip_id"])
     rejects: list[str] = []
@@ -244,7 +262,7 @@ def summarise(case: RealCase, run: Path, data: Path, seconds: float) -> dict[str
         with open_shard(rej_path) as reader:
             rejects = [f"{r['step']}: {r['reason']}"[:160] for r in reader.iter_rows()]
     posed = total = 0
-    models, fovs, nominal, scales, ratios, scene = [], [], [], [], [], []
+    models, fovs, nominal, scales, ratios, scene, focal_err = [], [], [], [], [], [], []
     for cid, cam in cams.items():
         t = int(cam["num_frames"])
         total += t
@@ -252,6 +270,9 @@ def summarise(case: RealCase, run: Path, data: Path, seconds: float) -> dict[str
         models.append(cam.get("camera_model") or ("static" if cam["static_camera"] else "sfm"))
         fovs.append(_fov_deg(cam["intrinsics"][0], int(cam["width"])))
         nominal.append(_fov_deg(clips[cid]["intrinsics"][0], int(clips[cid]["width"])))
+        if case.true_focal_px > 0:
+            true_f = case.true_focal_px * _clip_scale(case, data, clips[cid])
+            focal_err.append(float(cam["intrinsics"][0]) / true_f - 1.0)
         if cam.get("metric_scale") is not None:
             scales.append(f"{cam['metric_scale']:.3g} ({cam.get('scale_source')})")
         ratio = hand_surface_ratio(run, cid, cam)
@@ -270,6 +291,7 @@ def summarise(case: RealCase, run: Path, data: Path, seconds: float) -> dict[str
         "camera_models": sorted(set(models)),
         "fov_deg": fovs,
         "nominal_fov_deg": nominal,
+        "focal_error": focal_err,
         "scale": scales,
         "hand_surface_ratio": ratios,
         "seconds": seconds,
@@ -284,7 +306,7 @@ def print_table(rows: list[dict[str, Any]]) -> None:
     """One line per video, then the rejects."""
     head = (
         f"{'video':<14} {'clips':>7} {'posed':>9} {'model':<14} {'fov est/nom':>12} "
-        f"{'hand/surf':>9} {'scene dB (base)':>16} {'edge px (base)':>15} {'s':>5}"
+        f"{'f err':>6} {'hand/surf':>9} {'scene dB (base)':>16} {'edge px (base)':>15} {'s':>5}"
     )
     print(head)
     print("-" * len(head))
@@ -296,13 +318,14 @@ def print_table(rows: list[dict[str, Any]]) -> None:
             else "-"
         )
         ratio = f"{np.median(r['hand_surface_ratio']):.2f}" if r["hand_surface_ratio"] else "n/a"
+        ferr = f"{np.mean(r['focal_error']):+.1%}" if r.get("focal_error") else "-"
         sv = r.get("scene_vs_truth")
         db = f"{sv['psnr']:.1f} ({sv['psnr_base']:.1f})" if sv else "-"
         edge = f"{sv['edge']:.1f} ({sv['edge_base']:.1f})" if sv else "-"
         clips = f"{r['clips_ingested']}->{r['clips_packed']}"
         print(
             f"{r['video']:<14} {clips:>7} {posed:>9} {','.join(r['camera_models']):<14} "
-            f"{fov:>12} {ratio:>9} {db:>16} {edge:>15} {r['seconds']:>5.0f}"
+            f"{fov:>12} {ferr:>6} {ratio:>9} {db:>16} {edge:>15} {r['seconds']:>5.0f}"
         )
     for r in rows:
         if r["scale"]:
