@@ -26,6 +26,13 @@ $(STAMP): pyproject.toml
 		(apt-get update -qq && apt-get install -y -qq libusb-1.0-0) >/dev/null || \
 		{ echo "could not install libusb-1.0-0: run 'apt-get install libusb-1.0-0' as root"; exit 1; }; \
 	fi
+	# Debian's chromium: tests/test_report.py opens the HTML dataset report in it, headless
+	# (the test skips without it). Not fatal: everything else works without a browser.
+	@if ! command -v chromium >/dev/null 2>&1; then \
+		echo "installing chromium (headless check of the HTML report)"; \
+		(apt-get update -qq && apt-get install -y -qq chromium) >/dev/null || \
+		echo "could not install chromium: run 'apt-get install chromium' as root (report test skips)"; \
+	fi
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install -q --upgrade pip
 	$(BIN)/pip install -q torch==$(TORCH_VERSION)
