@@ -105,6 +105,9 @@ def test_open_training_data_picks_the_kind(tiny_runs: dict[str, Path], tmp_path:
     assert isinstance(latents, LatentsDataset) and len(latents) == 2
     assert latents.clip_ids == ["c0", "c1"] and latents.sizes == [(9, 32, 32)] * 2
     assert latents.presets == ["tiny", "tiny"]
+    latents.check_preset("tiny")
+    with pytest.raises(TrainingDataError, match=r"2 clip.*'c0'.*encoded for preset 'tiny'"):
+        latents.check_preset("tiny-wan")
     assert latents.shards == sorted((tiny_runs["run"] / "encode").glob("shard-*.parquet"))
     assert isinstance(open_training_data(latents.shards), LatentsDataset)  # shard files
     pack = open_training_data([tiny_runs["pack_dir"]])  # a run folder with pack/

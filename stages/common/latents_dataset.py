@@ -107,6 +107,45 @@ class LatentsDataset:
             self._rows[i] = row
         return row
 
+    def check_preset(self, name: str) -> None:
+        """Raise :class:`TrainingDataError` unless every row's encoders fit training preset
+        ``name``: the same VAE, and text / image features of the widths it reads (latents of
+        the 1.3B Wan preset fit the 14B one: same VAE, UMT5 and CLIP)."""
+        from egosim.model.presets import get_preset
+
+        want = get_preset(name)
+        problems = []
+        for made_by in sorted(set(self.presets)):
+            have = get_preset(made_by)
+            why = []
+            if have.vae != want.vae:
+                why.append(f"VAE {have.vae} vs {want.vae}")
+            if have.text.kind != want.text.kind or (
+                want.text.kind == "precomputed"
+                and have.transformer.text_dim != want.transformer.text_dim
+            ):
+                why.append(
+                    f"text {have.text.kind}/{have.transformer.text_dim} vs "
+                    f"{want.text.kind}/{want.transformer.text_dim}"
+                )
+            if have.transformer.image_dim != want.transformer.image_dim:
+                why.append(
+                    f"image_dim {have.transformer.image_dim} vs {want.transformer.image_dim}"
+                )
+            if why:
+                clips = [
+                    c for c, p in zip(self.clip_ids, self.presets, strict=True) if p == made_by
+                ]
+                problems.append(
+                    f"{len(clips)} clip(s) (e.g. {clips[0]!r}) were encoded for preset "
+                    f"{made_by!r}: " + ", ".join(why)
+                )
+        if problems:
+            raise TrainingDataError(
+                f"latents do not fit preset {name!r} (re-run encode with preset={name}): "
+                + "; ".join(problems)
+            )
+
     def __getitem__(self, i: int) -> LatentSample:
         if not -len(self) <= i < len(self):
             raise IndexError(f"latents sample {i} out of range ({len(self)} samples)")
