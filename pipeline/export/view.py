@@ -44,9 +44,9 @@ import numpy as np
 from mcap_protobuf.writer import Writer
 
 from egosim.pipeline import media
-from egosim.pipeline.clip_io import clip_from_row
 from egosim.pipeline.export import foxglove as fx
 from egosim.pipeline.export.run_index import ExportError, RunIndex
+from egosim.pipeline.records import NUM_HAND_JOINTS, Clip
 from egosim.pipeline.stage import ConfigError
 from egosim.schemas import CLIPS, DEPTH_CAMERA, POSES
 from egosim.schemas.captions import CAPTIONS
@@ -96,6 +96,29 @@ def _poses(row: dict[str, Any], t: int, what: str) -> np.ndarray:
     return poses.reshape(t, 4, 4)
 
 
+def _clip(row: dict[str, Any]) -> Clip:
+    """The parts of a ``clips`` row the view shows, decoded (not its depth or object videos)."""
+    cid, t, h, w = row["clip_id"], int(row["num_frames"]), int(row["height"]), int(row["width"])
+    joints, valid = row.get("hand_joints"), row.get("hand_valid")
+    return Clip(
+        clip_id=cid,
+        source=row["source"],
+        source_uri=row["source_uri"],
+        fps=float(row["fps"]),
+        timestamps=np.asarray(row["timestamps"], dtype=np.float64),
+        intrinsics=np.asarray(row["intrinsics"], dtype=np.float64),
+        frames=media.decode_rgb_video(row["video"], h, w, f"clip {cid!r} video"),
+        world_from_cam=None
+        if row.get("world_from_cam") is None
+        else _poses(row, t, f"clip {cid!r} clips"),
+        hand_joints=None
+        if joints is None
+        else np.asarray(joints, dtype=np.float32).reshape(t, 2, NUM_HAND_JOINTS, 3),
+        hand_valid=None if valid is None else np.asarray(valid, dtype=bool),
+        text=row.get("text"),
+    ).check()
+
+
 def write_clip_view(
     index: RunIndex, clip_id: str, path: Path, config: ViewConfig | None = None
 ) -> Path:
@@ -109,7 +132,7 @@ def write_clip_view(
     clip_row = index.row(CLIPS, clip_id)
     if clip_row is None:
         raise ExportError(f"{index.root}: no clip {clip_id!r} in the clips step")
-    clip = clip_from_row(clip_row)
+    clip = _clip(clip_row)
     t, h, w = clip.num_frames, clip.height, clip.width
     what = f"clip {clip_id!r}"
     rows = {
@@ -174,8 +197,10 @@ def write_clip_view(
             hand_mask["hand_mask"], f"{what} hand_mask"
         )
         used["/hands/mask"] = step("hand_mask")
-    elif clip.hand_mask is not None:
-        masks["/hands/mask"] = clip.hand_mask
+    elif clip_row.get("hand_mask") is not None:
+        masks["/hands/mask"] = media.decode_lossless_video(
+            clip_row["hand_mask"], f"{what} clips hand_mask"
+        )
         used["/hands/mask"] = step("clips")
     bad = {
         topic: tuple(arr.shape[:3])
