@@ -113,3 +113,55 @@ def test_synthetic_robot_clip_through_ingest() -> None:
     assert clip.hand_valid[:, 1].all() and not clip.hand_valid[:, 0].any()
     iou, recall = _iou_recall(clip.embodiment_mask, clip.hand_mask)
     assert iou >= 0.9 and recall >= 0.999, (iou, recall)
+
+
+@pytest.mark.parametrize("source", ["lerobot", "agibot"])
+def test_robot_logs_with_joint_states_and_a_urdf_get_the_arm_mask(tmp_path, source) -> None:
+    """The synthetic robot's episode written as a LeRobot dataset / AgiBot episode with its joint
+    states; ingest given the URDF renders the arm mask, which covers the true arm."""
+    from egosim.pipeline.clip_io import clip_from_row
+    from egosim.stages.common.gripper import gripper_geometry
+    from egosim.stages.ingest.robot_writers import (
+        RobotEpisodeArrays,
+        write_agibot_episode,
+        write_lerobot_dataset,
+    )
+    from egosim.stages.ingest.stage import IngestConfig, IngestStage
+
+    t, h, w, fps = 5, 120, 208, 8.0
+    robot = render_robot_clip(WorldConfig(seed=2, height=h, width=w, num_frames=t, fps=fps))
+    urdf = tmp_path / "egosim_arm.urdf"
+    urdf.write_text(robot.urdf)
+    geom = gripper_geometry("egosim_arm")
+    g = 1 if source == "lerobot" else 2  # AgiBot logs two arms: both slots hold this one
+    ep = RobotEpisodeArrays(
+        frames=robot.frames,
+        fps=fps,
+        intrinsics=robot.intrinsics,
+        world_from_cam=robot.world_from_cam,
+        world_from_ee=np.repeat(robot.world_from_ee[:, None], g, axis=1),
+        gripper_state=np.repeat(geom.state_from_opening(robot.opening)[:, None], g, axis=1),
+        task="reach over the box",
+        joint_positions=robot.joint_positions,
+        joint_names=list(robot.joint_names),
+    )
+    if source == "lerobot":
+        path = write_lerobot_dataset(tmp_path / "ds", [ep])
+        names: tuple[str, ...] = ()  # the dataset's feature names are the URDF's
+    else:
+        write_agibot_episode(tmp_path / "agibot", "327", "648642", ep)
+        path = tmp_path / "agibot"
+        names = robot.joint_names  # AgiBot's h5 has no names: the user gives them
+    params = dict(
+        source=source, fps=fps, num_frames=t, min_frames=t, height=h, width=w,
+        robot="egosim_arm", robot_urdf=str(urdf), robot_joint_names=names,
+        robot_base_pose=tuple(robot.world_from_base.ravel()), robot_mask_dilate_px=0,
+        intrinsics=tuple(robot.intrinsics),
+    )  # fmt: skip
+    stage = IngestStage(IngestConfig(**params))
+    (clip,) = [clip_from_row(r) for u in stage.list_units(str(path)) for r in stage.process_unit(u)]
+    iou, recall = _iou_recall(clip.embodiment_mask, robot.arm_mask)
+    assert iou >= 0.95 and recall >= 0.97, (iou, recall)  # float32 joint states, no growth
+    bent = IngestStage(IngestConfig(**{**params, "robot_base_pose": ()}))  # base at the origin
+    (moved,) = [clip_from_row(r) for u in bent.list_units(str(path)) for r in bent.process_unit(u)]
+    assert _iou_recall(moved.embodiment_mask, robot.arm_mask)[0] < 0.5

@@ -43,7 +43,12 @@ from egosim.pipeline.records import Clip
 from egosim.pipeline.stage import ClipRejected
 from egosim.stages.common.gripper import GripperGeometry, gripper_geometry
 from egosim.stages.ingest.mcap_source import CAM_FROM_OURS
-from egosim.stages.ingest.robot_source import RobotEpisode, episode_clip, pose_from_xyz_quat
+from egosim.stages.ingest.robot_source import (
+    ArmModel,
+    RobotEpisode,
+    episode_clip,
+    pose_from_xyz_quat,
+)
 
 PROPRIO_FILE = "proprio_stats.h5"
 DEFAULT_CAMERA = "head"  # AgiBot G1's head colour camera
@@ -55,6 +60,7 @@ PROPRIO_KEYS: dict[str, tuple[int, ...]] = {
     "state/end/orientation": (2, 4),
     "state/effector/position": (2,),
 }
+JOINT_KEY = "state/joint/position"  # (T, J) joint states (used with a URDF: embodiment_mask)
 ARM_HANDS = (0, 1)  # arm 0 (left) -> hand 0, arm 1 (right) -> hand 1
 
 
@@ -163,6 +169,8 @@ def _read_proprio(paths: AgibotPaths) -> dict[str, np.ndarray]:
                     f"{', '.join(repr(k) for k in missing)}"
                 )
             data = {k: np.asarray(f[k][()]) for k in PROPRIO_KEYS}
+            if JOINT_KEY in f:
+                data[JOINT_KEY] = np.asarray(f[JOINT_KEY][()], dtype=np.float64)
     except ClipRejected:
         raise
     except (OSError, KeyError, ValueError, TypeError) as exc:
@@ -238,6 +246,7 @@ def read_agibot_episode(
     camera: str = DEFAULT_CAMERA,
     camera_axes: str = "opencv",
     geometry: GripperGeometry | None = None,
+    arm: ArmModel | None = None,
 ) -> Clip:
     """Read one AgiBot World episode (given by its ``proprio_stats.h5``) into a clip.
 
@@ -280,5 +289,6 @@ def read_agibot_episode(
         gripper_state=np.asarray(data["state/effector/position"], dtype=np.float64),
         hands=ARM_HANDS,
         text=task_text(info, paths.episode),
+        joint_positions=data.get(JOINT_KEY),
     )
-    return episode_clip(episode, geometry)
+    return episode_clip(episode, geometry, arm)

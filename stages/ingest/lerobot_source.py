@@ -59,7 +59,12 @@ from egosim.pipeline.records import Clip
 from egosim.pipeline.stage import ClipRejected
 from egosim.stages.common.gripper import GripperGeometry, gripper_geometry
 from egosim.stages.ingest.mcap_source import CAM_FROM_OURS
-from egosim.stages.ingest.robot_source import RobotEpisode, episode_clip, pose_from_xyz_quat
+from egosim.stages.ingest.robot_source import (
+    ArmModel,
+    RobotEpisode,
+    episode_clip,
+    pose_from_xyz_quat,
+)
 
 INFO_FILE = Path("meta") / "info.json"
 SUPPORTED_VERSIONS = ("v2.0", "v2.1", "v3.0")  # codebase_version values read
@@ -79,6 +84,7 @@ class LeRobotOptions:
     intrinsics: tuple[float, ...] = ()  # fx, fy, cx, cy in pixels of the video; () = FOV guess
     horizontal_fov_deg: float = 70.0  # FOV of the guess when no intrinsics are given
     hand: int = 1  # hand slot of the (one) gripper: 0 = left, 1 = right
+    joint_feature: str = "observation.joint_positions"  # joint states (used with a URDF)
 
 
 def find_datasets(path: Path) -> list[Path]:
@@ -276,6 +282,7 @@ def read_lerobot_episode(
     episode: int,
     options: LeRobotOptions | None = None,
     geometry: GripperGeometry | None = None,
+    arm: ArmModel | None = None,
 ) -> Clip:
     """Read episode ``episode`` of the LeRobot dataset at ``root`` into a clip.
 
@@ -363,5 +370,9 @@ def read_lerobot_episode(
         gripper_state=state[:, [layout.gripper]],  # (T, 1)
         hands=(opts.hand,),
         text=text,
+        joint_positions=_column(rows, opts.joint_feature)
+        if opts.joint_feature in rows.column_names
+        else None,
+        joint_names=tuple(_names(info["features"].get(opts.joint_feature, {}))),
     )
-    return episode_clip(episode_data, geometry)
+    return episode_clip(episode_data, geometry, arm)

@@ -9,6 +9,10 @@ seconds, OpenCV camera axes, ``world_from_cam`` camera-to-world, end-effector po
 
 The gripper opening is the ``gripper_opening`` column (clips v3), NaN in slots without a
 gripper; it also equals the thumb-to-index fingertip distance of the stored skeleton.
+
+When the log has joint states and the user gives the robot's URDF (:class:`ArmModel`), the arm's
+silhouette along the episode becomes the ``embodiment_mask`` column (clips v4;
+:func:`egosim.stages.common.urdf_mask.arm_masks`), which ``hand_mask`` unions into its masks.
 """
 
 from __future__ import annotations
@@ -22,6 +26,7 @@ from egosim.pipeline.records import Clip
 from egosim.pipeline.stage import ClipRejected
 from egosim.schemas.invariants import se3_problems
 from egosim.stages.common.gripper import GripperGeometry, gripper_hand_arrays
+from egosim.stages.common.urdf_mask import UrdfMaskError, arm_masks
 
 
 @dataclass
@@ -40,6 +45,18 @@ class RobotEpisode:
     gripper_state: np.ndarray  # (S, G) raw gripper readings (geometry maps them to metres)
     hands: tuple[int, ...]  # hand slot of each gripper: 0 = left, 1 = right
     text: str | None = None  # task instruction (the caption source)
+    joint_positions: np.ndarray | None = None  # (T, J) joint states of the log, if it has them
+    joint_names: tuple[str, ...] = ()  # the log's own name of each joint-state column, if any
+
+
+@dataclass(frozen=True)
+class ArmModel:
+    """The robot's URDF and how the log's joint states and frame map onto it (user-given)."""
+
+    urdf: str  # URDF file path (mesh files resolved next to it)
+    joint_names: tuple[str, ...] = ()  # URDF joint of each joint-state column; () = log's names
+    world_from_base: tuple[float, ...] = ()  # URDF root pose, 16 row-major values; () = identity
+    dilate_px: int = 2  # growth of the mask, pixels of the episode's frames
 
 
 def pose_from_xyz_quat(position: np.ndarray, quat: np.ndarray, order: str = "xyzw") -> np.ndarray:
@@ -85,8 +102,14 @@ def episode_problems(ep: RobotEpisode) -> list[str]:
         problems.append(f"length mismatch: {len(ep.world_from_cam)} camera poses, {t} frames")
     if len(ep.timestamps) != t:
         problems.append(f"length mismatch: {len(ep.timestamps)} timestamps, {t} frames")
+    if ep.joint_positions is not None and len(ep.joint_positions) != t:
+        problems.append(f"length mismatch: {len(ep.joint_positions)} joint states, {t} frames")
     if problems:
         return problems
+    if ep.joint_positions is not None:
+        joints_bad = ~np.isfinite(ep.joint_positions).all(axis=1)  # (T,)
+        if joints_bad.any():
+            problems.append(f"joint states are NaN or infinite in {_first_bad(joints_bad)}")
     ee_bad = ~np.isfinite(ep.world_from_ee).all(axis=(1, 2, 3))  # (T,)
     if ee_bad.any():
         problems.append(f"end-effector poses are NaN or infinite in {_first_bad(ee_bad)}")
@@ -106,8 +129,30 @@ def episode_problems(ep: RobotEpisode) -> list[str]:
     return problems
 
 
-def episode_clip(ep: RobotEpisode, geometry: GripperGeometry) -> Clip:
-    """The clip of a checked episode: frames, camera, gripper skeleton in the hand columns.
+def embodiment_mask(ep: RobotEpisode, arm: ArmModel) -> np.ndarray:
+    """The arm's masks ``(T, H, W)`` for a checked episode with joint states (see ArmModel)."""
+    where = f"{ep.source} episode {ep.name} ({ep.uri})"
+    if ep.joint_positions is None:
+        raise ClipRejected(f"{where}: a URDF was given but the log has no joint states")
+    names = arm.joint_names or ep.joint_names
+    q = np.asarray(ep.joint_positions, dtype=np.float64)
+    if len(names) != q.shape[1]:
+        raise ClipRejected(
+            f"{where}: {q.shape[1]} joint-state columns but {len(names)} joint names {names}"
+        )
+    base = np.eye(4) if not arm.world_from_base else np.reshape(arm.world_from_base, (4, 4))
+    h, w = ep.frames.shape[1:3]
+    try:
+        return arm_masks(
+            arm.urdf, list(names), q, base, ep.world_from_cam, ep.intrinsics, h, w, arm.dilate_px
+        )
+    except UrdfMaskError as exc:
+        raise ClipRejected(f"{where}: {exc}") from exc
+
+
+def episode_clip(ep: RobotEpisode, geometry: GripperGeometry, arm: ArmModel | None = None) -> Clip:
+    """The clip of a checked episode: frames, camera, gripper skeleton in the hand columns, and
+    with ``arm`` the URDF arm mask (``embodiment_mask``).
 
     Raises :class:`ClipRejected` naming the episode and every problem found
     (:func:`episode_problems`).
@@ -133,4 +178,5 @@ def episode_clip(ep: RobotEpisode, geometry: GripperGeometry) -> Clip:
         hand_confidence=conf.astype(np.float32),
         text=ep.text,
         gripper_opening=per_slot.astype(np.float32),
+        embodiment_mask=None if arm is None else embodiment_mask(ep, arm),
     ).check()

@@ -37,6 +37,8 @@ class RobotEpisodeArrays:
     gripper_state: np.ndarray  # (T, G) raw gripper readings
     task: str = "pick up the cube"  # task name / instruction
     actions: list[str] = field(default_factory=list)  # AgiBot action texts (sub-steps)
+    joint_positions: np.ndarray | None = None  # (T, J) joint states (None: zeros for AgiBot)
+    joint_names: list[str] = field(default_factory=list)  # LeRobot names of the J columns
 
 
 def write_agibot_episode(
@@ -82,7 +84,9 @@ def write_agibot_episode(
         "state/end/position": ep.world_from_ee[:, :, :3, 3],  # (T, 2, 3)
         "state/end/orientation": xyzw_from_matrix(ep.world_from_ee[:, :, :3, :3]),  # (T, 2, 4)
         "state/effector/position": ep.gripper_state,  # (T, 2)
-        "state/joint/position": np.zeros((len(ep.frames), 14)),
+        "state/joint/position": np.zeros((len(ep.frames), 14))
+        if ep.joint_positions is None
+        else ep.joint_positions,
     }
     with h5py.File(proprio, "w") as f:
         for key, value in data.items():
@@ -163,6 +167,11 @@ def write_lerobot_dataset(
             "index": pa.array(np.arange(offset, offset + t, dtype=np.int64)),
             "task_index": pa.array(np.full(t, tasks.index(ep.task), dtype=np.int64)),
         }
+        if ep.joint_positions is not None:
+            q = np.asarray(ep.joint_positions, np.float32)
+            columns["observation.joint_positions"] = pa.array(
+                q.tolist(), pa.list_(pa.float32(), q.shape[1])
+            )
         if camera_pose:
             cam = ep.world_from_cam
             cam7 = np.concatenate([cam[:, :3, 3], xyzw_from_matrix(cam[:, :3, :3])], axis=1)
@@ -202,6 +211,12 @@ def write_lerobot_dataset(
         "index": {"dtype": "int64", "shape": [1], "names": None},
         "task_index": {"dtype": "int64", "shape": [1], "names": None},
     }
+    if episodes[0].joint_positions is not None:
+        features["observation.joint_positions"] = {
+            "dtype": "float32",
+            "shape": [episodes[0].joint_positions.shape[1]],
+            "names": list(episodes[0].joint_names) or None,
+        }
     if camera_pose:
         features["observation.camera_pose"] = {
             "dtype": "float32",

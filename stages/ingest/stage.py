@@ -51,6 +51,7 @@ from egosim.stages.ingest import (
 )
 from egosim.stages.ingest.egodex import read_egodex_clip
 from egosim.stages.ingest.mcap_source import read_mcap_clip
+from egosim.stages.ingest.robot_source import ArmModel
 
 SourceKind = Literal["auto", "video", "frames", "egodex", "mcap", "synthetic", "agibot", "lerobot"]
 
@@ -105,11 +106,21 @@ class IngestConfig(StageConfig):
     robot_camera: str = ""  # AgiBot camera name / LeRobot video key; "" = the head camera
     robot_camera_pose: tuple[float, ...] = ()  # LeRobot fixed world_from_cam, 16 values row-major
     robot_camera_axes: Literal["opencv", "opengl", "ros_body"] = "opencv"  # robot camera axes
+    robot_urdf: str = ""  # robot URDF file: with the log's joint states, the arm mask is rendered
+    robot_joint_names: tuple[str, ...] = ()  # URDF joint per joint-state column; () = log's names
+    robot_base_pose: tuple[float, ...] = ()  # world_from_base of the URDF root, 16 values; () = I
 
     def __post_init__(self) -> None:
         problems = []
         if self.robot and self.robot not in GRIPPER_PRESETS:
             problems.append(f"robot must be one of {sorted(GRIPPER_PRESETS)}, got {self.robot!r}")
+        if self.robot_base_pose and len(self.robot_base_pose) != 16:
+            problems.append(
+                f"robot_base_pose must be 16 values (a row-major 4x4), got "
+                f"{len(self.robot_base_pose)}: {self.robot_base_pose}"
+            )
+        if self.robot_urdf and not Path(self.robot_urdf).is_file():
+            problems.append(f"robot_urdf {self.robot_urdf!r} is not a file")
         if self.robot_camera_pose and len(self.robot_camera_pose) != 16:
             problems.append(
                 f"robot_camera_pose must be 16 values (a row-major 4x4), got "
@@ -254,6 +265,7 @@ class IngestStage(SourceStage):
                 cfg.robot_camera or agibot_source.DEFAULT_CAMERA,
                 cfg.robot_camera_axes,
                 geometry,
+                _arm_model(cfg),
             )
             yield from video_source.standardise_clip(clip, cfg)
         elif kind == "lerobot":
@@ -266,10 +278,24 @@ class IngestStage(SourceStage):
                 horizontal_fov_deg=cfg.horizontal_fov_deg,
             )
             geometry = gripper_geometry(cfg.robot or lerobot_source.DEFAULT_ROBOT)
-            clip = lerobot_source.read_lerobot_episode(Path(root), int(episode), options, geometry)
+            clip = lerobot_source.read_lerobot_episode(
+                Path(root), int(episode), options, geometry, _arm_model(cfg)
+            )
             yield from video_source.standardise_clip(clip, cfg)
         else:
             raise ClipRejected(f"unknown ingest unit {unit!r}")
+
+
+def _arm_model(cfg: IngestConfig) -> ArmModel | None:
+    """The user's URDF arm model for robot sources, or None when no URDF was given."""
+    if not cfg.robot_urdf:
+        return None
+    return ArmModel(
+        urdf=cfg.robot_urdf,
+        joint_names=tuple(cfg.robot_joint_names),
+        world_from_base=tuple(cfg.robot_base_pose),
+        dilate_px=cfg.robot_mask_dilate_px,
+    )
 
 
 def unit_name(unit: str) -> str:
