@@ -33,6 +33,7 @@ from egosim.schemas.hand_mask import HAND_MASK
 from egosim.schemas.hands import HANDS
 from egosim.schemas.inpaint import INPAINT
 from egosim.schemas.scene import SCENE_CLOUD, SCENE_RENDER
+from egosim.schemas.state import STATE
 from egosim.stages.ingest.mcap_source import read_mcap_clip
 
 REPO = Path(__file__).resolve().parents[1]
@@ -231,3 +232,23 @@ def test_cli_view_writes_one_file_per_clip(run: Path, tmp_path: Path) -> None:
     assert path.name == "synth-tabletop-00000.mcap" and f"wrote {path}" in result.output
     bad = CliRunner().invoke(app, ["view", str(run), "--out", "x.mcap", "--set", "nope=1"])
     assert bad.exit_code == EXIT_USER_ERROR and "nope" in bad.output
+
+
+@pytest.mark.slow
+def test_state_cloud_of_a_state_run(tmp_path: Path) -> None:
+    """``workflows/state.yaml`` on one tiny clip (about 20 s): the state as a point cloud."""
+    wf = load_workflow(REPO / "workflows" / "state.yaml", [f"ingest.{kv}" for kv in TINY])
+    run_workflow(wf, tmp_path / "run", scheduler=IN_PROCESS)
+    (path,) = write_run_view(tmp_path / "run", tmp_path / "state.mcap")
+    index = RunIndex.open(tmp_path / "run")
+    (cid,) = index.clip_ids(CLIPS)
+    state = index.row(STATE, cid)
+    with open(path, "rb") as f:
+        reader = make_reader(f, decoder_factories=[DecoderFactory()])
+        clouds = [m for _, c, _, m in reader.iter_decoded_messages() if c.topic == "/state/cloud"]
+    (cloud,) = clouds
+    n = state["num_points"]
+    record = np.frombuffer(cloud.data, dtype=[("xyz", "<f4", 3), ("rgba", "u1", 4), ("s", "u1")])
+    assert len(record) == n and cloud.fields[-1].name == "source"
+    np.testing.assert_array_equal(record["xyz"].ravel(), np.frombuffer(state["points_xyz"], "<f4"))
+    np.testing.assert_array_equal(record["s"], np.frombuffer(state["point_source"], "u1"))
