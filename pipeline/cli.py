@@ -355,7 +355,12 @@ def train(
         typer.Option("--scheduler", help="Dask scheduler tcp://HOST:PORT: run on a GPU worker."),
     ] = None,
 ) -> None:
-    """Train the simulator on pack shards; writes config, metrics, checkpoints, previews, sample."""
+    """Train the simulator on pack or latents shards: config, metrics, checkpoints, previews.
+
+    Many processes: ``torchrun --nproc_per_node N -m egosim.pipeline.cli train ...`` (FSDP2;
+    --set batch_size is per rank). Settings are TrainConfig fields, nested ones dotted:
+    --set lr=1e-5 --set lora.rank=64; an unknown key or a bad value is refused.
+    """
     from egosim.model.train import TrainConfig
     from egosim.pipeline.stage import build_config
     from egosim.stages.train.run import TrainJob, run_training, submit_training
@@ -369,12 +374,15 @@ def train(
         summary = submit_training(job, scheduler) if scheduler else run_training(job)
     except _model_errors() as exc:
         raise _fail(exc) from exc
+    if summary.get("rank", 0) != 0:
+        return  # torchrun: rank 0 reports
     curve = ", ".join(
         f"{c['from_step']}-{c['to_step']}: {c['loss']:.4f}" for c in summary["loss_curve"]
     )
     typer.echo(
-        f"trained {summary['preset']} to step {summary['step']} on {summary['clips']} clips in "
-        f"{summary['seconds']:.0f}s; loss {curve}; run in {out}"
+        f"trained {summary['preset']} to step {summary['step']} on {summary['clips']} clips "
+        f"({summary.get('world_size', 1)} process(es)) in {summary['seconds']:.0f}s; loss "
+        f"{curve}; run in {out}"
     )
 
 
