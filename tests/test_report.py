@@ -166,7 +166,7 @@ def test_rejects_are_grouped_by_reason_with_every_clip_id(run_dir: Path, tmp_pat
     assert "clip-a<br>clip-b</td>" in rejects and "<td>1</td>" in rejects
     assert "<td class=l>&lt;clip&gt; has no hand in view</td>" in rejects
     assert "video:/data/x&lt;y&gt;.mp4" in rejects and "x<y>" not in page  # escaped
-    clips = page.split('<section id="clips">', 1)[1]
+    clips = page.split('<section id="clips">', 1)[1].split("</section>", 1)[0]
     assert "rejected by step &#x27;ingest&#x27; (ingest): cannot read video file" in clips
 
 

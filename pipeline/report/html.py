@@ -9,10 +9,10 @@ fixed id that tests look for (:data:`SECTIONS`):
 - ``steps``: per step clips in / out, rejected, unmatched and seconds, as a table and a chart;
 - ``rejects``: per step, rejects grouped by reason (clip ids, paths and numbers taken out, as
   in the run summary), with every clip id of each group;
+- ``clips``: per clip its sheet and video, or why it has none (the step that rejected it);
 - ``quality``: a histogram per quality figure the stages record (:mod:`.quality`), with
   count, mean, median, min and max;
-- ``evaluation``: the evaluation table, when the caller gives one;
-- ``clips``: per clip its sheet and video, or why it has none (the step that rejected it).
+- ``evaluation``: the evaluation table, when the caller gives one.
 
 Every text that comes from data is HTML-escaped; every file name built from a clip id is
 checked to stay under the output folder.
@@ -39,7 +39,7 @@ log = logging.getLogger(__name__)
 INDEX = "index.html"  # the page
 PLOTLY_JS = "plotly.min.js"  # plotly.js, written beside the page once
 CLIPS_DIR = "clips"  # sheets and videos, one of each per clip
-SECTIONS = ("run", "steps", "rejects", "quality", "evaluation", "clips")  # section element ids
+SECTIONS = ("run", "steps", "rejects", "clips", "quality", "evaluation")  # section ids, in order
 DEFAULT_MAX_CLIPS = 24  # clips that get a sheet and a video (the rest are listed)
 
 
@@ -207,8 +207,10 @@ th{background:#f3f3f3} td.l,th.l{text-align:left}
 .grid{display:grid;grid-template-columns:repeat(auto-fill,minmax(440px,1fr));gap:12px}
 .card{border:1px solid #ddd;padding:6px} .card h3{font-size:14px;margin:2px 0}
 .doc{font-size:12px;color:#555} .ids{font-family:monospace;font-size:12px;word-break:break-all}
-.clip{margin:14px 0;border-top:1px solid #eee;padding-top:8px}
-.clip img{max-width:100%;display:block} .clip video{max-width:100%;display:block;margin-top:6px}
+.clips{display:grid;grid-template-columns:repeat(auto-fill,minmax(640px,1fr));gap:14px}
+.clip{border:1px solid #ddd;padding:6px}
+.clip h3{font-size:14px;margin:2px 0 6px} .clip img{max-width:100%;display:block}
+.clip video{max-width:100%;display:block;margin-top:6px}
 pre{background:#f7f7f7;padding:8px;overflow-x:auto;font-size:12px}
 """
 
@@ -369,7 +371,7 @@ def _clips_section(clips: Sequence[ClipEntry]) -> str:
     parts.append(
         "<p class=doc>Sheet: frame 0 | inpainted frame 0, then at a few times real | scene "
         "render | visible | skeleton | hand mask. Video: real | scene render | skeleton | hand "
-        "mask.</p>"
+        "mask.</p><div class=clips>"
     )
     for c in clips:
         parts.append(f'<div class=clip id="clip-{_e(c.clip_id)}"><h3>{_e(c.clip_id)}</h3>')
@@ -382,7 +384,7 @@ def _clips_section(clips: Sequence[ClipEntry]) -> str:
         else:
             parts.append(f"<p class=doc>{_e(c.note)}</p>")
         parts.append("</div>")
-    parts.append("</section>")
+    parts.append("</div></section>")
     return "".join(parts)
 
 
@@ -401,8 +403,8 @@ def _page(
         + _run_section(run)
         + _steps_section(run)
         + _rejects_section(run)
+        + _clips_section(clips)
         + _quality_section(figures)
         + _evaluation_section(evaluation_table)
-        + _clips_section(clips)
         + "</body></html>\n"
     )
