@@ -34,6 +34,7 @@ log = logging.getLogger(__name__)
 CLIP_DONE = "done"  # the stage wrote a row for it (a source unit: it made its clips)
 CLIP_REJECTED = "rejected"  # it went to the rejects table
 CLIP_UNMATCHED = "unmatched"  # absent from another input (rejected in another branch)
+TASK_STARTED = "started"  # not a clip: the task began computing (clip id ''), for clip rates
 
 # on_clip(clip id or source unit, one of the CLIP_* outcomes)
 ClipCallback = Callable[[str, str], None]
@@ -125,7 +126,8 @@ def run_shard_task(
     """Run one task (skipping it when complete). Extra arguments only order Dask tasks.
 
     ``on_clip`` is called once per clip (per unit, for a source stage) with its outcome
-    (:data:`CLIP_DONE`, :data:`CLIP_REJECTED` or :data:`CLIP_UNMATCHED`).
+    (:data:`CLIP_DONE`, :data:`CLIP_REJECTED` or :data:`CLIP_UNMATCHED`), and once with
+    ``("", TASK_STARTED)`` when the task starts computing (not when it is skipped).
     """
     start = time.perf_counter()
     if is_complete(task):
@@ -137,6 +139,8 @@ def run_shard_task(
         return ShardResult(task.step, task.shard_index, str(task.output), rows, 0, True, 0.0)
     what = f"{len(task.units)} unit(s)" if task.units else f"inputs {sorted(task.inputs)}"
     log.info("%s started: %s", task_label(task), what)
+    if on_clip is not None:
+        on_clip("", TASK_STARTED)
     stage = get_stage(task.stage).from_params(task.params)
     rejects: list[dict[str, Any]] = []
     common = {

@@ -31,6 +31,7 @@ from typing import Any, TextIO
 from egosim.pipeline.execute import (
     CLIP_DONE,
     CLIP_REJECTED,
+    TASK_STARTED,
     ShardResult,
     ShardTask,
     primary_role,
@@ -181,7 +182,7 @@ class StepProgress:
         self.given: dict[int, int | None] = {}  # shard index -> clips it is given (None: unknown)
         self.settled: dict[int, int] = {}  # shard index -> clips settled so far
         self.rejected = 0  # clips rejected so far
-        self.start: float | None = None  # when the first clip of the step settled
+        self.start: float | None = None  # when the step's first task started computing
         for task in tasks:
             self.given[task.shard_index] = len(task.units) if primary_role(task) is None else None
             self.settled[task.shard_index] = 0
@@ -198,7 +199,7 @@ class StepProgress:
         return sum(self.settled.values())
 
     def rate(self, now: float) -> float | None:
-        """Clips per second since the first clip of the step settled (None before any)."""
+        """Clips per second since the step's first task started (None before a clip settled)."""
         if self.start is None or now <= self.start or self.done < 1:
             return None
         return self.done / (now - self.start)
@@ -266,13 +267,15 @@ class ConsoleObserver(RunObserver):
         self._line(f"Dask dashboard: {link}" if link else reason)
 
     def clip_settled(self, step: str, shard_index: int, clip_id: str, outcome: str) -> None:
-        """Count one clip of ``step``."""
+        """Count one clip of ``step`` (or note that one of its tasks started)."""
         with self._lock:
             progress = self.steps.get(step)
             if progress is None:
                 return
             if progress.start is None:
                 progress.start = time.monotonic()
+            if outcome == TASK_STARTED:
+                return
             progress.settled[shard_index] = progress.settled.get(shard_index, 0) + 1
             progress.rejected += outcome == CLIP_REJECTED
             self._refresh(step)

@@ -14,7 +14,13 @@ import yaml
 from typer.testing import CliRunner
 
 from egosim.pipeline.cli import app
-from egosim.pipeline.execute import CLIP_DONE, CLIP_REJECTED, ShardResult, ShardTask
+from egosim.pipeline.execute import (
+    CLIP_DONE,
+    CLIP_REJECTED,
+    TASK_STARTED,
+    ShardResult,
+    ShardTask,
+)
 from egosim.pipeline.media import write_video_file
 from egosim.pipeline.observe import ConsoleObserver, RunObserver, log_path
 from egosim.pipeline.runner import IN_PROCESS, run_workflow
@@ -110,8 +116,12 @@ def test_run_log_names_step_stage_shard_and_every_clip(tmp_path: Path, videos: P
     assert "step ingest: 3 in, 2 out, 1 rejected" in text
     assert "step captions: 2 in, 2 out, 0 rejected" in text
     # The observer heard each clip once, each task once, and the end.
-    clips = [c for c in recorder.calls if c[0] == "clip"]
+    clips = [c for c in recorder.calls if c[0] == "clip" and c[4] != TASK_STARTED]
     assert sorted(c[3] for c in clips if c[1] == "captions") == sorted(made)
+    started = [c for c in recorder.calls if c[0] == "clip" and c[4] == TASK_STARTED]
+    assert sorted((c[1], c[2]) for c in started) == sorted(
+        (step, i) for step in ("captions", "ingest") for i in (0, 1)
+    )
     assert [c[4] for c in clips if c[1] == "ingest"].count(CLIP_REJECTED) == 1
     assert len([c for c in recorder.calls if c[0] == "task"]) == 4
     assert recorder.calls[0] == ("started", "obs", 4) and recorder.calls[-1] == ("finished",)
@@ -163,7 +173,7 @@ def test_worker_processes_forward_their_log_records(tmp_path: Path, videos: Path
         assert dash[1] == "" and "bokeh is not installed" in dash[2]
     # Per-clip progress events came back from the worker process.
     clips = [c for c in recorder.calls if c[0] == "clip" and c[1] == "captions"]
-    assert sorted(c[3] for c in clips) == sorted(made)
+    assert sorted(c[3] for c in clips if c[4] != TASK_STARTED) == sorted(made)
 
 
 def _tasks(tmp_path: Path) -> list[ShardTask]:
@@ -201,6 +211,8 @@ def test_progress_counts_clips_and_learns_totals_from_upstream(tmp_path: Path) -
     observer.clip_settled("ingest", 1, "u2", CLIP_DONE)
     observer.task_finished(ShardResult("ingest", 1, str(tasks[1].output), 3, 0, False, 0.5))
     assert captions.total == 1 + 3  # rows the ingest shards wrote
+    observer.clip_settled("captions", 1, "", TASK_STARTED)  # sets the clock, counts no clip
+    assert captions.done == 0 and captions.start is not None
     observer.clip_settled("captions", 1, "c0", CLIP_DONE)
     assert captions.done == 1 and captions.rate(captions.start + 2.0) == pytest.approx(0.5)
     assert captions.eta(captions.start + 2.0) == pytest.approx(6.0)  # 3 left at 0.5 clip/s
