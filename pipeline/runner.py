@@ -631,8 +631,15 @@ def local_source(source: str | Sequence[str] | None) -> str | Sequence[str] | No
     if source is None:
         return None
     if isinstance(source, str):
-        return str(storage.local_copy(source)) if storage.is_url(source) else source
-    return [str(storage.local_copy(s)) if storage.is_url(s) else s for s in source]
+        return _local_source(source)
+    return [_local_source(s) for s in source]
+
+
+def _local_source(source: str) -> str:
+    """One source: a URL's local copy, a ``file://`` URL's path, anything else as it is."""
+    if storage.is_url(source):
+        return str(storage.local_copy(source))
+    return source.removeprefix("file://")
 
 
 @contextlib.contextmanager

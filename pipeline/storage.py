@@ -41,6 +41,8 @@ COMPLETE_SUFFIX = ".complete"  # completion marker of a remote file: NAME.comple
 CACHE_ENV = "EGOSIM_CACHE"  # folder of local copies of remote inputs (default ~/.cache/egosim)
 
 Location = Path | str  # a local path, or a URL with a protocol other than file://
+# Protocols of object stores (fsspec names): no folders to create, no atomic rename.
+OBJECT_STORES = frozenset({"s3", "s3a", "gs", "gcs", "az", "abfs", "abfss", "adl", "oss"})
 
 
 class StorageError(OSError):
@@ -173,11 +175,20 @@ def is_committed(loc: Location) -> bool:
         return False
 
 
+def is_object_store(loc: Location) -> bool:
+    """True for a URL of an object store (keys, no folders: nothing to create before a write)."""
+    return is_url(loc) and str(loc).partition("://")[0].lower() in OBJECT_STORES
+
+
 def makedirs(loc: Location) -> None:
-    """Create the folder ``loc`` and its parents (object stores need none: a no-op there)."""
+    """Create the folder ``loc`` and its parents.
+
+    A no-op on object stores: they have no folders, and creating one there would create a
+    bucket; a missing bucket fails at the first write instead, with the store's message.
+    """
     if isinstance(loc, Path):
         loc.mkdir(parents=True, exist_ok=True)
-    else:
+    elif not is_object_store(loc):
         fs, path = filesystem(loc)
         fs.makedirs(path, exist_ok=True)
 
@@ -235,13 +246,17 @@ def atomic_write(loc: Location) -> Iterator[IO[bytes]]:
             raise
         return
     fs, tmp_path = filesystem(tmp)
+    body_done = False  # errors after the caller's block are the store's: name the location
     try:
         with fs.open(tmp_path, "wb") as f:
             yield f
+            body_done = True
         commit(tmp, loc)
-    except BaseException:
+    except BaseException as exc:
         with contextlib.suppress(Exception):
             fs.rm_file(tmp_path)
+        if body_done and isinstance(exc, OSError) and not isinstance(exc, StorageError):
+            raise StorageError(f"{loc}: cannot write ({exc})") from exc
         raise
 
 

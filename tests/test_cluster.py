@@ -106,7 +106,7 @@ def test_local_cluster_takes_gpu_workers_from_dask_cuda_and_adds_cpu_workers(
 ) -> None:
     from distributed import Client
 
-    cluster = clusters.local_cluster(n_workers=3)
+    cluster = clusters.local_cluster(n_workers=3, dashboard_address=":0")
     try:
         assert fake_dask_cuda == [
             {
@@ -136,7 +136,7 @@ def test_local_cluster_without_dask_cuda_is_the_hand_built_spec(
 ) -> None:
     monkeypatch.setattr(clusters, "dask_cuda_available", lambda: False)
     monkeypatch.setattr(clusters, "visible_gpus", lambda: 0)
-    cluster = clusters.local_cluster(n_workers=2, gpu_workers=1)
+    cluster = clusters.local_cluster(n_workers=2, gpu_workers=1, dashboard_address=":0")
     try:
         spec = cluster.worker_spec
         assert sorted(spec) == ["cpu-1", "gpu-0"]

@@ -298,6 +298,18 @@ def test_stage_command_reads_and_writes_urls(s3: str, tmp_path: Path) -> None:
     assert result.exit_code == 0 and "checked 4 shard(s): 0 violation(s)" in result.output
 
 
+def test_run_into_a_missing_bucket_fails_with_the_stores_message(s3: str, tmp_path: Path) -> None:
+    wf_file = tmp_path / "wf.yaml"
+    wf_file.write_text(yaml.safe_dump(two_step_workflow()))
+    out = "s3://no-such-egosim-bucket/run"
+    args = ["run", str(wf_file), "--out", out, "--scheduler", "here"]
+    with pytest.warns(UserWarning, match="could not copy the run log"):
+        result = CliRunner().invoke(app, args)
+    assert result.exit_code == 2, result.output
+    assert "no-such-egosim-bucket" in result.output and "bucket" in result.output.lower()
+    assert not fsspec.filesystem("s3").exists("no-such-egosim-bucket")  # never created
+
+
 def test_remote_input_is_downloaded_once_into_the_cache(s3: str, tmp_path: Path) -> None:
     videos = tiny_videos(tmp_path / "videos")
     fs, root = storage.filesystem(s3)
