@@ -334,3 +334,88 @@ def test_stage_uses_connected_hands_and_poses(tmp_path: Path) -> None:
     np.testing.assert_array_equal(masks, expected)
     assert 0 < masks.sum() < stage.masks_for_clip(clip).sum()  # one hand fewer
     assert not np.array_equal(masks, stage.masks_for_clip(left_only))  # the camera moved
+
+
+def _static_table(h: int = 96, w: int = 128) -> np.ndarray:
+    """A pale, lightly textured table (what a pale hand's colour model confuses)."""
+    rng = np.random.default_rng(3)
+    table = np.clip(rng.normal(205, 12, (h, w, 3)), 0, 255).astype(np.uint8)
+    return cv2.GaussianBlur(table, (5, 5), 0)
+
+
+def test_background_patch_is_not_carried_back_without_hand_evidence() -> None:
+    """pour_coke's failure: frame 1's mask holds a table patch beside the hand that just
+    entered; the patch looks the same in frame 0 (static background), so plain flow carried it
+    back. Only the certain hand seeds travel with confidence: frame 0 (no hand) stays empty."""
+    from egosim.stages.hand_mask.propagate import propagate_backwards
+
+    table = _static_table()
+    frames = np.stack([table, table.copy()])  # (2, H, W, 3)
+    frames[1, 30:96, 100:128] = (220, 170, 140)  # a hand entering from the right border
+    masks = np.zeros((2, 96, 128), np.uint8)
+    masks[1, 30:96, 100:128] = 1  # the hand ...
+    masks[1, 40:60, 60:100] = 1  # ... and a patch of table the colour model joined to it
+    certain = np.zeros_like(masks)
+    certain[1, 40:90, 108:124] = 1  # the keypoint skeleton: on the hand only
+    out = propagate_backwards(frames, masks, certain=certain)
+    assert out[0].sum() == 0, f"{out[0].sum()} px carried into a frame without a hand"
+    np.testing.assert_array_equal(out[1], masks[1])
+    # Without the certain seeds the whole warped mask is trusted: the patch comes back, which
+    # is the failure this guards against (the test would catch it).
+    old = propagate_backwards(frames, masks)
+    assert old[0, 40:60, 60:100].mean() > 0.5
+
+
+def test_missed_hand_is_carried_while_the_other_is_found() -> None:
+    """A frame that missed one hand but found the other gets the missed one from its neighbour
+    (dwm_00013's right hand); before, only frames with no mask at all were filled."""
+    from egosim.stages.hand_mask.propagate import propagate_hands
+
+    table = _static_table()
+    frames = np.stack([table.copy(), table.copy()])
+    for f, shift in zip(frames, (0, 3), strict=True):
+        f[50:96, 10:30] = (200, 140, 110)  # hand 0, still
+        f[40 + shift : 96, 90:112] = (60, 40, 90)  # hand 1 in a dark sleeve, moving down 3 px
+    per_hand = np.zeros((2, 2, 96, 128), np.uint8)
+    per_hand[:, 0, 50:96, 10:30] = 1  # hand 0 found in both frames
+    per_hand[1, 1, 43:96, 90:112] = 1  # hand 1 found in frame 1 only
+    certain = np.zeros_like(per_hand)
+    certain[:, 0, 60:90, 15:25] = 1
+    certain[1, 1, 55:90, 96:106] = 1
+    masks = per_hand.max(axis=1)  # (2, H, W)
+    out = propagate_hands(frames, masks, per_hand, certain)
+    sleeve0 = np.zeros((96, 128), bool)
+    sleeve0[42:96, 92:110] = True  # hand 1 in frame 0, 2 px inside its edges
+    assert out[0][sleeve0].mean() > 0.9, f"missed hand covered {out[0][sleeve0].mean():.2f}"
+    outside = np.ones((96, 128), bool)
+    outside[36:, 86:116] = False
+    outside[46:, 6:34] = False
+    assert out[0][outside].sum() == 0, "carried mask leaked onto the table"
+    np.testing.assert_array_equal(out[1], masks[1])
+
+
+def test_unlike_background_keeps_hand_colours_only() -> None:
+    """Candidates coloured like the certain hand stay; those like the background round it go."""
+    from egosim.stages.hand_mask.arm_region import unlike_background
+
+    image = np.zeros((60, 90, 3), np.uint8)
+    image[:, :30] = (230, 230, 225)  # white table
+    image[:, 30:60] = (200, 150, 125)  # skin
+    image[:, 60:] = (120, 120, 125)  # grey wall
+    lab = cv2.cvtColor(image, cv2.COLOR_RGB2LAB).astype(np.float32)
+    hand = np.zeros((60, 90), bool)
+    hand[10:50, 35:55] = True
+    background = np.zeros((60, 90), bool)
+    background[:, :20] = True
+    background[:, 70:] = True
+    candidates = np.zeros((60, 90), bool)
+    candidates[:, 20:70] = True  # table, skin and wall columns
+    keep = unlike_background(lab, candidates, hand, background, match=8.0)
+    assert keep[:, 30:60].all() and not keep[:, 20:30].any() and not keep[:, 60:70].any()
+    # A shade of the table 9 Lab units off its colour is dropped only when ``match`` reaches it.
+    lab[:, 20:30, 0] -= 9.0
+    assert unlike_background(lab, candidates, hand, background, match=4.0)[:, 20:30].all()
+    assert not unlike_background(lab, candidates, hand, background, match=12.0)[:, 20:30].any()
+    assert unlike_background(lab, candidates, np.zeros_like(hand), background).sum() == (
+        candidates.sum()
+    ), "no hand colours to compare with: every candidate is kept"

@@ -1,20 +1,27 @@
-"""Carry hand-and-arm masks backwards in time with optical flow.
+"""Carry hand-and-arm masks through time with optical flow, one hand at a time.
 
 An arm that enters the view later in the clip is often already visible at the image border in
-the earlier frames, where no hand keypoint is (the wrist is still below the image). Going from
+the earlier frames, where no hand keypoint is (the wrist is still below the image), and a hand
+the keypoints miss for a few frames is still where the neighbouring frames put it. Going from
 the last frame to the first, frame ``t + 1``'s mask is pulled back into frame ``t`` through the
 dense optical flow from ``t`` to ``t + 1`` (OpenCV DIS):
-``warped_t(x) = mask_{t+1}(x + flow_{t->t+1}(x))``.
+``warped_t(x) = mask_{t+1}(x + flow_{t->t+1}(x))``; forwards in time the same on the reversed
+clip. The masks are one hand's (:func:`propagate_hands`): a frame gets hand ``k`` carried into it
+when its own mask of hand ``k`` is empty (that hand was missed), whatever the other hand's.
 
 Background that the arm covers at ``t + 1`` but not at ``t`` also maps into the arm, so the
 warped mask keeps only pixels whose grey level at ``t`` is within ``photo_tolerance`` of frame
 ``t + 1``'s at the flow's target (the table the arm is about to cover has no flow but not the
-arm's colour), and it is only a proposal: pixels whose forward-backward flow agrees within
-``consistency_px`` and lie inside the eroded proposal are certainly arm, the rest of it probably
-arm, a ring round it probably background, and GrabCut on frame ``t`` decides which of the
-warped pixels stay (it never adds pixels outside the warped mask, so errors do not grow) (see
-``arm_region``). The result joins frame ``t``'s own mask, and only what connects to the certain
-pixels is kept.
+arm's colour), and it is only a proposal. Only hand evidence travels with confidence: when the
+frames' ``certain`` masks are given (the keypoint skeleton and arm strip each mask was grown
+from), the certainly-arm core at ``t`` is the warped certain mask where the flow is
+forward-backward consistent within ``consistency_px`` and photo-consistent, eroded; without
+them, the whole consistent warped mask. A patch of background that a frame's colour model
+wrongly joined to its hand is not certain there, so it reaches an earlier frame as a proposal
+at most, and without a certain core next to it nothing is kept. The rest of the warped mask is
+probably arm, a ring round it probably background, and GrabCut on frame ``t`` decides which of
+the warped pixels stay (it never adds pixels outside the warped mask, so errors do not grow)
+(see ``arm_region``). Only what connects to the certain core is kept.
 """
 
 from __future__ import annotations
@@ -77,22 +84,33 @@ def _pull(image: np.ndarray, flow: np.ndarray, interpolation: int) -> np.ndarray
 
 
 def propagate_backwards(
-    frames: np.ndarray, masks: np.ndarray, params: PropagationParams | None = None
+    frames: np.ndarray,
+    masks: np.ndarray,
+    params: PropagationParams | None = None,
+    certain: np.ndarray | None = None,
 ) -> np.ndarray:
     """Masks ``(T, H, W)`` uint8 with later masks carried back into earlier frames.
 
     ``frames (T, H, W, 3)`` uint8 RGB; ``masks (T, H, W)`` uint8 (1 = hand or arm), each frame's
-    own mask. Frame ``T - 1`` is returned as given; every earlier frame gains what the
-    (already propagated) next frame's mask shows of it (see the module docstring), as long as
-    that mask was found at most ``max_frames`` frames later.
+    own mask; ``certain (T, H, W)`` uint8, optional: the part of each mask that is certainly
+    hand or arm (see the module docstring; None: all of it). Frame ``T - 1`` is returned as
+    given; every earlier frame gains what the (already propagated) next frame's mask shows of
+    it, as long as that mask was found at most ``max_frames`` frames later.
     """
     p = params or PropagationParams()
     out = masks.astype(np.uint8).copy()
+    sure = out.copy() if certain is None else (certain > 0).astype(np.uint8) & out
     if len(frames) < 2:
         return out
     # Frames since the mask at each frame was found (0: its own mask is not empty).
     age = np.where(out.reshape(len(out), -1).any(axis=1), 0, p.max_frames + 1)  # (T,)
-    grey = [cv2.cvtColor(f, cv2.COLOR_RGB2GRAY) for f in frames]
+    grey: dict[int, np.ndarray] = {}
+
+    def grey_of(t: int) -> np.ndarray:
+        if t not in grey:
+            grey[t] = cv2.cvtColor(frames[t], cv2.COLOR_RGB2GRAY)
+        return grey[t]
+
     dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_FAST)
     erode = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * p.erode_px + 1,) * 2)
     ring = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * p.ring_px + 1,) * 2)
@@ -101,37 +119,70 @@ def propagate_backwards(
             continue
         if p.into_empty_only and age[t] == 0:
             continue
-        fwd = _flow(dis, grey[t], grey[t + 1])  # (H, W, 2) t -> t+1
-        bwd = _flow(dis, grey[t + 1], grey[t])  # (H, W, 2) t+1 -> t
+        fwd = _flow(dis, grey_of(t), grey_of(t + 1))  # (H, W, 2) t -> t+1
         warped = _pull(out[t + 1], fwd, cv2.INTER_NEAREST)  # (H, W) proposal at t
         # A pixel is carried only where frame t looks like frame t+1 at the flow's target: the
         # table that the arm will cover next has zero flow but not the arm's colour.
-        seen_next = _pull(grey[t + 1], fwd, cv2.INTER_LINEAR).astype(np.int16)  # (H, W)
-        same = np.abs(seen_next - grey[t].astype(np.int16)) <= p.photo_tolerance
-        warped &= same.astype(np.uint8)
+        seen_next = _pull(grey_of(t + 1), fwd, cv2.INTER_LINEAR).astype(np.int16)  # (H, W)
+        same = (np.abs(seen_next - grey_of(t).astype(np.int16)) <= p.photo_tolerance).astype(
+            np.uint8
+        )
+        warped &= same
         new = (warped > 0) & (out[t] == 0)
         if new.sum() < p.min_pixels:
             continue
+        bwd = _flow(dis, grey_of(t + 1), grey_of(t))  # (H, W, 2) t+1 -> t
         back = _pull(bwd, fwd, cv2.INTER_LINEAR)  # (H, W, 2) bwd at x + fwd(x)
         consistent = np.hypot(*(fwd + back).transpose(2, 0, 1)) <= p.consistency_px
-        core = cv2.erode(warped, erode) & consistent.astype(np.uint8)
+        carried = _pull(sure[t + 1], fwd, cv2.INTER_NEAREST) & warped & consistent.astype(np.uint8)
+        core = cv2.erode(carried, erode)
+        if not core.any() and not out[t].any():
+            continue  # no hand evidence reaches frame t: nothing to anchor a proposal to
         labels = np.full(warped.shape, cv2.GC_BGD, np.uint8)
         labels[cv2.dilate(warped | out[t], ring) > 0] = cv2.GC_PR_BGD
         labels[warped > 0] = cv2.GC_PR_FGD
         labels[(core > 0) | (out[t] > 0)] = cv2.GC_FGD
         grown = grabcut_labels(frames[t], labels, p.iterations, p.max_side) & (warped | out[t])
-        out[t] = connected_to(grown, labels == cv2.GC_FGD) | out[t]
+        kept = connected_to(grown, labels == cv2.GC_FGD)
+        sure[t] |= carried & kept
+        out[t] = kept | out[t]
         age[t] = min(age[t], age[t + 1] + 1)
     return out
 
 
 def propagate_both_ways(
-    frames: np.ndarray, masks: np.ndarray, params: PropagationParams | None = None
+    frames: np.ndarray,
+    masks: np.ndarray,
+    params: PropagationParams | None = None,
+    certain: np.ndarray | None = None,
 ) -> np.ndarray:
     """Masks ``(T, H, W)`` carried backwards and forwards in time (see :func:`propagate_backwards`).
 
-    Each direction starts from the frames' own ``masks``; the result is their union.
+    Each direction starts from the frames' own ``masks`` (and ``certain`` parts); the result is
+    their union.
     """
-    back = propagate_backwards(frames, masks, params)
-    forward = propagate_backwards(frames[::-1], masks[::-1], params)[::-1]
+    back = propagate_backwards(frames, masks, params, certain)
+    rev = None if certain is None else certain[::-1]
+    forward = propagate_backwards(frames[::-1], masks[::-1], params, rev)[::-1]
     return back | forward
+
+
+def propagate_hands(
+    frames: np.ndarray,
+    masks: np.ndarray,
+    per_hand: np.ndarray,
+    certain: np.ndarray,
+    params: PropagationParams | None = None,
+) -> np.ndarray:
+    """Masks ``(T, H, W)`` with each hand's mask carried into the frames that missed that hand.
+
+    ``masks (T, H, W)`` every frame's own mask; ``per_hand (T, K, H, W)`` the parts of it that
+    belong to hand ``k``; ``certain (T, K, H, W)`` their certain seeds (see ``arm_region``). Hand
+    by hand, :func:`propagate_both_ways` carries ``per_hand[:, k]`` into the frames where it is
+    empty; the result is the union with ``masks``.
+    """
+    out = masks.astype(np.uint8).copy()
+    for k in range(per_hand.shape[1]):
+        if per_hand[:, k].any():
+            out |= propagate_both_ways(frames, per_hand[:, k], params, certain[:, k])
+    return out

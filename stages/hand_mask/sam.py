@@ -8,6 +8,7 @@ capsule mask, so the model segments hand and arm rather than one finger.
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -79,6 +80,8 @@ class SamSegmenter:
                 ) from exc
             if not model_path:
                 raise SamBackendError("the 'sam' backend needs sam_model_path (a local folder)")
+            if not Path(model_path).is_dir():  # transformers would read it as a hub repo id
+                raise SamBackendError(f"sam_model_path {model_path!r} is not a local folder")
             try:
                 processor = SamProcessor.from_pretrained(model_path, local_files_only=True)
                 model = SamModel.from_pretrained(model_path, local_files_only=True).to(device)
