@@ -100,8 +100,15 @@ def save_tree(path: str | Path, tree: Any, format_version: int = 1) -> None:
 
 
 def refuse_pickle(path: str | Path) -> None:
-    """Raise :class:`UnsafeCheckpointError` if ``path`` starts like a pickle or torch.save zip."""
+    """Raise :class:`UnsafeCheckpointError` if ``path`` starts like a pickle or torch.save zip.
+
+    A checkpoint folder (format 3) is checked file by file (its ``*.safetensors``).
+    """
     path = Path(path)
+    if path.is_dir():
+        for file in sorted(path.glob(f"*{CHECKPOINT_SUFFIX}")):
+            refuse_pickle(file)
+        return
     try:
         with path.open("rb") as f:
             head = f.read(4)
