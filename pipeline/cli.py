@@ -558,7 +558,8 @@ def evaluate(
 @app.command()
 def report(
     paths: Annotated[
-        list[Path], typer.Argument(help="A run folder (with --out), or evaluation shards/folders.")
+        list[str],
+        typer.Argument(help="A run folder or URL (with --out), or evaluation shards/folders."),
     ],
     out: Annotated[
         Path | None,
@@ -572,7 +573,8 @@ def report(
 ) -> None:
     """Print the evaluation table of evaluation shards, or (--out) write a run's HTML report.
 
-    `egosim report RUN --out DIR` writes DIR/index.html (open it in a browser; no server):
+    `egosim report RUN --out DIR` writes DIR/index.html (open it in a browser; no server;
+    RUN may be a URL, downloaded to the local cache first):
     per-step counts and seconds, rejects grouped by reason, quality histograms, a contact
     sheet and side-by-side video per clip, and the evaluation table when the run has one.
     """
@@ -586,7 +588,9 @@ def report(
 
         if len(paths) != 1:
             raise StageError(f"--out takes one run folder, got {len(paths)}: {paths}")
-        run_dir = paths[0]
+        # A remote run (s3://, gs://) is read from its local copy in the cache.
+        where = storage.location(paths[0])
+        run_dir = where if isinstance(where, Path) else storage.local_copy(where)
         evaluations = [run_dir / s.step for s in load_run(run_dir).steps_of("evaluate")]
         table = format_table(read_evaluations(evaluations)) if evaluations else None
         index = write_report(run_dir, out, ReportConfig(max_clips=max_clips), table)

@@ -29,6 +29,7 @@ from egosim.pipeline.runner import IN_PROCESS, run_workflow
 from egosim.pipeline.shards import ShardWriter
 from egosim.pipeline.workflow import load_workflow
 from egosim.schemas import REJECTS
+from egosim.schemas.pack import EVALUATION
 
 REPO = Path(__file__).resolve().parents[1]
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
@@ -168,6 +169,72 @@ def test_rejects_are_grouped_by_reason_with_every_clip_id(run_dir: Path, tmp_pat
     assert "video:/data/x&lt;y&gt;.mp4" in rejects and "x<y>" not in page  # escaped
     clips = page.split('<section id="clips">', 1)[1].split("</section>", 1)[0]
     assert "rejected by step &#x27;ingest&#x27; (ingest): cannot read video file" in clips
+
+
+def test_report_of_a_remote_run_reads_its_local_copy(
+    run_dir: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import fsspec
+
+    monkeypatch.setenv("EGOSIM_CACHE", str(tmp_path / "cache"))
+    memory = fsspec.filesystem("memory")
+    memory.put(str(run_dir), "/report-test-run", recursive=True)
+    try:
+        out = tmp_path / "html"
+        args = ["report", "memory://report-test-run", "--out", str(out)]
+        result = CliRunner().invoke(app, args)
+        assert result.exit_code == 0, result.output
+        page = (out / "index.html").read_text()
+        ids = sorted(_rows(run_dir, "ingest", []))
+        assert all(f'<div class=clip id="clip-{cid}">' in page for cid in ids)
+        assert all((out / "clips" / f"{cid}.mp4").is_file() for cid in ids)
+    finally:
+        memory.rm("/report-test-run", recursive=True)
+
+
+def _evaluation_row(cid: str, psnr: float) -> dict:
+    return {
+        "clip_id": cid,
+        "num_frames": T,
+        "psnr": psnr,
+        "psnr_hand": None,
+        "ssim": 0.5,
+        "psnr_baseline": 20.0,
+        "psnr_hand_baseline": None,
+        "ssim_baseline": 0.4,
+        "lpips": None,
+        "depth_err": None,
+        "cam_err": None,
+        "camera_backend": "none",
+        "hand_fraction": 0.1,
+        "note": "",
+    }
+
+
+def test_report_prints_evaluation_tables_and_puts_a_runs_in_its_page(
+    run_dir: Path, tmp_path: Path
+) -> None:
+    run = tmp_path / "run"
+    shutil.copytree(run_dir, run)
+    (run / "evaluate").mkdir()
+    with ShardWriter(run / "evaluate" / "shard-00000.parquet", EVALUATION, stage="evaluate") as w:
+        w.write_row(_evaluation_row("clip-e0", 30.0))
+        w.write_row(_evaluation_row("clip-e1", 34.0))
+    summary = json.loads((run / "summary.json").read_text())
+    step = {**summary["steps"][-1], "step": "evaluate", "stage": "evaluate", "final": True}
+    summary["steps"].append(step)
+    (run / "summary.json").write_text(json.dumps(summary))
+    cli = CliRunner()
+    printed = cli.invoke(app, ["report", str(run / "evaluate")])  # no --out: the table
+    assert printed.exit_code == 0, printed.output
+    assert re.search(r"clip-e1\s+34\.0000", printed.output)
+    assert re.search(r"overall\s+32\.0000", printed.output)  # mean PSNR
+    out = tmp_path / "html"
+    result = cli.invoke(app, ["report", str(run), "--out", str(out), "--max-clips", "0"])
+    assert result.exit_code == 0, result.output
+    page = (out / "index.html").read_text()
+    section = page.split('<section id="evaluation">', 1)[1].split("</section>", 1)[0]
+    assert re.search(r"overall\s+32\.0000", section) and "clip-e0" in section
 
 
 def test_evaluation_table_gets_its_section(run_dir: Path, tmp_path: Path) -> None:
