@@ -1,8 +1,9 @@
-"""What a run produced: per step, clips in, clips out, rejected, and the top reject reasons.
+"""What a run produced: per step, clips in, out, rejected, seconds, and the top reject reasons.
 
 :func:`summarize_tasks` reads the shards and rejects files that a set of :class:`ShardTask`
 left on disk (so a resumed run reports the shards it skipped too) and returns a
-:class:`RunReport`. The report names what went wrong when a run produced nothing; its
+:class:`RunReport`; the :class:`ShardResult` of the run's tasks add each step's seconds (wall
+time of its tasks, summed) and skipped shards. :func:`format_report` is the closing table. The report names what went wrong when a run produced nothing; its
 :meth:`RunReport.raise_for_outcome` raises a typed :class:`EmptyRunError` for the CLI to turn
 into an exit code:
 
@@ -18,6 +19,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import logging
 import re
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass
@@ -28,6 +30,8 @@ from egosim.pipeline.execute import ShardResult, ShardTask, is_complete
 from egosim.pipeline.shards import ShardReader
 from egosim.pipeline.stage import SourceStage, get_stage
 from egosim.schemas import REJECTS
+
+log = logging.getLogger(__name__)
 
 SUMMARY_VERSION = 2  # version of the summary.json layout (2: per-step seconds, skipped_shards)
 
@@ -177,6 +181,12 @@ def _summarize_step(tasks: list[ShardTask], final: bool) -> StepSummary:
     rejects: list[tuple[str, str]] = []  # (clip_id, reason)
     for task in tasks:
         if not is_complete(task):  # absent, or left by an earlier run with other inputs
+            log.warning(
+                "step=%s stage=%s shard=%s has no output with this run's fingerprint",
+                task.step,
+                task.stage,
+                storage.name(task.output),
+            )
             missing += 1
             continue
         with ShardReader(task.output) as reader:
