@@ -3,7 +3,8 @@
 :func:`summarize_tasks` reads the shards and rejects files that a set of :class:`ShardTask`
 left on disk (so a resumed run reports the shards it skipped too) and returns a
 :class:`RunReport`; the :class:`ShardResult` of the run's tasks add each step's seconds (wall
-time of its tasks, summed) and skipped shards. :func:`format_report` is the closing table. The report names what went wrong when a run produced nothing; its
+time of its tasks, summed) and skipped shards. :func:`format_report` is the closing table.
+The report names what went wrong when a run produced nothing; its
 :meth:`RunReport.raise_for_outcome` raises a typed :class:`EmptyRunError` for the CLI to turn
 into an exit code:
 
