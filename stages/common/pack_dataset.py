@@ -2,8 +2,10 @@
 
 ``PackDataset(paths)`` accepts shard files, folders of shards, or a run folder (its ``pack/``
 step folder is used). It indexes ``(shard, row group)`` pairs up front and decodes a sample when
-it is asked for, so memory holds one clip at a time unless ``cache=True`` (the default for small
-sets: ``tiny`` training revisits the same few clips hundreds of times).
+it is asked for, so memory holds one clip at a time unless ``cache=True`` (the default: ``tiny``
+training revisits the same few clips hundreds of times). The cache keeps decoded samples up to
+:data:`CACHE_BUDGET_BYTES` of video and decodes the rest on each access, so a large pack (or one
+rank of a many-rank run, which reads only its own samples) never holds the whole data set.
 
 It lives in ``stages/common`` because several stages and commands read pack shards (``train``,
 ``egosim simulate`` and ``evaluate``), and a stage never imports another stage.
@@ -18,6 +20,8 @@ from egosim.model.conditioning import TrainingSample
 from egosim.pipeline.shards import ShardReader, find_shards
 from egosim.schemas.pack import PACK
 from egosim.stages.common.packed import sample_from_pack_row
+
+CACHE_BUDGET_BYTES = 1 << 30  # decoded video bytes the sample cache may hold (1 GiB)
 
 
 def find_pack_shards(paths: Iterable[str | Path]) -> list[Path]:
@@ -51,6 +55,7 @@ class PackDataset:
                     self.clip_ids.append(clip_id)
                     self.sizes.append((int(t), int(h), int(w)))
         self._cached: dict[int, TrainingSample] = {}
+        self._cached_bytes = 0  # decoded video bytes held by _cached
 
     def __len__(self) -> int:
         return len(self._index)
@@ -68,6 +73,9 @@ class PackDataset:
         if i in self._cached:
             return self._cached[i]
         sample = sample_from_pack_row(self.row(i))
-        if self.cache:
+        t, h, w = self.sizes[i]
+        size = 3 * t * h * w * 3  # target, scene and skeleton videos, uint8 RGB
+        if self.cache and self._cached_bytes + size <= CACHE_BUDGET_BYTES:
             self._cached[i] = sample
+            self._cached_bytes += size
         return sample
