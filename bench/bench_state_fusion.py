@@ -44,6 +44,7 @@ from egosim.stages.state_fusion.metrics import (
     nearest_distance,
     stray_points,
 )
+from egosim.stages.state_fusion.segmenters import Segmenter
 from egosim.stages.state_fusion.stage import StateFusionStage
 from egosim.stages.state_fusion.state_io import state_from_row
 from egosim.stages.world import WorldConfig, render_clip
@@ -131,7 +132,10 @@ def _in_roi(points: np.ndarray, centres: np.ndarray) -> np.ndarray:
 
 
 def measure_state_update(
-    config: WorldConfig, look_back: bool = True, fusion: StateFusionConfig | None = None
+    config: WorldConfig,
+    look_back: bool = True,
+    fusion: StateFusionConfig | None = None,
+    segmenter: Segmenter | None = None,
 ) -> dict[str, Any]:
     """Fuse the static and the interaction video of one clip and compare with ground truth.
 
@@ -139,7 +143,8 @@ def measure_state_update(
     ``id``, ``shift`` (true displacement), ``error`` (updated state) and ``baseline_error``
     (state 0), ``interactive`` (the instance was flagged) and ``instance``; ``look_back`` adds
     :func:`look_back_figures`. ``clip``, ``row0`` and ``row`` hold the clip and both states.
-    ``fusion`` replaces the stage's default parameters.
+    ``fusion`` replaces the stage's default parameters; ``segmenter`` (learned 2D object masks)
+    replaces DBSCAN in the update (state 0 stays geometric).
     """
     clip = render_clip(config)
     stage = StateFusionStage(fusion)
@@ -148,6 +153,7 @@ def measure_state_update(
     seconds_first = time.perf_counter() - start
     rows = clip_rows(clip)
     rows["previous_state"] = state_for_clip(row0, clip.clip_id)  # the state the clip starts from
+    stage.segmenter = segmenter
     start = time.perf_counter()
     row1 = stage.process(rows)
     seconds_update = time.perf_counter() - start

@@ -13,7 +13,9 @@ import numpy as np
 
 from egosim.pipeline.stage import ConfigError, StageConfig
 
-SEGMENTATION_BACKENDS = ("geometric",)  # object instances without weights (plane + DBSCAN)
+# object instances: "geometric" (plane + DBSCAN, no weights) or "grounded_sam" (Grounding-DINO
+# boxes for object_labels, SAM masks; local weights; stages/state_fusion/segmenters.py)
+SEGMENTATION_BACKENDS = ("geometric", "grounded_sam")
 BOX_OVERLAPS = ("iou", "ioa")  # how the interaction test compares object and hand boxes
 
 
@@ -22,6 +24,12 @@ class StateFusionConfig(StageConfig):
     """Parameters of ``state_fusion`` (see the module docstring for where defaults come from)."""
 
     backend: str = "geometric"  # object instances: "geometric" (RANSAC plane + DBSCAN), no weights
+    # or "grounded_sam" (learned 2D masks, weights from local folders)
+    object_labels: tuple[str, ...] = ()  # grounded_sam: object names to find, e.g. cup,box
+    dino_model_path: str = ""  # grounded_sam: local Grounding-DINO folder (transformers layout)
+    sam_model_path: str = ""  # grounded_sam: local SAM folder (transformers layout)
+    box_threshold: float = 0.3  # grounded_sam: Grounding-DINO box score threshold
+    text_threshold: float = 0.25  # grounded_sam: Grounding-DINO text score threshold
     # Interaction test (paper, supp. 2.2)
     hand_box_iou: float = 0.1  # object/hand box overlap above this: candidate (paper: 0.1)
     box_overlap: str = "ioa"  # "ioa": overlap / object box; "iou": paper's (see fusion.py)
@@ -68,6 +76,12 @@ class StateFusionConfig(StageConfig):
         problems: list[str] = []
         if self.backend not in SEGMENTATION_BACKENDS:
             problems.append(f"backend must be one of {SEGMENTATION_BACKENDS}, got {self.backend!r}")
+        if self.backend == "grounded_sam" and not (
+            self.object_labels and self.dino_model_path and self.sam_model_path
+        ):
+            problems.append(
+                "backend 'grounded_sam' needs object_labels, dino_model_path and sam_model_path"
+            )
         if self.box_overlap not in BOX_OVERLAPS:
             problems.append(f"box_overlap must be one of {BOX_OVERLAPS}, got {self.box_overlap!r}")
         positive = (

@@ -32,7 +32,7 @@ previous state unchanged.
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 
 import cv2
 import numpy as np
@@ -50,6 +50,7 @@ from egosim.pipeline.geometry import (
     unproject_depth,
 )
 from egosim.stages.state_fusion.config import StateFusionConfig
+from egosim.stages.state_fusion.segmenters import Segmenter
 
 SOURCE_BACKGROUND, SOURCE_OBJECT, SOURCE_LAST_OBSERVED, SOURCE_PREVIOUS = 0, 1, 2, 3
 TRACK_MEMORY = 5  # a track matches clusters against the voxels of its last 5 observations
@@ -285,6 +286,7 @@ def track_objects(
     frames: Iterable[tuple[np.ndarray, np.ndarray]],
     plane: SupportPlane,
     config: StateFusionConfig,
+    frame_masks: Callable[[int], list[np.ndarray]] | None = None,
 ) -> list[Track]:
     """Object tracks from per-frame ``(world points (n_k, 3), flat pixel indices (n_k,))``.
 
@@ -296,6 +298,9 @@ def track_objects(
     last ``TRACK_MEMORY`` observations, so a part left visible by a hand still matches), else
     the nearest centroid within ``track_max_jump_m``) or start a new one. Several clusters may
     join one track in a frame (an object split by an occluding hand).
+
+    ``frame_masks(k)`` (a learned segmenter's flat ``(H*W,)`` bool masks of frame ``k``)
+    replaces DBSCAN: each mask's points above the plane are one cluster.
     """
     tracks: list[Track] = []
     for k, (pts, pix) in enumerate(frames):
@@ -308,12 +313,16 @@ def track_objects(
         pts, pix = pts[keep], pix[keep]
         if len(pts) < config.min_object_points:
             continue
-        labels = cluster_points(pts, config.cluster_eps_m)
-        clusters = [
-            np.flatnonzero(labels == lab)
-            for lab in range(labels.max() + 1)
-            if (labels == lab).sum() >= config.min_object_points
-        ]
+        if frame_masks is None:
+            labels = cluster_points(pts, config.cluster_eps_m)
+            clusters = [
+                np.flatnonzero(labels == lab)
+                for lab in range(labels.max() + 1)
+                if (labels == lab).sum() >= config.min_object_points
+            ]
+        else:
+            clusters = [np.flatnonzero(m[pix]) for m in frame_masks(k)]
+            clusters = [c for c in clusters if len(c) >= config.min_object_points]
         assigned: dict[int, list[np.ndarray]] = {}
         for idx in clusters:
             cpts = pts[idx]
@@ -619,9 +628,15 @@ def _check_observation(obs: Observation) -> None:
 
 
 def fuse_state(
-    obs: Observation, previous: State | None, config: StateFusionConfig | None = None
+    obs: Observation,
+    previous: State | None,
+    config: StateFusionConfig | None = None,
+    segmenter: Segmenter | None = None,
 ) -> State:
     """The state after ``obs`` fused onto ``previous`` (None: the first state of a world).
+
+    ``segmenter`` (the ``grounded_sam`` backend, or any object with ``masks(image)``) gives
+    the object clusters instead of DBSCAN (:func:`track_objects`).
 
     See the module docstring for the steps. Raises :class:`FusionError` for an empty
     observation, a Sim3 outside ``sim3_scale_range`` or with a residual above
@@ -687,7 +702,13 @@ def fuse_state(
     step = max(1, int(valid[0].size // 2000))
     sample = np.concatenate([frame_points(k, step)[0] for k in range(t)])
     plane = support_plane(sample, -poses[0, :3, 1], poses[0, :3, 3], config)
-    tracks = track_objects((frame_points(k) for k in range(t)), plane, config)
+    masks_of = None
+    if segmenter is not None:
+
+        def masks_of(k: int) -> list[np.ndarray]:
+            return [np.asarray(m, bool).reshape(-1) for m in segmenter.masks(obs.frames[k])]
+
+    tracks = track_objects((frame_points(k) for k in range(t)), plane, config, masks_of)
     status, gap = interaction_test(tracks, obs, config)
     interactive = status.any(axis=1)  # (M,)
 

@@ -31,7 +31,7 @@ import numpy as np
 
 from egosim.pipeline import media
 from egosim.pipeline.geometry import project_world_points
-from egosim.pipeline.stage import ClipRejected, ClipStage
+from egosim.pipeline.stage import ClipRejected, ClipStage, StageError
 from egosim.schemas import CLIPS, ShardSchema
 from egosim.schemas.hand_mask import HAND_MASK
 from egosim.schemas.hands import HANDS
@@ -46,6 +46,7 @@ from egosim.stages.state_fusion.fusion import (
     State,
     fuse_state,
 )
+from egosim.stages.state_fusion.segmenters import Segmenter, SegmenterError, build_segmenter
 from egosim.stages.state_fusion.state_io import row_from_state, state_from_row
 
 
@@ -170,8 +171,9 @@ class StateFusionStage(ClipStage):
         "scene_cloud": SCENE_CLOUD,  # the initial state when there is no previous_state
     }
     output = STATE
-    backends = ("geometric",)
+    backends = ("geometric", "grounded_sam")
     config: StateFusionConfig
+    segmenter: Segmenter | None = None  # grounded_sam: built on first use; one set here wins
 
     def process(self, rows: Mapping[str, Mapping[str, Any]]) -> dict[str, Any]:
         """The ``state`` row of one clip (see the module docstring)."""
@@ -182,8 +184,13 @@ class StateFusionStage(ClipStage):
         if previous is None and rows.get("scene_cloud") is not None:
             previous = initial_state(rows["scene_cloud"], obs)
             obs = dataclasses.replace(obs, reference_world_from_cam=None)  # its frame already
+        if self.segmenter is None and self.config.backend != "geometric":
+            try:
+                self.segmenter = build_segmenter(self.config)
+            except SegmenterError as exc:
+                raise StageError(f"state_fusion: {exc}") from exc
         try:
-            state = fuse_state(obs, previous, self.config)
+            state = fuse_state(obs, previous, self.config, self.segmenter)
         except FusionError as exc:
             raise ClipRejected(f"clip {cid!r}: {exc}") from exc
         row = row_from_state(state)
