@@ -151,9 +151,11 @@ def _add_rejects(run: Path, rejects: list[tuple[str, str, str]]) -> None:
 def test_rejects_are_grouped_by_reason_with_every_clip_id(run_dir: Path, tmp_path: Path) -> None:
     run = tmp_path / "run"
     shutil.copytree(run_dir, run)
+    drawn = sorted(_rows(run_dir, "ingest", []))[0]  # a clip the pack gate turned away
     _add_rejects(
         run,
         [
+            ("pack", drawn, "hand valid fraction 0.05 below 0.1"),
             ("pack", "clip-a", "clip-a: visible fraction 0.12 below 0.2"),
             ("pack", "clip-b", "clip-b: visible fraction 0.08 below 0.2"),
             ("pack", "clip-c", "clip-c has no hand in view"),
@@ -162,12 +164,15 @@ def test_rejects_are_grouped_by_reason_with_every_clip_id(run_dir: Path, tmp_pat
     )
     page = write_report(run, tmp_path / "html").read_text()
     rejects = page.split('<section id="rejects">', 1)[1].split("</section>", 1)[0]
-    assert "<h3>pack (pack): 3 rejected</h3>" in rejects
+    assert "<h3>pack (pack): 4 rejected</h3>" in rejects
     assert "<td>2</td><td class=l>&lt;clip&gt;: visible fraction N below 0.2</td>" in rejects
     assert "clip-a<br>clip-b</td>" in rejects and "<td>1</td>" in rejects
     assert "<td class=l>&lt;clip&gt; has no hand in view</td>" in rejects
     assert "video:/data/x&lt;y&gt;.mp4" in rejects and "x<y>" not in page  # escaped
     clips = page.split('<section id="clips">', 1)[1].split("</section>", 1)[0]
+    card = clips.split(f'<div class=clip id="clip-{drawn}">', 1)[1].split("</div>", 1)[0]
+    assert f'<img src="clips/{drawn}.jpg"' in card  # still drawn, and says who rejected it
+    assert "rejected by step &#x27;pack&#x27; (pack): hand valid fraction 0.05 below 0.1" in card
     assert "rejected by step &#x27;ingest&#x27; (ingest): cannot read video file" in clips
 
 

@@ -75,7 +75,7 @@ class ClipEntry:
     clip_id: str  # the clip (or a rejected source unit)
     sheet: str  # file of its sheet relative to the page ('' when none)
     video: str  # file of its side-by-side video ('' when none)
-    note: str  # why there is no sheet ('' when there is one)
+    note: str  # why there is no sheet, or which step rejected a drawn clip ('' for neither)
 
 
 def write_report(
@@ -151,7 +151,7 @@ def _write_clips(run: RunData, out_dir: Path, config: ReportConfig) -> list[Clip
             note = f"the workflow has no {', '.join(absent)} step"
         elif id_problems(cid, "clip id"):
             note = _rejected_note(rejects.get(cid, [])) or "not a clip id"
-        elif len(entries) - sum(bool(e.note) for e in entries) >= config.max_clips:
+        elif sum(bool(e.sheet) for e in entries) >= config.max_clips:
             note = f"not drawn: the report draws the first {config.max_clips} clips (--max-clips)"
         if note:
             entries.append(ClipEntry(cid, "", "", note))
@@ -177,7 +177,9 @@ def _write_clips(run: RunData, out_dir: Path, config: ReportConfig) -> list[Clip
             log.warning("report: clip=%s has no sheet: %s", cid, exc)
             entries.append(ClipEntry(cid, "", "", f"could not decode: {exc}"))
             continue
-        entries.append(ClipEntry(cid, f"{CLIPS_DIR}/{cid}.jpg", f"{CLIPS_DIR}/{cid}.mp4", ""))
+        # A clip a later step rejected (e.g. the pack quality gate) keeps its sheet and says so.
+        note = _rejected_note(rejects.get(cid, []))
+        entries.append(ClipEntry(cid, f"{CLIPS_DIR}/{cid}.jpg", f"{CLIPS_DIR}/{cid}.mp4", note))
     return entries
 
 
@@ -381,7 +383,7 @@ def _clips_section(clips: Sequence[ClipEntry]) -> str:
                 f'<video src="{_e(c.video)}" controls loop muted playsinline preload="metadata">'
                 "</video>"
             )
-        else:
+        if c.note:
             parts.append(f"<p class=doc>{_e(c.note)}</p>")
         parts.append("</div>")
     parts.append("</div></section>")
