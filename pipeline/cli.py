@@ -693,7 +693,7 @@ def cluster_slurm(
 # --- egosim view and egosim export (issue 16): Foxglove MCAPs and other tools' layouts ------
 
 export_app = typer.Typer(
-    help="Export a run's packed samples for another tool: videox-fun, egosim-csv, dwm.",
+    help="Export a run for another tool: videox-fun, egosim-csv, dwm (packed samples), lerobot.",
     no_args_is_help=True,
 )
 app.add_typer(export_app, name="export")
@@ -804,6 +804,33 @@ def export_dwm(
 ) -> None:
     """DWM: GROUP/videos, videos_static, videos_hands, prompts + dataset_files/GROUP.txt."""
     _run_export("dwm", run, out, set_)
+
+
+@export_app.command("lerobot")
+def export_lerobot(
+    run: Annotated[Path, typer.Argument(help="Run folder (egosim run --out).")],
+    out: Annotated[Path, EXPORT_OUT],
+    robot_type: Annotated[
+        str, typer.Option("--robot-type", help="meta/info.json robot_type.")
+    ] = "egosim",
+) -> None:
+    """LeRobot v3.0: one episode per clip, the conditions as extra video keys, camera poses,
+    intrinsics and hand joints per frame (robotics users load it with their own tools)."""
+    from egosim.stages.ingest.lerobot_export import export_lerobot as write_lerobot
+
+    try:
+        report = write_lerobot(run, out, robot_type)
+    except (*USER_ERRORS, FileExistsError) as exc:
+        raise _fail(exc) from exc
+    for cid, why in report.skipped.items():
+        typer.secho(f"skipped {cid}: {why}", fg=typer.colors.YELLOW, err=True)
+    typer.echo(
+        f"lerobot: {report.episodes} episode(s), {report.frames} frames, video keys "
+        f"{', '.join(report.video_keys)} in {out}; {len(report.skipped)} skipped"
+    )
+    if not report.episodes:
+        typer.secho(f"error: no clip of {run} was exported", fg=typer.colors.RED, err=True)
+        raise typer.Exit(code=EXIT_STEP_REJECTED_ALL)
 
 
 # --- egosim weights and egosim presets (issue 14): published weights, export, memory plan -----

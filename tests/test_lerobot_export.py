@@ -113,3 +113,23 @@ def test_export_reads_back_with_the_documented_layout(tmp_path: Path) -> None:
     assert json.loads((out / "meta" / "info.json").read_text())["total_frames"] == 2 * T
     with pytest.raises(FileExistsError, match="already holds a LeRobot dataset"):
         export_lerobot(run, out)
+
+
+def test_export_command_writes_the_dataset_and_fails_on_an_empty_run(tmp_path: Path) -> None:
+    from typer.testing import CliRunner
+
+    from egosim.pipeline.cli import app
+
+    run, out = tmp_path / "run", tmp_path / "lerobot"
+    make_run(run)
+    result = CliRunner().invoke(app, ["export", "lerobot", str(run), "--out", str(out)])
+    assert result.exit_code == 0, result.output
+    assert "2 episode(s)" in result.output and "skipped small" in result.output
+    assert reader.load_info(out)["total_episodes"] == 2
+    again = CliRunner().invoke(app, ["export", "lerobot", str(run), "--out", str(out)])
+    assert again.exit_code == 2 and "already holds a LeRobot dataset" in again.output
+    (tmp_path / "empty" / "ingest").mkdir(parents=True)
+    empty = CliRunner().invoke(
+        app, ["export", "lerobot", str(tmp_path / "empty"), "--out", str(tmp_path / "o2")]
+    )
+    assert empty.exit_code == 2, empty.output
