@@ -1,13 +1,17 @@
-"""Checkpoints as tensors, never pickles: one safetensors file per checkpoint.
+"""Checkpoints as tensors, never pickles: safetensors files plus JSON.
 
-A training checkpoint holds tensors (weights, EMA weights, optimizer moments, RNG states) and
-plain values (step, config, optimizer hyper-parameters). :func:`save_tree` writes any nesting of
-dicts, lists and tuples whose leaves are tensors, numpy arrays, ``None``, bools, ints, floats or
-strings as one ``.safetensors`` file: every tensor is a named safetensors entry and the
-structure is a JSON document in the file header (metadata key ``egosim.tree``), with tensors
-replaced by ``{"__tensor__": name}``. :func:`load_tree` reads it back. Neither ever calls pickle,
-so loading a file cannot run code; a file written by ``torch.save`` (pickle or zip-of-pickle) is
-refused with :class:`UnsafeCheckpointError` naming the file, before anything is unpickled.
+Training checkpoints (format 3, :mod:`egosim.model.train`) are folders written through
+``torch.distributed.checkpoint``'s safetensors storage (:mod:`egosim.model.distributed`): one
+``.safetensors`` file per tensor group plus ``state.json``. This module holds what every
+checkpoint reader shares: :func:`refuse_pickle` (a file, or each file of a folder, that starts
+like a pickle or a ``torch.save`` zip is refused with :class:`UnsafeCheckpointError` naming it,
+before anything is unpickled) and the single-file tree format of older egosim runs (format 2)
+and other tensor trees: :func:`save_tree` writes any nesting of dicts, lists and tuples whose
+leaves are tensors, numpy arrays, ``None``, bools, ints, floats or strings as one
+``.safetensors`` file: every tensor is a named safetensors entry and the structure is a JSON
+document in the file header (metadata key ``egosim.tree``), with tensors replaced by
+``{"__tensor__": name}``. :func:`load_tree` reads it back. Neither ever calls pickle, so loading
+a file cannot run code.
 """
 
 from __future__ import annotations

@@ -740,21 +740,22 @@ def _export_lora(folder: Path, state: TrainState, ctx: parallel.DistContext) -> 
     from egosim.model.lora import lora_state_dict, save_lora
 
     transformer = state.bundle.denoiser.transformer
-    if ctx.enabled:
-        from torch.distributed.checkpoint.state_dict import StateDictOptions, get_model_state_dict
+    if not ctx.enabled:
+        save_lora(transformer, folder, lora_state_dict(transformer))
+        return
+    from torch.distributed.checkpoint.state_dict import StateDictOptions, get_model_state_dict
 
-        full = get_model_state_dict(
-            transformer, options=StateDictOptions(full_state_dict=True, cpu_offload=True)
-        )
-        if not ctx.is_main:
-            return parallel.barrier(ctx)
+    # Collective: every rank takes part in the gather; only rank 0 receives the full tensors.
+    full = get_model_state_dict(
+        transformer, options=StateDictOptions(full_state_dict=True, cpu_offload=True)
+    )
+    if ctx.is_main:
         adapters = {k.replace(".default.", "."): v for k, v in full.items() if ".lora_" in k}
+        trained_patch = transformer.patch_embedding.weight.requires_grad
         patch = {
             k.removeprefix("patch_embedding."): v
             for k, v in full.items()
-            if k.startswith("patch_embedding.")
+            if trained_patch and k.startswith("patch_embedding.")
         }
-        patch = patch if transformer.patch_embedding.weight.requires_grad else None
-        save_lora(transformer, folder, adapters, patch)
-        return parallel.barrier(ctx)
-    save_lora(transformer, folder, lora_state_dict(transformer))
+        save_lora(transformer, folder, adapters, patch or None)
+    parallel.barrier(ctx)
