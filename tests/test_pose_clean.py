@@ -445,6 +445,51 @@ def test_three_translation_spikes_in_a_row() -> None:
     assert pose_errors(fixed, exact)[0][30:33].max() < 0.02
 
 
+def _fast_turn(t: int = T) -> np.ndarray:
+    """A walk whose head turns 30 degrees in 4 frames (steps 5, 13, 7, 5 degrees) at frame 30."""
+    poses = camera_path(6, "wild", t, FPS)
+    steps = {30: 5.0, 31: 13.0, 32: 7.0, 33: 5.0}  # degrees about the camera's y axis
+    angle = 0.0
+    for i in range(t):
+        angle += steps.get(i, 0.0)
+        turn = Rotation.from_rotvec(np.deg2rad(angle) * np.array([0.0, 1.0, 0.0])).as_matrix()
+        poses[i, :3, :3] = poses[i, :3, :3] @ turn
+    return poses
+
+
+def test_protected_frames_are_never_repaired() -> None:
+    """A fast head turn looks like jumps; mapper frames (protected) keep their real poses."""
+    turn = _fast_turn()
+    assert detect_outliers(turn)[30:34].any()  # the unprotected test cuts the real turn
+    protected = np.ones(T, dtype=bool)
+    assert not detect_outliers(turn, protected=protected).any()
+    out = clean_trajectory(turn, protected=protected).world_from_cam
+    assert pose_errors(out, turn)[1].max() < 0.5  # degrees: smoothed, not interpolated away
+    # Protection is per frame: glitches on unprotected frames are still found and repaired.
+    exact = camera_path(6, "tabletop", T, FPS)
+    spiked = exact.copy()
+    spiked[30:33, :3, 3] += [[0.1, 0.0, 0.0], [0.0, 0.1, 0.0], [-0.1, 0.0, 0.0]]
+    protected[30:33] = False
+    assert np.flatnonzero(detect_outliers(spiked, protected=protected)).tolist() == [30, 31, 32]
+    with pytest.raises(ValueError, match="protected must have shape"):
+        detect_outliers(spiked, protected=protected[:-1])
+
+
+def test_stage_protects_the_mapper_frames_of_the_cameras_row() -> None:
+    """posed_by 0 (SfM mapper) frames of a cameras row are protected; PnP frames (1) are not."""
+    turn = _fast_turn()
+    stage = PoseCleanStage()
+    cams = {**_row(turn), "posed_by": [0] * T}
+    out = stage.process({"clips": _row(turn), "cameras": cams})
+    assert out["outlier_frames"] == []
+    pnp = stage.process({"clips": _row(turn), "cameras": {**cams, "posed_by": [1] * T}})
+    assert set(pnp["outlier_frames"]) & {30, 31, 32, 33}
+    off = PoseCleanStage(PoseCleanConfig(protect_mapper_frames=False))
+    assert off.process({"clips": _row(turn), "cameras": cams})["outlier_frames"]
+    with pytest.raises(ClipRejected, match="posed_by has shape"):
+        stage.process({"clips": _row(turn), "cameras": {**cams, "posed_by": [0] * (T - 1)}})
+
+
 @pytest.mark.parametrize("scale", [1e-3, 1e3])
 def test_cleaning_is_scale_free(scale: float) -> None:
     """SfM units are arbitrary: scaling the centres scales the output and keeps the flags."""

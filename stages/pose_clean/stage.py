@@ -22,7 +22,9 @@ thousandths of an SfM unit. The pure function :func:`clean_trajectory` does the 
 on numpy arrays; :func:`clean_batch` runs many clips at once (batched Kalman equations).
 
 The trajectory cleaned is the optional ``cameras`` input's (``depth_camera``) when a workflow
-connects it, else the clip's own ``world_from_cam``.
+connects it, else the clip's own ``world_from_cam``. With ``protect_mapper_frames``, frames the
+cameras row marks as registered by the SfM mapper (``posed_by`` 0: bundle-adjusted against the
+map) are never repaired as jumps (see :mod:`outliers`); they are still smoothed.
 """
 
 from __future__ import annotations
@@ -43,7 +45,7 @@ from egosim.pipeline.geometry import (
 from egosim.pipeline.stage import ClipRejected, ClipStage, ConfigError, StageConfig
 from egosim.schemas.base import ShardSchema
 from egosim.schemas.clips import CLIPS
-from egosim.schemas.depth_camera import DEPTH_CAMERA
+from egosim.schemas.depth_camera import DEPTH_CAMERA, POSED_BY_MAPPER
 from egosim.schemas.poses import POSES
 from egosim.stages.pose_clean import egocap, kalman
 from egosim.stages.pose_clean.outliers import detect_outliers, jitter, repair_outliers
@@ -67,6 +69,8 @@ class PoseCleanConfig(StageConfig):
     outlier_floor_ratio: float = 2.0  # threshold floor, multiple of the median second difference
     outlier_neighbours: int = 6  # frames of the local quadratic fit that predicts each frame
     outlier_max_fraction: float = 0.25  # at most this share of a clip's frames is flagged
+    protect_mapper_frames: bool = True  # cameras' SfM-mapper frames (posed_by 0) are never
+    # repaired as jumps: a fast head turn at a low frame rate looks like one to the jump test
     process_noise_scale: float = 1.0  # multiplies the acceleration variance estimated per clip
     # multiplies the noise variance estimated per clip; 1.4 measured best on the noisy harness
     # (the fitted process noise follows it) and adds < 0.03 mm to exact poses
@@ -140,14 +144,20 @@ def _bad_frames(poses: np.ndarray) -> list[int]:
     return [i for i in range(len(poses)) if se3_problems(poses[i])]
 
 
-def _repair(poses: np.ndarray, config: PoseCleanConfig) -> tuple[np.ndarray, np.ndarray]:
-    """``(outlier mask (T,), repaired poses (T, 4, 4))`` for the configured method."""
+def _repair(
+    poses: np.ndarray, config: PoseCleanConfig, protected: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """``(outlier mask (T,), repaired poses (T, 4, 4))`` for the configured method.
+
+    ``protected (T,)`` bool: frames never flagged as jumps (None: none).
+    """
     flags = detect_outliers(
         poses,
         ratio=config.outlier_ratio,
         floor_ratio=config.outlier_floor_ratio,
         neighbours=config.outlier_neighbours,
         max_fraction=config.outlier_max_fraction,
+        protected=protected,
     )
     if config.method == "egocap" and (~flags).sum() >= 2:
         return flags, egocap.interpolate_outliers(poses, flags)
@@ -166,10 +176,14 @@ def _result(before: np.ndarray, after: np.ndarray, flags: np.ndarray, method: st
 
 
 def clean_batch(
-    trajectories: Sequence[np.ndarray], config: PoseCleanConfig, fps: float = 16.0
+    trajectories: Sequence[np.ndarray],
+    config: PoseCleanConfig,
+    fps: float = 16.0,
+    protected: Sequence[np.ndarray | None] | None = None,
 ) -> list[CleanResult]:
     """Clean many trajectories ``[(T_i, 4, 4)]`` sampled at ``fps``; one :class:`CleanResult` each.
 
+    ``protected``: per trajectory, ``(T_i,)`` bool frames never repaired as jumps, or None.
     Trajectories of equal length go through the Kalman equations together (``engine="numpy"``).
     Raises :class:`PoseInputError` naming the index of the first bad trajectory.
     """
@@ -182,7 +196,15 @@ def clean_batch(
             checked.append(check_trajectory(traj))
         except PoseInputError as exc:
             raise PoseInputError(f"trajectory {i}: {exc}") from exc
-    repaired = [_repair(p, config) for p in checked]
+    keep = list(protected) if protected is not None else [None] * len(checked)
+    if len(keep) != len(checked):
+        raise PoseInputError(f"{len(keep)} protected masks for {len(checked)} trajectories")
+    for i, (p, k) in enumerate(zip(checked, keep, strict=True)):
+        if k is not None and np.shape(k) != (len(p),):
+            raise PoseInputError(
+                f"trajectory {i}: protected must have shape ({len(p)},), got {np.shape(k)}"
+            )
+    repaired = [_repair(p, config, k) for p, k in zip(checked, keep, strict=True)]
     results: list[CleanResult | None] = [None] * len(checked)
     if config.method == "egocap":
         for i, (flags, fixed) in enumerate(repaired):
@@ -226,15 +248,19 @@ def clean_batch(
 
 
 def clean_trajectory(
-    world_from_cam: np.ndarray, config: PoseCleanConfig | None = None, fps: float = 16.0
+    world_from_cam: np.ndarray,
+    config: PoseCleanConfig | None = None,
+    fps: float = 16.0,
+    protected: np.ndarray | None = None,
 ) -> CleanResult:
     """Detect and repair jump outliers in ``world_from_cam (T, 4, 4)``, then smooth it.
 
-    Raises :class:`PoseInputError` for a malformed, non-finite or non-rigid trajectory.
+    ``protected (T,)`` bool: frames never repaired as jumps (None: none). Raises
+    :class:`PoseInputError` for a malformed, non-finite or non-rigid trajectory.
     """
     cfg = config if config is not None else PoseCleanConfig()
     try:
-        return clean_batch([world_from_cam], cfg, fps)[0]
+        return clean_batch([world_from_cam], cfg, fps, [protected])[0]
     except PoseInputError as exc:
         raise PoseInputError(str(exc).removeprefix("trajectory 0: ")) from None
 
@@ -246,7 +272,8 @@ class PoseCleanStage(ClipStage):
     # v2: the measurement noise is estimated from the input's own high-order differences (exact
     # poses pass nearly unchanged); jumps are found by an iterated, scale-free leave-one-out fit
     # test (adjacent spikes no longer hide each other; no metre or degree thresholds).
-    version = 2
+    # v3: frames the SfM mapper registered (cameras posed_by 0) are never repaired as jumps
+    version = 3
     description = "repair pose jump outliers (Eq. 4) and smooth trajectories (Kalman RTS/egocap)"
     config_class = PoseCleanConfig
     inputs: ClassVar[Mapping[str, ShardSchema]] = {"clips": CLIPS}
@@ -280,8 +307,19 @@ class PoseCleanStage(ClipStage):
             raise ClipRejected(
                 f"clip {clip_id}: {where} has {len(flat)} poses but num_frames is {t}"
             )
+        protected = None
+        posed_by = rows[role].get("posed_by") if role == "cameras" else None
+        if self.config.protect_mapper_frames and posed_by is not None:
+            codes = np.asarray(posed_by)
+            if codes.shape != (t,):
+                raise ClipRejected(
+                    f"clip {clip_id}: cameras posed_by has shape {codes.shape}, expected ({t},)"
+                )
+            protected = codes == POSED_BY_MAPPER
         try:
-            result = clean_trajectory(flat.reshape(t, 4, 4), self.config, float(row["fps"]))
+            result = clean_trajectory(
+                flat.reshape(t, 4, 4), self.config, float(row["fps"]), protected
+            )
         except PoseInputError as exc:
             raise ClipRejected(f"clip {clip_id}: {exc}") from exc
         return {
