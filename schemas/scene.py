@@ -13,6 +13,7 @@ The model's inpainting mask is derived from ``visible`` by
 from __future__ import annotations
 
 from collections.abc import Mapping
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -141,3 +142,28 @@ SCENE_RENDER = ShardSchema(
     ),
     validators=(_check_render,),
 )
+
+
+@dataclass(frozen=True)
+class SceneCloud:
+    """A coloured world point cloud and what was removed to make it."""
+
+    points: np.ndarray  # (N, 3) float32 world metres
+    colours: np.ndarray  # (N, 3) uint8 RGB
+    point_size: np.ndarray  # (N,) float32 side in metres of each point's source pixel (z / fx)
+    num_flying_removed: int  # measured pixels dropped at depth edges (left out or filled), speckles
+    kept_fraction: float  # N / (H * W)
+    confidence: np.ndarray  # (N,) uint8 255 = depth measured; 1..254 filled: 1 + 253 x confidence
+
+
+def cloud_from_row(row: Mapping[str, Any]) -> SceneCloud:
+    """Decode one ``scene_cloud`` row into a :class:`SceneCloud`."""
+    n = int(row["num_points"])
+    return SceneCloud(
+        points=np.frombuffer(row["points_xyz"], dtype="<f4").reshape(n, 3),
+        colours=np.frombuffer(row["points_rgb"], dtype=np.uint8).reshape(n, 3),
+        point_size=np.frombuffer(row["point_size"], dtype="<f4").reshape(n),
+        num_flying_removed=int(row["num_flying_removed"]),
+        kept_fraction=float(row["kept_fraction"]),
+        confidence=np.frombuffer(row["point_confidence"], dtype=np.uint8).reshape(n),
+    )

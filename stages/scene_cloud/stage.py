@@ -42,7 +42,7 @@ from egosim.pipeline.geometry import se3_problems, transform_points, unproject_d
 from egosim.pipeline.stage import ClipRejected, ClipStage, ConfigError, StageConfig
 from egosim.schemas import CLIPS, ShardSchema
 from egosim.schemas.inpaint import INPAINT
-from egosim.schemas.scene import SCENE_CLOUD
+from egosim.schemas.scene import SCENE_CLOUD, SceneCloud, cloud_from_row  # noqa: F401 (re-exported)
 from egosim.stages.common.cameras import (
     CAMERA_ROLES,
     depth_is_unknown_by_model,
@@ -56,18 +56,6 @@ STATIC_PLANE_DEPTH = 1.0  # depth of the plane standing in for a static / rotati
 
 class SceneCloudError(ValueError):
     """The inputs of a cloud cannot give a correct cloud (shapes, depth, pose, empty result)."""
-
-
-@dataclasses.dataclass(frozen=True)
-class SceneCloud:
-    """A coloured world point cloud and what was removed to make it."""
-
-    points: np.ndarray  # (N, 3) float32 world metres
-    colours: np.ndarray  # (N, 3) uint8 RGB
-    point_size: np.ndarray  # (N,) float32 side in metres of each point's source pixel (z / fx)
-    num_flying_removed: int  # measured pixels dropped at depth edges (left out or filled), speckles
-    kept_fraction: float  # N / (H * W)
-    confidence: np.ndarray  # (N,) uint8 255 = depth measured; 1..254 filled: 1 + 253 x confidence
 
 
 def point_confidence(source: np.ndarray, confidence: np.ndarray) -> np.ndarray:
@@ -163,19 +151,6 @@ def cloud_row(clip_id: str, cloud: SceneCloud, image_source: str) -> dict[str, A
         "num_flying_removed": cloud.num_flying_removed,
         "point_confidence": cloud.confidence.astype(np.uint8).tobytes(),
     }
-
-
-def cloud_from_row(row: Mapping[str, Any]) -> SceneCloud:
-    """Decode one ``scene_cloud`` row into a :class:`SceneCloud`."""
-    n = int(row["num_points"])
-    return SceneCloud(
-        points=np.frombuffer(row["points_xyz"], dtype="<f4").reshape(n, 3),
-        colours=np.frombuffer(row["points_rgb"], dtype=np.uint8).reshape(n, 3),
-        point_size=np.frombuffer(row["point_size"], dtype="<f4").reshape(n),
-        num_flying_removed=int(row["num_flying_removed"]),
-        kept_fraction=float(row["kept_fraction"]),
-        confidence=np.frombuffer(row["point_confidence"], dtype=np.uint8).reshape(n),
-    )
 
 
 @dataclasses.dataclass(frozen=True)

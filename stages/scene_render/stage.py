@@ -23,10 +23,9 @@ import numpy as np
 from egosim.pipeline import media
 from egosim.pipeline.stage import ClipRejected, ClipStage, ConfigError, StageConfig
 from egosim.schemas import CLIPS, ShardSchema
-from egosim.schemas.scene import SCENE_CLOUD, SCENE_RENDER
+from egosim.schemas.scene import SCENE_CLOUD, SCENE_RENDER, cloud_from_row
 from egosim.schemas.state import STATE, scene_cloud_row_from_state
 from egosim.stages.common.cameras import CAMERA_ROLES, resolve_cameras
-from egosim.stages.scene_cloud.stage import cloud_from_row
 from egosim.stages.scene_render.splat import SplatError, render_point_cloud
 
 
