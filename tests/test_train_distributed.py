@@ -166,15 +166,24 @@ def test_two_ranks_match_one_process_and_resume_on_one(tmp_path: Path) -> None:
 
 @pytest.mark.slow
 def test_two_ranks_stopped_and_resumed_continue_exactly(tmp_path: Path) -> None:
-    """Stopped at step 2 and resumed on the same 2 ranks: bit-for-bit the uninterrupted run."""
+    """Stopped at step 2 and resumed on the same 2 ranks: bit-for-bit the uninterrupted run.
+
+    Also the other way round from the default test: a 1-process checkpoint resumed on 2 ranks.
+    """
+    one = dataclasses.replace(BASE, batch_size=2)  # the same global batch in one process
+    train(one, DATA, tmp_path / "solo", max_steps=2)
+    shutil.copytree(checkpoint_path(tmp_path / "solo", 2), checkpoint_path(tmp_path / "up", 2))
     full, first, second = (
         _job(tmp_path, "full"),
         _job(tmp_path, "split", 2),
         _job(tmp_path, "split"),
     )
-    _torchrun(tmp_path, [full, first, second])
+    up = _job(tmp_path, "up")
+    _torchrun(tmp_path, [full, first, second, up])
     assert _result(second)["resumed_from"] == 2
     assert _result(first)["losses"] + _result(second)["losses"] == _result(full)["losses"]
+    assert _result(up)["resumed_from"] == 2
+    assert _close(_result(up)["losses"], _result(full)["losses"][2:])
     for group in ("model", "ema", "optimizer"):
         a = _weights(checkpoint_path(tmp_path / "full", 4), group)
         b = _weights(checkpoint_path(tmp_path / "split", 4), group)
