@@ -392,30 +392,3 @@ def test_missed_hand_is_carried_while_the_other_is_found() -> None:
     outside[46:, 6:34] = False
     assert out[0][outside].sum() == 0, "carried mask leaked onto the table"
     np.testing.assert_array_equal(out[1], masks[1])
-
-
-def test_unlike_background_keeps_hand_colours_only() -> None:
-    """Candidates coloured like the certain hand stay; those like the background round it go."""
-    from egosim.stages.hand_mask.arm_region import unlike_background
-
-    image = np.zeros((60, 90, 3), np.uint8)
-    image[:, :30] = (230, 230, 225)  # white table
-    image[:, 30:60] = (200, 150, 125)  # skin
-    image[:, 60:] = (120, 120, 125)  # grey wall
-    lab = cv2.cvtColor(image, cv2.COLOR_RGB2LAB).astype(np.float32)
-    hand = np.zeros((60, 90), bool)
-    hand[10:50, 35:55] = True
-    background = np.zeros((60, 90), bool)
-    background[:, :20] = True
-    background[:, 70:] = True
-    candidates = np.zeros((60, 90), bool)
-    candidates[:, 20:70] = True  # table, skin and wall columns
-    keep = unlike_background(lab, candidates, hand, background, match=8.0)
-    assert keep[:, 30:60].all() and not keep[:, 20:30].any() and not keep[:, 60:70].any()
-    # A shade of the table 9 Lab units off its colour is dropped only when ``match`` reaches it.
-    lab[:, 20:30, 0] -= 9.0
-    assert unlike_background(lab, candidates, hand, background, match=4.0)[:, 20:30].all()
-    assert not unlike_background(lab, candidates, hand, background, match=12.0)[:, 20:30].any()
-    assert unlike_background(lab, candidates, np.zeros_like(hand), background).sum() == (
-        candidates.sum()
-    ), "no hand colours to compare with: every candidate is kept"

@@ -24,12 +24,9 @@ hand with 2D keypoints (MANO order, pixels, pixel centres at integer + 0.5):
 - everything else is background.
 
 GrabCut (OpenCV) learns the colour models from these labels and relabels the two "probably"
-regions. Its hand model also learns the background inside the fat capsules and the arm band, so
-on a pale hand over a pale table it can claim table pixels of the probably-background fan; a
-pixel it moves out of the fan or the ring is therefore dropped when its colour matches (within
-``background_match``) a colour of the certain background round the hand better than the hand's
-certain colours (:func:`unlike_background`). Only the pixels connected to a certain seed
-are kept, so a patch of skin-coloured table away from the arm stays background.
+regions; only the pixels connected to a certain seed are kept, so a patch of skin-coloured table
+away from the arm stays background. The certain seeds are returned per hand with the mask: they
+are what ``propagate`` carries into other frames with confidence.
 """
 
 from __future__ import annotations
@@ -73,10 +70,6 @@ class ArmParams:
     refine_direction: bool = True  # re-aim the arm along the arm-coloured region's main axis
     refine_half_angle_deg: float = 60.0  # that region is looked for this far either side
     region_probable: bool = True  # that region is probably arm (else background off the band)
-    background_ratio: float = 1.0  # a probably-background pixel GrabCut calls hand is kept only
-    # when its nearest certain-hand colour is closer than this times its nearest colour of the
-    # background round the hand (0: off; see unlike_background)
-    background_match: float = 8.0  # ... dropped only when within this Lab distance of one
 
     def __post_init__(self) -> None:
         problems = []
@@ -98,8 +91,6 @@ class ArmParams:
             )
         if not 0.0 <= self.walk_gap <= 20.0:
             problems.append(f"walk_gap must be in [0, 20], got {self.walk_gap}")
-        if not 0.0 <= self.background_ratio <= 10.0:
-            problems.append(f"background_ratio must be in [0, 10], got {self.background_ratio}")
         if problems:
             raise ValueError("; ".join(problems))
 
@@ -485,76 +476,6 @@ def connected_to(mask: np.ndarray, seeds: np.ndarray) -> np.ndarray:
     return keep[comp].astype(np.uint8)
 
 
-def palette(colours: np.ndarray, k: int) -> np.ndarray | None:
-    """``(k', 3)`` float32 k-means centres of ``colours (N, 3)`` (deterministic); None if empty.
-
-    ``k' = min(k, N // 4)``; at most 20,000 evenly spaced colours are clustered.
-    """
-    k = min(k, len(colours) // 4)
-    if k < 1:
-        return None
-    data = np.ascontiguousarray(colours, dtype=np.float32)
-    if len(data) > 20000:
-        data = data[:: len(data) // 20000 + 1]
-    criteria = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 20, 1.0)
-    cv2.setRNGSeed(0)
-    _, _, centres = cv2.kmeans(data, k, None, criteria, 2, cv2.KMEANS_PP_CENTERS)
-    return centres
-
-
-def _nearest(colours: np.ndarray, centres: np.ndarray) -> np.ndarray:
-    """Distance ``(N,)`` from each of ``colours (N, 3)`` to its nearest of ``centres (k, 3)``."""
-    out = np.full(len(colours), np.inf, np.float32)
-    for c in centres:
-        np.minimum(out, np.linalg.norm(colours - c, axis=1), out=out)
-    return out
-
-
-def unlike_background(
-    lab: np.ndarray,
-    candidates: np.ndarray,
-    hand: np.ndarray,
-    background: np.ndarray,
-    ratio: float = 1.0,
-    match: float = np.inf,
-    k_hand: int = 6,
-    k_background: int = 10,
-) -> np.ndarray:
-    """Which of the ``candidates (H, W)`` pixels look like the hand, not the background ``(H, W)``.
-
-    ``lab (H, W, 3)`` float32 Lab image; ``hand (H, W)``: certainly-hand pixels;
-    ``background (H, W)``: pixels known to be background near the hand. Palettes of ``k_hand``
-    and ``k_background`` colours (k-means) are learned from the two; a candidate is dropped when
-    its nearest background colour is within ``match`` (Lab units) and closer than its nearest
-    hand colour divided by ``ratio``: it matches the background and not the hand. With too few
-    samples on either side every candidate is kept (nothing to compare with).
-    """
-    out = candidates.astype(bool).copy()
-    if not out.any():
-        return out
-    hand_colours = palette(lab[hand > 0], k_hand)
-    background_colours = palette(lab[background > 0], k_background)
-    if hand_colours is None or background_colours is None:
-        return out
-    colours = lab[out]  # (N, 3)
-    to_background = _nearest(colours, background_colours)  # (N,)
-    keep = (_nearest(colours, hand_colours) < ratio * to_background) | (to_background > match)
-    out[out] = keep
-    return out
-
-
-def _near_box(labels: np.ndarray) -> np.ndarray:
-    """``(H, W)`` bool: the box GrabCut works in (non-background labels plus an eighth a side)."""
-    h, w = labels.shape
-    box = np.zeros((h, w), bool)
-    ys, xs = np.nonzero(labels != cv2.GC_BGD)
-    if len(ys) == 0:
-        return box
-    my, mx = max(4, (ys.max() - ys.min()) // 8), max(4, (xs.max() - xs.min()) // 8)
-    box[max(0, ys.min() - my) : ys.max() + my + 1, max(0, xs.min() - mx) : xs.max() + mx + 1] = True
-    return box
-
-
 def hand_arm_masks(
     image: np.ndarray,
     keypoints: np.ndarray,
@@ -591,19 +512,6 @@ def hand_arm_masks(
         mask = np.isin(labels, (cv2.GC_FGD, cv2.GC_PR_FGD)).astype(np.uint8)
     else:
         mask = grabcut_labels(image, labels, iterations, max_side)
-        if arm.background_ratio > 0 and mask.any():
-            lab = cv2.cvtColor(image, cv2.COLOR_RGB2LAB).astype(np.float32) if lab is None else lab
-            grown = (mask > 0) & np.isin(labels, (cv2.GC_BGD, cv2.GC_PR_BGD))
-            background = (labels == cv2.GC_BGD) & _near_box(labels)
-            keep = unlike_background(
-                lab,
-                grown,
-                labels == cv2.GC_FGD,
-                background,
-                arm.background_ratio,
-                arm.background_match,
-            )
-            mask[grown & ~keep] = 0
         mask = connected_to(mask, labels == cv2.GC_FGD)
     per_hand = np.zeros_like(certain)  # (K, H, W)
     for k, seeds in enumerate(certain):

@@ -14,8 +14,7 @@ Backends:
   the sleeve's or skin's colour connected to the wrist, found by GrabCut seeded with the hand
   skeleton and a strip beyond the wrist along the arm's image direction (searched round the
   hand's own, wrist minus middle knuckle, by colour, then re-aimed along the arm-coloured
-  region; a pixel GrabCut claims from the probably-background fan is dropped when its colour
-  matches the background round the hand, not the hand's certain colours); then each hand's mask
+  region); then each hand's mask
   is carried by optical flow up to ``propagate_frames`` frames backwards and forwards into the
   frames that missed that hand (see ``propagate``): a hand the keypoints miss for a few frames,
   or an arm that enters later, is masked there too; only the certain seeds (keypoint skeleton,
@@ -75,10 +74,6 @@ class HandMaskConfig(StageConfig):
     grabcut_max_side: int = 256  # GrabCut works on a region downscaled to this longest side
     propagate_frames: int = 8  # carry each hand's mask this many frames backwards and forwards
     # in time by optical flow, into frames that missed that hand (0: off; see propagate)
-    background_ratio: float = 1.0  # a pixel GrabCut moves out of the probably-background fan is
-    # kept only when nearer the hand's certain colours than this times the background's (0: off)
-    background_match: float = 8.0  # ... or farther than this Lab distance from every colour of
-    # the background round the hand (see arm_region.unlike_background)
     min_joint_confidence: float = 0.0  # joints with lower confidence are ignored
     sam_model_path: str = ""  # local folder of a SAM model (backend "sam")
     sam_device: str = "cpu"  # torch device of the SAM model
@@ -89,10 +84,6 @@ class HandMaskConfig(StageConfig):
             problems.append(f"radius_scale must be in [0.1, 10], got {self.radius_scale}")
         if not 0.0 <= self.fan_half_angle_deg <= 89.0:
             problems.append(f"fan_half_angle_deg must be in [0, 89], got {self.fan_half_angle_deg}")
-        if not 0.0 <= self.background_ratio <= 10.0:
-            problems.append(f"background_ratio must be in [0, 10], got {self.background_ratio}")
-        if not 0.0 <= self.background_match <= 200.0:
-            problems.append(f"background_match must be in [0, 200], got {self.background_match}")
         if self.grabcut_iterations < 1:
             problems.append(f"grabcut_iterations must be >= 1, got {self.grabcut_iterations}")
         if not 0 <= self.propagate_frames <= 1000:
@@ -118,11 +109,7 @@ def masks_from_keypoints(
     ``valid (T, K)``. Works in image space only (see the module docstring).
     """
     capsule = CapsuleParams(radius_scale=config.radius_scale, forearm=config.forearm)
-    arm = ArmParams(
-        fan_half_angle_deg=config.fan_half_angle_deg,
-        background_ratio=config.background_ratio,
-        background_match=config.background_match,
-    )
+    arm = ArmParams(fan_half_angle_deg=config.fan_half_angle_deg)
     found = [
         hand_arm_masks(
             frames[t],
@@ -192,9 +179,8 @@ class HandMaskStage(ClipStage):
     output = HAND_MASK
     version = 6  # 2: image-space arm masks (no world axis). 3: arm found by a colour walk, masks
     # carried into frames whose hands were missed. 4: arm re-aimed along its colour region.
-    # 5: that region is probably arm wherever it runs. 6: what GrabCut claims from the fan must
-    # not match the background; each hand carried into the frames that missed it, and only its
-    # certain seeds carried with confidence
+    # 5: that region is probably arm wherever it runs. 6: each hand carried into the frames that
+    # missed it, and only its certain seeds (skeleton, arm strip) carried with confidence
     backends = ("keypoints", "sam")
 
     def __init__(self, config: StageConfig | None = None) -> None:
