@@ -189,7 +189,8 @@ def test_tiny_wan_trains_one_step_with_features_from_the_shard(
 @pytest.mark.slow
 def test_wan_clip_size_pack_encodes_and_trains_one_step(wan_folder: Path, tmp_path: Path) -> None:
     """Done-when: a 61x480x832 pack (a synthetic-world clip) -> encode with tiny random Wan
-    encoders -> one training step of tiny-wan on the latents shard (about 4-6 min on one core)."""
+    encoders -> one training step of tiny-wan on the latents shard (5-13 min on one shared core:
+    the tiny random Wan VAE takes about 1 s per 480x832 frame on CPU, three videos per clip)."""
     from egosim.stages.world import WorldConfig, render_clip
 
     t, h, w = 61, 480, 832
