@@ -627,71 +627,82 @@ def _check_observation(obs: Observation) -> None:
         raise FusionError("; ".join(problems))
 
 
-def fuse_state(
-    obs: Observation,
-    previous: State | None,
-    config: StateFusionConfig | None = None,
-    segmenter: Segmenter | None = None,
-) -> State:
-    """The state after ``obs`` fused onto ``previous`` (None: the first state of a world).
+@dataclasses.dataclass
+class _Points:
+    """Columns of a point set being built: positions, colours, sizes, labels, sources."""
 
-    ``segmenter`` (the ``grounded_sam`` backend, or any object with ``masks(image)``) gives
-    the object clusters instead of DBSCAN (:func:`track_objects`).
+    pts: np.ndarray  # (N, 3) world
+    rgb: np.ndarray  # (N, 3) uint8
+    size: np.ndarray  # (N,) float32 metres
+    label: np.ndarray  # (N,) int32: track index + 1 (new points) or instance id
+    source: np.ndarray  # (N,) uint8 SOURCE_* code
 
-    See the module docstring for the steps. Raises :class:`FusionError` for an empty
-    observation, a Sim3 outside ``sim3_scale_range`` or with a residual above
-    ``max_registration_rms_m``, no camera overlap with the previous state, or a previous state
-    that the clip's depth contradicts (another world frame).
-    """
-    config = config or StateFusionConfig()
-    _check_observation(obs)
-    t, h, w = obs.depth.shape
-    intrinsics = np.asarray(obs.intrinsics, dtype=np.float64)
+    @staticmethod
+    def concat(parts: list[_Points]) -> _Points:
+        """One point set of ``parts`` in order."""
+        return _Points(*(np.concatenate([getattr(p, f) for p in parts]) for f in _POINT_FIELDS))
 
-    # 1. Registration into the state's world frame.
-    scale, sim3, rms = 1.0, np.eye(4), None
-    if obs.reference_world_from_cam is not None:
-        scale, rot, trans, rms = sim3_from_poses(
-            obs.world_from_cam, obs.reference_world_from_cam, config.min_centre_spread_m
-        )
-        lo, hi = config.sim3_scale_range
-        if not lo <= scale <= hi:
-            raise FusionError(f"Sim3 scale {scale:.4g} outside sim3_scale_range {(lo, hi)}")
-        if rms > config.max_registration_rms_m:
-            raise FusionError(
-                f"camera poses do not register by a Sim3: residual {rms:.4g} > "
-                f"max_registration_rms_m {config.max_registration_rms_m}"
-            )
-        sim3 = sim3_matrix(scale, rot, trans)
-    poses = apply_sim3_to_poses(sim3, scale, obs.world_from_cam)  # (T, 4, 4) state frame
-    depth = obs.depth * np.float32(scale)  # (T, H, W) state units
+    def select(self, keep: np.ndarray) -> _Points:
+        """The points where ``keep`` (bool or indices)."""
+        return _Points(*(getattr(self, f)[keep] for f in _POINT_FIELDS))
 
-    hands = np.stack([_dilate(obs.hand_mask[k], config.hand_dilation_px) for k in range(t)])
-    valid = (depth > 0) & (depth <= config.depth_max_m) & ~hands  # (T, H, W)
-    if valid.sum() < 100:
+
+_POINT_FIELDS = ("pts", "rgb", "size", "label", "source")
+
+
+def _register(
+    obs: Observation, config: StateFusionConfig
+) -> tuple[float, np.ndarray, float | None]:
+    """``(scale, sim3 (4, 4), residual)`` taking the clip's cameras to the state's world frame
+    (identity when the observation has no reference trajectory)."""
+    if obs.reference_world_from_cam is None:
+        return 1.0, np.eye(4), None
+    scale, rot, trans, rms = sim3_from_poses(
+        obs.world_from_cam, obs.reference_world_from_cam, config.min_centre_spread_m
+    )
+    lo, hi = config.sim3_scale_range
+    if not lo <= scale <= hi:
+        raise FusionError(f"Sim3 scale {scale:.4g} outside sim3_scale_range {(lo, hi)}")
+    if rms > config.max_registration_rms_m:
         raise FusionError(
-            f"empty observation: {int(valid.sum())} pixels with known depth outside the hands "
-            f"in {t} frames"
+            f"camera poses do not register by a Sim3: residual {rms:.4g} > "
+            f"max_registration_rms_m {config.max_registration_rms_m}"
         )
-    if previous is not None:
-        overlap = overlapping_cameras(
-            poses,
-            previous.world_from_cam,
-            config.overlap_max_distance_m,
-            config.overlap_max_angle_deg,
-        )
-        if overlap.sum() < config.min_overlap_cameras:
-            dist = np.linalg.norm(
-                poses[:, None, :3, 3] - previous.world_from_cam[None, :, :3, 3], axis=-1
-            ).min()
-            raise FusionError(
-                f"no overlap in camera poses with the previous state of {previous.clip_id!r}: "
-                f"{int(overlap.sum())} of {t} cameras within {config.overlap_max_distance_m} m "
-                f"and {config.overlap_max_angle_deg} deg (nearest centre {dist:.3g} m), "
-                f"need {config.min_overlap_cameras}"
-            )
+    return scale, sim3_matrix(scale, rot, trans), rms
 
-    # 2. Per-frame world points (one frame at a time), support plane, object tracks.
+
+def _check_overlap(poses: np.ndarray, previous: State, config: StateFusionConfig) -> None:
+    """Raise :class:`FusionError` unless enough clip cameras overlap the previous state's."""
+    overlap = overlapping_cameras(
+        poses, previous.world_from_cam, config.overlap_max_distance_m, config.overlap_max_angle_deg
+    )
+    if overlap.sum() < config.min_overlap_cameras:
+        dist = np.linalg.norm(
+            poses[:, None, :3, 3] - previous.world_from_cam[None, :, :3, 3], axis=-1
+        ).min()
+        raise FusionError(
+            f"no overlap in camera poses with the previous state of {previous.clip_id!r}: "
+            f"{int(overlap.sum())} of {len(poses)} cameras within "
+            f"{config.overlap_max_distance_m} m and {config.overlap_max_angle_deg} deg (nearest "
+            f"centre {dist:.3g} m), need {config.min_overlap_cameras}"
+        )
+
+
+def _objects_and_background(
+    obs: Observation,
+    depth: np.ndarray,
+    valid: np.ndarray,
+    poses: np.ndarray,
+    config: StateFusionConfig,
+    segmenter: Segmenter | None,
+) -> tuple[list[Track], np.ndarray, np.ndarray, _Points, np.ndarray]:
+    """Steps 2-3: object tracks, the interaction test, and the clip's own points.
+
+    Returns ``(tracks, status (M, T), gap (M, T), points, geometry frame (M,))``; the points'
+    labels are track index + 1 (0 = background).
+    """
+    t, h, w = depth.shape
+    intrinsics = np.asarray(obs.intrinsics, dtype=np.float64)
     rays = unproject_depth(np.ones((h, w), np.float32), intrinsics).reshape(-1, 3)  # (H*W, 3)
 
     def frame_points(k: int, step: int = 1) -> tuple[np.ndarray, np.ndarray]:
@@ -712,7 +723,7 @@ def fuse_state(
     status, gap = interaction_test(tracks, obs, config)
     interactive = status.any(axis=1)  # (M,)
 
-    # 3. Background (and untouched objects) by TSDF, without hands and interacted objects.
+    # Background (and untouched objects) by TSDF, without hands and interacted objects.
     tsdf_depth = np.where(valid, depth, 0.0).astype(np.float32)
     for m in np.flatnonzero(interactive):
         for k, pix in tracks[m].pixels.items():
@@ -727,12 +738,15 @@ def fuse_state(
         if len(bg_pts) and len(seen):
             near, _ = cKDTree(seen).query(bg_pts, distance_upper_bound=1.5 * config.voxel_size_m)
             bg_inst[np.isfinite(near) & (bg_inst == 0)] = m + 1
-    new_pts = [bg_pts]
-    new_rgb = [bg_rgb]
-    new_size = [np.full(len(bg_pts), config.voxel_size_m, np.float32)]
-    new_track = [bg_inst]
-    new_source = [np.where(bg_inst > 0, SOURCE_OBJECT, SOURCE_BACKGROUND).astype(np.uint8)]
-    last_frame = np.array([max(tr.pixels) if tr.pixels else -1 for tr in tracks], np.int64)
+    parts = [
+        _Points(
+            bg_pts,
+            bg_rgb,
+            np.full(len(bg_pts), config.voxel_size_m, np.float32),
+            bg_inst,
+            np.where(bg_inst > 0, SOURCE_OBJECT, SOURCE_BACKGROUND).astype(np.uint8),
+        )
+    ]
     geo_frame = np.full(len(tracks), -1, np.int64)
     for m in np.flatnonzero(interactive):
         k = geo_frame[m] = geometry_frame(tracks[m], config.settled_distance_m)
@@ -753,27 +767,32 @@ def fuse_state(
                 use_colour=False,
             )
             pix, obj_pts = pix[~gone], obj_pts[~gone]
-        new_pts.append(obj_pts)
-        new_rgb.append(obs.frames[k].reshape(-1, 3)[pix])
-        new_size.append((depth[k].reshape(-1)[pix] / intrinsics[0]).astype(np.float32))
-        new_track.append(np.full(len(pix), m + 1, np.int32))
-        new_source.append(np.full(len(pix), SOURCE_LAST_OBSERVED, np.uint8))
-    pts = np.concatenate(new_pts)
-    rgb = np.concatenate(new_rgb)
-    size = np.concatenate(new_size)
-    track_of = np.concatenate(new_track)  # (N,) track index + 1, 0 = background
-    source = np.concatenate(new_source)
+        parts.append(
+            _Points(
+                obj_pts,
+                obs.frames[k].reshape(-1, 3)[pix],
+                (depth[k].reshape(-1)[pix] / intrinsics[0]).astype(np.float32),
+                np.full(len(pix), m + 1, np.int32),
+                np.full(len(pix), SOURCE_LAST_OBSERVED, np.uint8),
+            )
+        )
+    return tracks, status, gap, _Points.concat(parts), geo_frame
 
-    # 4. Instance ids: tracks that match a previous instance keep its id.
-    ids = np.zeros(len(tracks) + 1, np.int32)  # track index + 1 -> instance id
-    prev_instances = {inst.id: inst for inst in previous.instances} if previous else {}
-    next_id = max(prev_instances, default=0) + 1
+
+def _instance_ids(
+    tracks: list[Track], previous: State | None, config: StateFusionConfig
+) -> np.ndarray:
+    """Step 4: ``(M + 1,)`` instance id per track index + 1 (index 0: background = 0); tracks
+    that match a previous instance keep its id, others get new ones."""
+    ids = np.zeros(len(tracks) + 1, np.int32)
+    prev_ids = [inst.id for inst in previous.instances] if previous else []
+    next_id = max(prev_ids, default=0) + 1
     for m, tr in enumerate(tracks):
         match = 0
         if previous is not None and tr.pixels:
             first = tr.points[min(tr.pixels)]
             best_frac = config.instance_match_fraction
-            for iid in prev_instances:
+            for iid in prev_ids:
                 ipts = previous.instance_points(iid)
                 if len(ipts) == 0:
                     continue
@@ -784,61 +803,75 @@ def fuse_state(
         if match == 0:
             match, next_id = next_id, next_id + 1
         ids[m + 1] = match
-    instance = ids[track_of]
+    return ids
 
-    # 5. Merge with the previous state.
-    if previous is not None:
-        seen, contradicted = compare_with_observation(
-            previous.points, previous.colours, depth, obs.frames, valid, poses, intrinsics, config
-        )
-        n_seen = int(seen.sum())
-        if n_seen < config.min_seen_points:
-            raise FusionError(
-                f"no overlap with the previous state of {previous.clip_id!r}: the clip sees "
-                f"{n_seen} of its {len(previous.points)} points, need {config.min_seen_points}"
-            )
-        moved_ids = ids[1:][interactive]
-        in_moved = np.isin(previous.instance, moved_ids) & (previous.instance > 0)
-        background_seen = seen & ~in_moved
-        agree = 1.0 - contradicted[background_seen].mean() if background_seen.any() else 0.0
-        if agree < config.min_agreement:
-            raise FusionError(
-                f"the previous state of {previous.clip_id!r} disagrees with the clip's depth: "
-                f"{agree:.0%} of the {int(background_seen.sum())} points the clip sees agree "
-                f"(need {config.min_agreement:.0%}); a state from another world frame?"
-            )
-        keep_old = ~contradicted & ~in_moved
-        old_pts = previous.points[keep_old]
-        if len(old_pts):
-            near, _ = cKDTree(old_pts).query(pts, distance_upper_bound=config.voxel_size_m)
-            add = ~np.isfinite(near) | (source == SOURCE_LAST_OBSERVED)
-        else:
-            add = np.ones(len(pts), bool)
-        pts = np.concatenate([previous.points[keep_old], pts[add]])
-        rgb = np.concatenate([previous.colours[keep_old], rgb[add]])
-        size = np.concatenate([previous.point_size[keep_old], size[add]])
-        instance = np.concatenate([previous.instance[keep_old], instance[add]])
-        source = np.concatenate(
-            [np.full(int(keep_old.sum()), SOURCE_PREVIOUS, np.uint8), source[add]]
-        )
 
-    # 6. Cleaning.
-    keep = remove_outliers(pts, config)
-    pts, rgb, size, instance, source = (
-        pts[keep],
-        rgb[keep],
-        size[keep],
-        instance[keep],
-        source[keep],
+def _merge_previous(
+    new: _Points,
+    previous: State,
+    moved_ids: np.ndarray,
+    obs: Observation,
+    depth: np.ndarray,
+    valid: np.ndarray,
+    poses: np.ndarray,
+    config: StateFusionConfig,
+) -> _Points:
+    """Step 5: the previous state's points the clip does not contradict (and not of a moved
+    instance), then the new points that add something (labels: instance ids)."""
+    intrinsics = np.asarray(obs.intrinsics, dtype=np.float64)
+    seen, contradicted = compare_with_observation(
+        previous.points, previous.colours, depth, obs.frames, valid, poses, intrinsics, config
     )
-    if len(pts) == 0:
-        raise FusionError("empty state: no point survived fusion and outlier removal")
+    n_seen = int(seen.sum())
+    if n_seen < config.min_seen_points:
+        raise FusionError(
+            f"no overlap with the previous state of {previous.clip_id!r}: the clip sees "
+            f"{n_seen} of its {len(previous.points)} points, need {config.min_seen_points}"
+        )
+    in_moved = np.isin(previous.instance, moved_ids) & (previous.instance > 0)
+    background_seen = seen & ~in_moved
+    agree = 1.0 - contradicted[background_seen].mean() if background_seen.any() else 0.0
+    if agree < config.min_agreement:
+        raise FusionError(
+            f"the previous state of {previous.clip_id!r} disagrees with the clip's depth: "
+            f"{agree:.0%} of the {int(background_seen.sum())} points the clip sees agree "
+            f"(need {config.min_agreement:.0%}); a state from another world frame?"
+        )
+    keep_old = ~contradicted & ~in_moved
+    old_pts = previous.points[keep_old]
+    if len(old_pts):
+        near, _ = cKDTree(old_pts).query(new.pts, distance_upper_bound=config.voxel_size_m)
+        add = ~np.isfinite(near) | (new.source == SOURCE_LAST_OBSERVED)
+    else:
+        add = np.ones(len(new.pts), bool)
+    old = _Points(
+        previous.points[keep_old],
+        previous.colours[keep_old],
+        previous.point_size[keep_old],
+        previous.instance[keep_old],
+        np.full(int(keep_old.sum()), SOURCE_PREVIOUS, np.uint8),
+    )
+    return _Points.concat([old, new.select(add)])
 
-    # Instance table.
+
+def _instance_table(
+    cloud: _Points,
+    tracks: list[Track],
+    ids: np.ndarray,
+    status: np.ndarray,
+    gap: np.ndarray,
+    geo_frame: np.ndarray,
+    previous: State | None,
+    t: int,
+) -> tuple[list[Instance], np.ndarray]:
+    """The instance table of the cleaned cloud (tracks first, then previous instances still
+    holding points) and the cloud's instance column with ids outside the table set to 0."""
+    interactive = status.any(axis=1)
+    last_frame = np.array([max(tr.pixels) if tr.pixels else -1 for tr in tracks], np.int64)
     table: list[Instance] = []
     for m in range(len(tracks)):
         iid = int(ids[m + 1])
-        ipts = pts[instance == iid]
+        ipts = cloud.pts[cloud.label == iid]
         if len(ipts) == 0:
             continue
         table.append(
@@ -854,8 +887,8 @@ def fuse_state(
             )
         )
     present = {inst.id for inst in table}
-    for inst in prev_instances.values():
-        ipts = pts[instance == inst.id]
+    for inst in previous.instances if previous else []:
+        ipts = cloud.pts[cloud.label == inst.id]
         if inst.id in present or len(ipts) == 0:
             continue
         table.append(
@@ -871,8 +904,64 @@ def fuse_state(
             )
         )
     known = {inst.id for inst in table}
-    instance = np.where(np.isin(instance, list(known)), instance, 0).astype(np.int32)
+    instance = np.where(np.isin(cloud.label, list(known)), cloud.label, 0).astype(np.int32)
     table.sort(key=lambda inst: inst.id)
+    return table, instance
+
+
+def fuse_state(
+    obs: Observation,
+    previous: State | None,
+    config: StateFusionConfig | None = None,
+    segmenter: Segmenter | None = None,
+) -> State:
+    """The state after ``obs`` fused onto ``previous`` (None: the first state of a world).
+
+    ``segmenter`` (the ``grounded_sam`` backend, or any object with ``masks(image)``) gives
+    the object clusters instead of DBSCAN (:func:`track_objects`).
+
+    See the module docstring for the steps. Raises :class:`FusionError` for an empty
+    observation, a Sim3 outside ``sim3_scale_range`` or with a residual above
+    ``max_registration_rms_m``, no camera overlap with the previous state, or a previous state
+    that the clip's depth contradicts (another world frame).
+    """
+    config = config or StateFusionConfig()
+    _check_observation(obs)
+    t, h, w = obs.depth.shape
+
+    # 1. Registration into the state's world frame.
+    scale, sim3, rms = _register(obs, config)
+    poses = apply_sim3_to_poses(sim3, scale, obs.world_from_cam)  # (T, 4, 4) state frame
+    depth = obs.depth * np.float32(scale)  # (T, H, W) state units
+    hands = np.stack([_dilate(obs.hand_mask[k], config.hand_dilation_px) for k in range(t)])
+    valid = (depth > 0) & (depth <= config.depth_max_m) & ~hands  # (T, H, W)
+    if valid.sum() < 100:
+        raise FusionError(
+            f"empty observation: {int(valid.sum())} pixels with known depth outside the hands "
+            f"in {t} frames"
+        )
+    if previous is not None:
+        _check_overlap(poses, previous, config)
+
+    # 2-3. Object tracks, the interaction test, background by TSDF, interacted objects.
+    tracks, status, gap, cloud, geo_frame = _objects_and_background(
+        obs, depth, valid, poses, config, segmenter
+    )
+
+    # 4. Instance ids: tracks that match a previous instance keep its id.
+    ids = _instance_ids(tracks, previous, config)
+    cloud.label = ids[cloud.label]
+
+    # 5. Merge with the previous state.
+    if previous is not None:
+        moved_ids = ids[1:][status.any(axis=1)]
+        cloud = _merge_previous(cloud, previous, moved_ids, obs, depth, valid, poses, config)
+
+    # 6. Cleaning, then the instance table.
+    cloud = cloud.select(remove_outliers(cloud.pts, config))
+    if len(cloud.pts) == 0:
+        raise FusionError("empty state: no point survived fusion and outlier removal")
+    table, instance = _instance_table(cloud, tracks, ids, status, gap, geo_frame, previous, t)
 
     frames_names = [f"{obs.clip_id}:{k}" for k in range(t)]
     cams, names = poses, frames_names
@@ -884,13 +973,13 @@ def fuse_state(
         previous_clip_id=previous.clip_id if previous else None,
         world_frame=previous.world_frame if previous else obs.clip_id,
         num_frames=t,
-        points=pts.astype(np.float32),
-        colours=rgb.astype(np.uint8),
-        point_size=size.astype(np.float32),
+        points=cloud.pts.astype(np.float32),
+        colours=cloud.rgb.astype(np.uint8),
+        point_size=cloud.size.astype(np.float32),
         instance=instance,
-        source=source.astype(np.uint8),
+        source=cloud.source.astype(np.uint8),
         instances=table,
-        intrinsics=intrinsics,
+        intrinsics=np.asarray(obs.intrinsics, dtype=np.float64),
         width=w,
         height=h,
         world_from_cam=cams,
