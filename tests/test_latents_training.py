@@ -126,6 +126,19 @@ def test_open_training_data_picks_the_kind(tiny_runs: dict[str, Path], tmp_path:
         open_training_data(tmp_path / "empty")
 
 
+def test_a_folder_made_by_egosim_stage_opens(tiny_runs, tmp_path: Path) -> None:
+    """`egosim stage` writes shard-00000.rejects.parquet beside its output: not a shard."""
+    from egosim.pipeline.runner import plan_stage, run_tasks_here
+
+    output = tmp_path / "run" / "encode" / "shard-00000.parquet"
+    task = plan_stage("encode", {"preset": "tiny"}, output, inputs={"pack": tiny_runs["pack"]})
+    run_tasks_here([task])
+    assert (output.parent / "shard-00000.rejects.parquet").is_file()
+    for path in (tmp_path / "run", output.parent):
+        data = open_training_data(path)
+        assert isinstance(data, LatentsDataset) and data.clip_ids == ["c0", "c1"]
+
+
 def _config(**kw) -> TrainConfig:
     base = {
         "steps": 2,

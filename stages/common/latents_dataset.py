@@ -34,9 +34,18 @@ class TrainingDataError(ValueError):
     """Training paths hold no shards, shards of another kind, or pack and latents mixed."""
 
 
+STAGE_REJECTS_SUFFIX = ".rejects.parquet"  # `egosim stage` writes <output stem>.rejects.parquet
+
+
+def _output_shards(paths: Iterable[str | Path], step: str) -> list[Path]:
+    """``find_shards`` without the rejects tables that ``egosim stage`` writes beside an output
+    named ``shard-NNNNN.parquet`` (they match the shard glob)."""
+    return [p for p in find_shards(paths, step) if not p.name.endswith(STAGE_REJECTS_SUFFIX)]
+
+
 def find_latents_shards(paths: Iterable[str | Path]) -> list[Path]:
     """Latents shard files under ``paths``: files, folders of shards, or runs with ``encode/``."""
-    return find_shards(paths, ENCODE_STEP)
+    return _output_shards(paths, ENCODE_STEP)
 
 
 def latent_sample_from_row(row: Mapping[str, Any]) -> LatentSample:
@@ -167,7 +176,8 @@ def _kinds(path: Path) -> set[str]:
     for step, kind in ((ENCODE_STEP, LATENTS.name), (PACK_STEP, PACK.name)):
         if any((path / step).glob(SHARD_GLOB)):
             return {kind}
-    return {_shard_kind(p) for p in sorted(path.glob(SHARD_GLOB))}
+    shards = sorted(path.glob(SHARD_GLOB))
+    return {_shard_kind(p) for p in shards if not p.name.endswith(STAGE_REJECTS_SUFFIX)}
 
 
 def open_training_data(
