@@ -2,7 +2,7 @@
 
 ``python -m bench.hand_free_real [--data ../shared/data] [--out runs/hand_free]
 [--world tabletop:2,wild:5,alt:tabletop:0,...] [--size 240x416] [--frames 25]
-[--skip-real] [--fixed-only] [--selfie]`` prints one line per case, writes
+[--skip-real] [--fixed-only] [--selfie] [--runs runs/real]`` prints one line per case, writes
 ``OUT/hand_free_real.json`` and contact sheets ``OUT/*.png`` (real | mask | inpainted | truth
 [| Telea]). About 4 minutes on 2 shared cores; each line gives the seconds of masks + fill.
 
@@ -37,6 +37,13 @@ landmarks, fill by the image-aligned path). Hand truth: ``videos_hands`` pixels 
   ``videos_static`` is itself a re-rendering (blurred, a few pixels off), so whole-frame PSNR
   sits near 24 dB whatever the fill.
 
+Real runs of the dataset workflow (``--runs RUNS``: the folders ``bench.real_video --out RUNS``
+wrote; the figures come from its ``hand_mask`` and ``inpaint`` shards, masks from the ``hands``
+stage's joints), see :func:`run_case`: per clip the hand-mask pixels in frames 0-4 and on average,
+and how much of frame 0 the fill changed (pixels off by more than ``CHANGED_LEVELS`` and PSNR of
+the hand-free frame 0 against frame 0 itself; where frame 0 shows no hand, as on pour_coke, any
+change is a false mask's ghost, which the static-camera scene video repeats in every frame).
+
 Real fixed-camera videos (``dwm_realworld/realworld_fixed``, no truth): the static-camera path of
 the default ``inpaint`` backend (temporal median), see :func:`fixed_case`. ``--selfie`` scores
 MediaPipe's selfie-segmentation model alone as a hand+arm cue (see :func:`selfie_cases`).
@@ -64,6 +71,7 @@ from egosim.stages.world import WorldConfig, render_clip
 DWM = "dwm_realworld/realworld_dynamic"
 FAR_PX = 50  # mask farther than this from a hand or its arm corridor is a false positive
 MIN_HAND_FRACTION = 0.003  # a frame "shows a hand" when this fraction of it is hand truth
+CHANGED_LEVELS = 20  # a frame-0 pixel the fill moved by more than this (any channel) is changed
 
 
 def iou(a: np.ndarray, b: np.ndarray) -> float:
@@ -255,6 +263,31 @@ def fixed_case(path: Path, out: Path, fps: float = 8.0, frames: int = 49, width:
     }
 
 
+def run_case(run: Path, name: str) -> list[dict]:
+    """Figures of the clips of one ``bench.real_video`` run folder (see the module docstring)."""
+    from bench.real_video import read_step
+    from egosim.pipeline.clip_io import clip_from_row
+
+    clips = read_step(run, "ingest")
+    masks = read_step(run, "hand_mask", ["clip_id", "hand_mask"])
+    fills = read_step(run, "inpaint", ["clip_id", "first_frame"])
+    rows = []
+    for cid in sorted(set(clips) & set(masks) & set(fills)):
+        first = clip_from_row(clips[cid]).frames[0]  # (H, W, 3)
+        mask = media.decode_lossless_video(masks[cid]["hand_mask"]) > 0  # (T, H, W)
+        filled = media.decode_png(fills[cid]["first_frame"], f"inpaint first_frame of {cid}")
+        moved = np.abs(filled.astype(np.int16) - first.astype(np.int16)).max(axis=2)
+        areas = mask.reshape(len(mask), -1).sum(axis=1)  # (T,)
+        rows.append({
+            "case": f"{name}/{cid}",
+            "mask_px_0_4": areas[:5].tolist(),
+            "mask_px_mean": float(areas.mean()),
+            "changed_px": int((moved > CHANGED_LEVELS).sum()),
+            "psnr_vs_frame0": _psnr(filled, first, np.ones(first.shape[:2], bool)),
+        })  # fmt: skip
+    return rows
+
+
 def selfie_masks(frames: np.ndarray, threshold: float = 0.5) -> np.ndarray:
     """MediaPipe selfie segmentation of ``frames (T, H, W, 3)``: person masks ``(T, H, W)`` bool."""
     import mediapipe as mp
@@ -309,10 +342,26 @@ def main() -> int:
     parser.add_argument(
         "--selfie", action="store_true", help="also score MediaPipe selfie segmentation alone"
     )
+    parser.add_argument(
+        "--runs", type=Path, default=None, help="only read bench.real_video's run folders here"
+    )
     args = parser.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
     size = tuple(int(v) for v in args.size.split("x"))
     rows: dict[str, list[dict[str, Any]]] = {"world": [], "dwm": []}
+    if args.runs is not None:
+        rows = {"runs": []}
+        for run in sorted(p for p in args.runs.iterdir() if (p / "hand_mask").is_dir()):
+            for r in run_case(run, run.name):
+                rows["runs"].append(r)
+                print(
+                    f"run {r['case']:<32} mask px frames 0-4 {r['mask_px_0_4']} "
+                    f"(mean {r['mask_px_mean']:.0f}) | frame 0 changed by the fill: "
+                    f"{r['changed_px']} px, PSNR {r['psnr_vs_frame0']:.2f} dB",
+                    flush=True,
+                )
+        (args.out / "hand_free_runs.json").write_text(json.dumps(rows, indent=1))
+        return 0
     if args.fixed_only:
         args.world = ""
     for item in filter(None, args.world.split(",")):
