@@ -366,12 +366,16 @@ def rejects_file_name(index: int) -> str:
     return f"rejects-{index:05d}.parquet"
 
 
+STAGE_REJECTS_SUFFIX = ".rejects.parquet"  # the rejects `egosim stage` writes beside its output
+
+
 def find_shards(paths: Iterable[str | Path], step: str) -> list[Location]:
     """Shard files under ``paths``: files, folders of shards, or run folders with a ``step/``.
 
     Each path is a local path or an fsspec URL (:func:`egosim.pipeline.storage.location`). A
     file named directly is taken as it is; in folders only committed shards are listed (never a
-    temporary file or, remote, a shard without its completion marker). Raises
+    temporary file, an ``egosim stage`` rejects file or, remote, a shard without its completion
+    marker). Raises
     :class:`FileNotFoundError` naming the paths when nothing is found.
     """
     found: list[Location] = []
@@ -384,7 +388,12 @@ def find_shards(paths: Iterable[str | Path], step: str) -> list[Location]:
             raise FileNotFoundError(f"no {step} shard or folder at {path}")
         sub = storage.join(path, step)
         folder = sub if storage.is_dir(sub) else path
-        found += storage.list_files(folder, SHARD_GLOB)
+        # `egosim stage --output shard-00000.parquet` writes shard-00000.rejects.parquet beside it
+        found += [
+            f
+            for f in storage.list_files(folder, SHARD_GLOB)
+            if not storage.name(f).endswith(STAGE_REJECTS_SUFFIX)
+        ]
     if not found:
         raise FileNotFoundError(
             f"no {step} shards under {[str(p) for p in paths]} (expected {SHARD_GLOB} files, "

@@ -130,3 +130,18 @@ def test_killed_writer_leaves_no_visible_shard(tmp_path: Path) -> None:
     time.sleep(0.1)
     assert not out.exists()
     assert check_shard(out)[0].endswith("shard file does not exist")
+
+
+def test_find_shards_leaves_out_the_rejects_egosim_stage_writes(tmp_path: Path) -> None:
+    """``egosim stage --output d/shard-00000.parquet`` writes d/shard-00000.rejects.parquet, which
+    matches the shard glob: a folder listing skips it, a file named directly is taken."""
+    from egosim.pipeline.shards import find_shards
+
+    out = tmp_path / "clips"
+    write_clips(out / "shard-00000.parquet", [make_clip("a")], stage="ingest")
+    with ShardWriter(out / "shard-00000.rejects.parquet", REJECTS, stage="ingest"):
+        pass
+    assert find_shards([out], "ingest") == [out / "shard-00000.parquet"]
+    assert find_shards([out / "shard-00000.rejects.parquet"], "ingest") == [
+        out / "shard-00000.rejects.parquet"
+    ]

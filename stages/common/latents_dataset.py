@@ -21,7 +21,7 @@ from typing import Any
 import torch
 
 from egosim.model.conditioning import LatentSample
-from egosim.pipeline.shards import SHARD_GLOB, ShardReader, find_shards
+from egosim.pipeline.shards import SHARD_GLOB, STAGE_REJECTS_SUFFIX, ShardReader, find_shards
 from egosim.schemas.latents import CONDITION_CHANNELS, LATENT_CHANNELS, LATENTS, decode_tensor
 from egosim.schemas.pack import PACK
 from egosim.stages.common.pack_dataset import PackDataset
@@ -34,18 +34,9 @@ class TrainingDataError(ValueError):
     """Training paths hold no shards, shards of another kind, or pack and latents mixed."""
 
 
-STAGE_REJECTS_SUFFIX = ".rejects.parquet"  # `egosim stage` writes <output stem>.rejects.parquet
-
-
-def _output_shards(paths: Iterable[str | Path], step: str) -> list[Path]:
-    """``find_shards`` without the rejects tables that ``egosim stage`` writes beside an output
-    named ``shard-NNNNN.parquet`` (they match the shard glob)."""
-    return [p for p in find_shards(paths, step) if not p.name.endswith(STAGE_REJECTS_SUFFIX)]
-
-
 def find_latents_shards(paths: Iterable[str | Path]) -> list[Path]:
     """Latents shard files under ``paths``: files, folders of shards, or runs with ``encode/``."""
-    return _output_shards(paths, ENCODE_STEP)
+    return find_shards(paths, ENCODE_STEP)
 
 
 def latent_sample_from_row(row: Mapping[str, Any]) -> LatentSample:
