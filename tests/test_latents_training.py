@@ -237,3 +237,12 @@ def test_wan_clip_size_pack_encodes_and_trains_one_step(wan_folder: Path, tmp_pa
     assert data[0].image_embedding.shape == (257, 32)
     assert data[0].text_embedding.shape == (len("the right hand picks up the box") + 1, 32)
     assert result.step == 1 and np.isfinite(result.losses[0])
+
+
+def test_training_refuses_latents_of_another_preset(tiny_runs: dict[str, Path]) -> None:
+    from egosim.stages.train.run import check_data
+
+    latents = open_training_data(tiny_runs["run"])
+    check_data(latents, _config())  # tiny latents, tiny training: fine
+    with pytest.raises(TrainingDataError, match="encoded for preset 'tiny'"):
+        check_data(latents, _config(preset="tiny-wan"))

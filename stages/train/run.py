@@ -73,6 +73,8 @@ def check_data(dataset: PackDataset | LatentsDataset, config: TrainConfig) -> No
     from egosim.model.presets import get_preset
 
     preset = get_preset(config.preset)
+    if isinstance(dataset, LatentsDataset):
+        dataset.check_preset(config.preset)  # latents of other encoders: refused up front
     sizes = sorted(set(dataset.sizes))
     problems = []
     if config.batch_size > 1 and len(sizes) > 1:
