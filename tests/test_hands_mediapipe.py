@@ -420,3 +420,23 @@ def test_synthetic_world_3d_against_true_joints(mediapipe: object) -> None:
     assert new["error_2d_px"] < 20.0, new
     assert new["orientation_deg"] <= 15.0 and new["mpjpe_mm"] <= 30.0, new
     assert old["orientation_deg"] > 45.0, old  # the axis slip the palm PnP removes
+
+
+def test_hand_accuracy_depth_ratio_of_a_hand_placed_too_far() -> None:
+    """A hand scaled by 1.1 about the camera centre projects where the true one does (2D error
+    0, orientation 0) but sits 10% too far: depth ratio 1.1, MPJPE = 10% of the wrist offsets."""
+    from egosim.stages.hands.metrics import hand_accuracy
+
+    rng = np.random.default_rng(0)
+    t = 3
+    truth_cam = np.zeros((t, 2, 21, 3))
+    truth_cam[:, 1] = rng.normal([0.05, 0.02, 0.45], [0.03, 0.03, 0.01], (t, 21, 3))
+    k = np.array([400.0, 400.0, 160.0, 120.0])
+    uv = project_points(truth_cam, k)[0]
+    valid = np.array([[False, True]] * t)
+    acc = hand_accuracy(
+        1.1 * truth_cam, uv, valid, truth_cam, valid, np.tile(np.eye(4), (t, 1, 1)), k, (320, 240)
+    ).summary()
+    assert acc["recall"] == 1.0 and acc["error_2d_px"] < 1e-9
+    np.testing.assert_allclose(acc["depth_ratio_median"], 1.1, rtol=1e-9)
+    assert acc["orientation_deg"] < 1e-3

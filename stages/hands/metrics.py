@@ -9,12 +9,14 @@ All comparisons are per side (slot 0 = left, 1 = right) in the *camera* frame:
 - **orientation error**: angle of the rotation that best aligns the method's wrist-relative joints
   with the true ones (Kabsch over all 21 joints), degrees;
 - **wrist-relative MPJPE**: mean joint distance after subtracting each hand's wrist, millimetres
-  (no rotation alignment: a wrong orientation counts in full).
+  (no rotation alignment: a wrong orientation counts in full);
+- **depth ratio**: the method's median joint depth over the true one (1 = the hand sits at the
+  right distance; what places a hand on the surface it touches).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -49,6 +51,8 @@ class HandAccuracy:
     offset_2d_px: list[np.ndarray]  # per found hand-frame: signed mean (du, dv) pixel offset
     orientation_deg: list[float]  # per found hand-frame
     mpjpe_mm: list[float]  # per found hand-frame, wrist-relative
+    depth_ratio: list[float] = field(default_factory=list)  # per found hand-frame: median
+    # joint depth / true median joint depth
 
     def summary(self) -> dict[str, float]:
         """Scalar figures: recall, mean 2D error and offset, orientation error, MPJPE."""
@@ -70,6 +74,9 @@ class HandAccuracy:
             if self.orientation_deg
             else float("nan"),
             "mpjpe_mm": mean(self.mpjpe_mm),
+            "depth_ratio_median": float(np.median(self.depth_ratio))
+            if self.depth_ratio
+            else float("nan"),
         }
 
 
@@ -85,6 +92,7 @@ def combine(parts: list[HandAccuracy]) -> HandAccuracy:
         out.offset_2d_px += p.offset_2d_px
         out.orientation_deg += p.orientation_deg
         out.mpjpe_mm += p.mpjpe_mm
+        out.depth_ratio += p.depth_ratio
     return out
 
 
@@ -139,4 +147,7 @@ def hand_accuracy(
         acc.offset_2d_px.append(diff.mean(axis=0))
         acc.orientation_deg.append(orientation_error_deg(joints_cam[f, s], truth_cam[f, s]))
         acc.mpjpe_mm.append(wrist_relative_mpjpe_mm(joints_cam[f, s], truth_cam[f, s]))
+        acc.depth_ratio.append(
+            float(np.median(joints_cam[f, s, :, 2]) / np.median(truth_cam[f, s, :, 2]))
+        )
     return acc
