@@ -165,3 +165,27 @@ def test_robot_logs_with_joint_states_and_a_urdf_get_the_arm_mask(tmp_path, sour
     bent = IngestStage(IngestConfig(**{**params, "robot_base_pose": ()}))  # base at the origin
     (moved,) = [clip_from_row(r) for u in bent.list_units(str(path)) for r in bent.process_unit(u)]
     assert _iou_recall(moved.embodiment_mask, robot.arm_mask)[0] < 0.5
+
+
+def test_hand_mask_masks_the_robot_arm_of_a_robot_clip() -> None:
+    """hand_mask adds the clip's embodiment mask: the whole true arm is masked (recall 1.0),
+    where the gripper-skeleton keypoints alone cover only the gripper."""
+    from egosim.pipeline import media
+    from egosim.pipeline.clip_io import row_from_clip
+    from egosim.stages.hand_mask.stage import HandMaskStage
+    from egosim.stages.ingest import synthetic_source
+    from egosim.stages.ingest.stage import IngestConfig
+
+    cfg = IngestConfig(
+        synthetic_count=1, synthetic_robot_every=1, height=H, width=W, num_frames=5, fps=8.0,
+        robot_mask_dilate_px=1,
+    )  # fmt: skip
+    clip = synthetic_source.render_unit("tabletop:0:robot", cfg)
+    row = row_from_clip(clip)
+    out = HandMaskStage().process({"clips": row})
+    masks = media.decode_lossless_video(out["hand_mask"]).astype(bool)
+    truth = clip.hand_mask.astype(bool)  # the world's true arm mask
+    assert (masks & truth).sum() / truth.sum() >= 0.999
+    no_urdf = HandMaskStage().process({"clips": {**row, "embodiment_mask": None}})
+    keypoints_only = media.decode_lossless_video(no_urdf["hand_mask"]).astype(bool)
+    assert (keypoints_only & truth).sum() / truth.sum() < 0.6

@@ -23,6 +23,10 @@ Backends:
 - ``sam``: a SAM-family model from ``sam_model_path`` through transformers, prompted with the
   keypoints and the capsule mask's box (see ``sam``).
 
+A robot clip's ``embodiment_mask`` (the arm's silhouette ingest rendered from its URDF and joint
+states, clips v4) is added to every backend's masks: the arm is removed from the hand-free first
+frame and the scene like a human arm.
+
 A clip without hand joints or poses is rejected; frames where no hand is valid get empty masks.
 """
 
@@ -177,10 +181,11 @@ class HandMaskStage(ClipStage):
     # cleaned joints and a replacement camera (see the module docstring)
     optional_inputs: ClassVar[Mapping[str, ShardSchema]] = {**CAMERA_ROLES, "hands": HANDS}
     output = HAND_MASK
-    version = 6  # 2: image-space arm masks (no world axis). 3: arm found by a colour walk, masks
+    version = 7  # 2: image-space arm masks (no world axis). 3: arm found by a colour walk, masks
     # carried into frames whose hands were missed. 4: arm re-aimed along its colour region.
     # 5: that region is probably arm wherever it runs. 6: each hand carried into the frames that
-    # missed it, and only its certain seeds (skeleton, arm strip) carried with confidence
+    # missed it, and only its certain seeds (skeleton, arm strip) carried with confidence.
+    # 7: a robot clip's embodiment_mask (URDF arm) added
     backends = ("keypoints", "sam")
 
     def __init__(self, config: StageConfig | None = None) -> None:
@@ -229,6 +234,8 @@ class HandMaskStage(ClipStage):
         if clip.world_from_cam is None:
             raise ClipRejected(f"clip {clip.clip_id!r}: no camera poses to project hand joints")
         masks = self.masks_for_clip(clip)
+        if clip.embodiment_mask is not None:  # a robot arm from its URDF (ingest)
+            masks = np.maximum(masks, clip.embodiment_mask.astype(masks.dtype))
         cfg: HandMaskConfig = self.config  # type: ignore[assignment]
         return {
             "clip_id": clip.clip_id,
