@@ -754,13 +754,21 @@ def _run_export(kind: str, run: Path, out: Path, set_: list[str] | None) -> None
         result = export(run, out, config)
     except _export_errors() as exc:
         raise _fail(exc) from exc
-    for cid, why in result.skipped.items():
-        typer.secho(f"skipped {cid}: {why}", fg=typer.colors.YELLOW, err=True)
-    typer.echo(
+    _finish_export(
+        run,
+        result.skipped,
+        len(result.written),
         f"{kind}: {len(result.written)} clip(s) in {out} (index {result.index}), "
-        f"{len(result.skipped)} skipped"
+        f"{len(result.skipped)} skipped",
     )
-    if not result.written:
+
+
+def _finish_export(run: Path, skipped: dict[str, str], written: int, summary: str) -> None:
+    """Print what an export skipped and its summary; exit 3 when it wrote no clip."""
+    for cid, why in skipped.items():
+        typer.secho(f"skipped {cid}: {why}", fg=typer.colors.YELLOW, err=True)
+    typer.echo(summary)
+    if not written:
         typer.secho(f"error: no clip of {run} was exported", fg=typer.colors.RED, err=True)
         raise typer.Exit(code=EXIT_STEP_REJECTED_ALL)
 
@@ -822,15 +830,13 @@ def export_lerobot(
         report = write_lerobot(run, out, robot_type)
     except (*USER_ERRORS, FileExistsError) as exc:
         raise _fail(exc) from exc
-    for cid, why in report.skipped.items():
-        typer.secho(f"skipped {cid}: {why}", fg=typer.colors.YELLOW, err=True)
-    typer.echo(
+    _finish_export(
+        run,
+        report.skipped,
+        report.episodes,
         f"lerobot: {report.episodes} episode(s), {report.frames} frames, video keys "
-        f"{', '.join(report.video_keys)} in {out}; {len(report.skipped)} skipped"
+        f"{', '.join(report.video_keys)} in {out}; {len(report.skipped)} skipped",
     )
-    if not report.episodes:
-        typer.secho(f"error: no clip of {run} was exported", fg=typer.colors.RED, err=True)
-        raise typer.Exit(code=EXIT_STEP_REJECTED_ALL)
 
 
 # --- egosim weights and egosim presets (issue 14): published weights, export, memory plan -----

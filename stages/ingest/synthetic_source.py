@@ -55,7 +55,7 @@ def list_units(cfg: SyntheticFormat) -> list[str]:
 
 
 def render_unit(spec: str, cfg: SyntheticFormat) -> Clip:
-    """Render the clip a unit spec (``<mode>:<seed>[:articulated][:<variant>]``) names.
+    """Render the clip a unit spec (``<mode>:<seed>[:articulated|:robot][:<variant>]``) names.
 
     The world renders exactly ``num_frames`` frames at ``fps``, so the clip is one full window
     of its own source (``source_frame_indices`` 0..T-1).
@@ -66,17 +66,6 @@ def render_unit(spec: str, cfg: SyntheticFormat) -> Clip:
     except (IndexError, ValueError) as exc:
         raise ClipRejected(f"bad synthetic unit {spec!r}") from exc
     variants = [p for p in parts[2:] if p in VARIANTS]
-    if "robot" in parts[2:]:
-        world = WorldConfig(
-            seed=seed,
-            mode=mode,
-            height=cfg.height,
-            width=cfg.width,
-            num_frames=cfg.num_frames,
-            fps=cfg.fps,
-            variant=variants[-1] if variants else "default",
-        )
-        return _robot_clip(world, cfg)
     world = WorldConfig(
         seed=seed,
         mode=mode,
@@ -87,6 +76,8 @@ def render_unit(spec: str, cfg: SyntheticFormat) -> Clip:
         articulated="articulated" in parts[2:],
         variant=variants[-1] if variants else "default",
     )
+    if "robot" in parts[2:]:  # the URDF arm in the same scene (the lid is not used)
+        return _robot_clip(world, cfg)
     kind = "art" if world.articulated else mode
     tag = "" if world.variant == "default" else f"{world.variant}-"
     clip = render_clip(world, clip_id=f"synth-{tag}{kind}-{seed:05d}")
