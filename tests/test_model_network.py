@@ -126,8 +126,7 @@ def test_lora_starts_identical_and_merges() -> None:
     assert any(n.endswith("attn1.to_q") for n in wrapped)
     trainable = {n for n, p in model.named_parameters() if p.requires_grad}
     assert trainable and all(
-        (".lora_A." in n or ".lora_B." in n or n.startswith("patch_embedding"))
-        for n in trainable
+        (".lora_A." in n or ".lora_B." in n or n.startswith("patch_embedding")) for n in trainable
     )
     assert "patch_embedding.weight" in trainable  # DWM: input projection trained too
     with torch.no_grad():
