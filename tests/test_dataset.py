@@ -6,8 +6,10 @@ import hashlib
 from pathlib import Path
 
 import numpy as np
+import pytest
 from typer.testing import CliRunner
 
+from egosim.pipeline import media
 from egosim.pipeline.check import check_shard
 from egosim.pipeline.cli import EXIT_STEP_REJECTED_ALL, app
 from egosim.pipeline.clip_io import clip_from_row, read_clips
@@ -47,6 +49,35 @@ def test_dataset_workflow_builds_checked_shards_from_the_synthetic_world(tmp_pat
     np.testing.assert_array_equal(clips[1].world_from_cam, truth.world_from_cam)
     np.testing.assert_array_equal(clips[1].hand_mask, truth.hand_mask)
     np.testing.assert_allclose(clips[1].hand_joints, truth.hand_joints, atol=1e-6)
+
+
+@pytest.mark.slow
+def test_dataset_workflow_mixes_human_and_robot_clips(tmp_path: Path) -> None:
+    """ingest.synthetic_robot_every=2: clips 0 and 2 show the URDF robot arm; every step takes
+    both kinds, and the robot clips' hand masks cover their true arm (the embodiment mask)."""
+    overrides = [f"ingest.{kv}" for kv in [*TINY, "synthetic_count=3", "synthetic_robot_every=2"]]
+    overrides += ["pack.frame_stride=1", "ingest.robot_mask_dilate_px=1"]
+    wf = load_workflow(REPO / "workflows" / "dataset.yaml", overrides)
+    out = tmp_path / "data"
+    summary = run_workflow(wf, out, n_workers=2, gpu_workers=0)
+    assert summary.rejected == 0
+    every = sorted(out.glob("*/shard-*.parquet"))
+    assert all(check_shard(s) == [] for s in every)
+    with ShardReader(out / "pack" / "shard-00000.parquet") as reader:
+        assert reader.read_column("clip_id") == [
+            "synth-robot-00000",
+            "synth-tabletop-00001",
+            "synth-robot-00002",
+        ]
+    clips = {c.clip_id: c for c in read_clips(out / "ingest" / "shard-00000.parquet")}
+    with ShardReader(out / "hand_mask" / "shard-00000.parquet") as reader:
+        for row in reader.iter_rows():
+            clip = clips[row["clip_id"]]
+            if clip.embodiment_mask is None:
+                continue
+            masks = media.decode_lossless_video(row["hand_mask"]).astype(bool)
+            truth = clip.hand_mask.astype(bool)  # the true arm
+            assert (masks & truth).sum() >= 0.99 * truth.sum(), clip.clip_id
 
 
 def test_egodex_files_ingest_back_to_the_ground_truth(tmp_path: Path) -> None:
