@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 
 from egosim.pipeline import media
-from egosim.pipeline.records import NUM_HAND_JOINTS, Clip
+from egosim.pipeline.records import NUM_HAND_JOINTS, Clip, ClipValueError
 from egosim.pipeline.shards import ShardWriter, open_shard, shard_file_name
 from egosim.schemas import CLIPS
 
@@ -68,25 +68,46 @@ def row_from_clip(clip: Clip, crf: int = media.DEFAULT_CRF) -> dict[str, Any]:
     }
 
 
+# The columns every clips row needs to become a Clip (the schema's non-nullable ones). A stage
+# that declares a subset of the clips columns and calls clip_from_row lists these too.
+CLIP_REQUIRED_COLUMNS: tuple[str, ...] = tuple(c.name for c in CLIPS.columns if not c.nullable)
+
+
 def clip_from_row(row: Mapping[str, Any]) -> Clip:
-    """Decode one ``clips`` row into a :class:`Clip` (every video decoded)."""
-    cid = row["clip_id"]
+    """Decode one ``clips`` row into a :class:`Clip` (every video it holds decoded).
+
+    An optional column absent from ``row`` (a stage that read a subset of the columns, see
+    ``ClipStage.columns``) is treated like null; a missing required column
+    (:data:`CLIP_REQUIRED_COLUMNS`) raises :class:`ClipValueError` naming the clip and columns.
+    """
+    cid = row.get("clip_id", "?")
+    missing = [name for name in CLIP_REQUIRED_COLUMNS if name not in row]
+    if missing:
+        raise ClipValueError(
+            f"clip {cid!r}: the row lacks required clips column(s) {missing} (a stage reading "
+            "a subset of columns must declare clip_io.CLIP_REQUIRED_COLUMNS)"
+        )
+
+    def get(key: str) -> Any:
+        # not row.get: a DeclaredRow raises there for a column its stage did not declare
+        return row[key] if key in row else None  # noqa: SIM401
+
     t, h, w = row["num_frames"], row["height"], row["width"]
-    unit = row.get("depth_unit_m")
+    unit = get("depth_unit_m")
 
     def video(key: str) -> np.ndarray | None:
-        data = row.get(key)
+        data = get(key)
         return None if data is None else media.decode_rgb_video(data, h, w, f"clip {cid} {key}")
 
     def lossless(key: str) -> np.ndarray | None:
-        data = row.get(key)
+        data = get(key)
         return None if data is None else media.decode_lossless_video(data, f"clip {cid} {key}")
 
     def depth(key: str) -> np.ndarray | None:
-        data = row.get(key)
+        data = get(key)
         return None if data is None else media.decode_depth_video(data, unit, f"clip {cid} {key}")
 
-    n_obj = row.get("num_objects")
+    n_obj = get("num_objects")
     clip = Clip(
         clip_id=cid,
         source=row["source"],
@@ -95,33 +116,33 @@ def clip_from_row(row: Mapping[str, Any]) -> Clip:
         timestamps=np.asarray(row["timestamps"], dtype=np.float64),
         intrinsics=np.asarray(row["intrinsics"], dtype=np.float64),
         frames=video("video"),
-        world_from_cam=_opt(row.get("world_from_cam"), lambda v: _arr(v).reshape(t, 4, 4)),
+        world_from_cam=_opt(get("world_from_cam"), lambda v: _arr(v).reshape(t, 4, 4)),
         depth=depth("depth"),
         static_frames=video("static_video"),
         static_depth=depth("static_depth"),
         first_frame_clean=_opt(
-            row.get("first_frame_clean"), lambda b: media.decode_png(b, f"clip {cid} first frame")
+            get("first_frame_clean"), lambda b: media.decode_png(b, f"clip {cid} first frame")
         ),
         hand_joints=_opt(
-            row.get("hand_joints"),
-            lambda v: _arr(v, np.float32).reshape(t, 2, NUM_HAND_JOINTS, 3),
+            get("hand_joints"), lambda v: _arr(v, np.float32).reshape(t, 2, NUM_HAND_JOINTS, 3)
         ),
-        hand_valid=_opt(row.get("hand_valid"), lambda v: np.asarray(v, dtype=bool)),
+        hand_valid=_opt(get("hand_valid"), lambda v: np.asarray(v, dtype=bool)),
         hand_confidence=_opt(
-            row.get("hand_confidence"), lambda v: _arr(v, np.float32).reshape(t, 2, -1)
+            get("hand_confidence"), lambda v: _arr(v, np.float32).reshape(t, 2, -1)
         ),
         hand_mask=lossless("hand_mask"),
         embodiment_mask=lossless("embodiment_mask"),
         object_mask=lossless("object_mask"),
-        object_poses=_opt(row.get("object_poses"), lambda v: _arr(v).reshape(t, n_obj, 4, 4)),
-        text=row.get("text"),
-        source_fps=_opt(row.get("source_fps"), float),
-        source_num_frames=_opt(row.get("source_num_frames"), int),
-        source_frame_indices=_opt(row.get("source_frame_indices"), lambda v: _arr(v, np.int64)),
-        clip_policy=row.get("clip_policy"),
-        gripper_opening=_opt(
-            row.get("gripper_opening"), lambda v: _arr(v, np.float32).reshape(t, 2)
+        # num_objects left unread: the object count follows from the poses' length
+        object_poses=_opt(
+            get("object_poses"), lambda v: _arr(v).reshape(t, -1 if n_obj is None else n_obj, 4, 4)
         ),
+        text=get("text"),
+        source_fps=_opt(get("source_fps"), float),
+        source_num_frames=_opt(get("source_num_frames"), int),
+        source_frame_indices=_opt(get("source_frame_indices"), lambda v: _arr(v, np.int64)),
+        clip_policy=get("clip_policy"),
+        gripper_opening=_opt(get("gripper_opening"), lambda v: _arr(v, np.float32).reshape(t, 2)),
     )
     return clip.check()
 

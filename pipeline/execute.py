@@ -3,7 +3,9 @@
 A :class:`ShardTask` is plain data (picklable) so that a Dask worker can run it. The executor
 skips a task whose output exists with the same fingerprint, records rejected clips in a
 rejects shard next to the output, and writes both atomically (rejects first, output last, so
-an existing output always has its rejects).
+an existing output always has its rejects). A clip stage's input roles are read with only the
+columns it declares (``ClipStage.columns``, plus ``clip_id`` for the join); a stage that reads
+an undeclared column fails the task (:class:`UndeclaredColumnError`), it is not a reject.
 
 It logs through ``logging.getLogger(__name__)`` (the run log, ``RUN/logs/run.log``; see
 :mod:`egosim.pipeline.observe`): a line per task started and finished and one per clip, each
@@ -24,7 +26,15 @@ from typing import Any
 
 from egosim.pipeline import storage
 from egosim.pipeline.shards import CorruptShardError, ShardReader, ShardWriter, read_shard_meta
-from egosim.pipeline.stage import ClipRejected, ClipStage, SourceStage, Stage, get_stage
+from egosim.pipeline.stage import (
+    ClipRejected,
+    ClipStage,
+    DeclaredRow,
+    SourceStage,
+    Stage,
+    UndeclaredColumnError,
+    get_stage,
+)
 from egosim.pipeline.storage import Location
 from egosim.schemas import REJECTS, SchemaCompatibilityError
 
@@ -248,22 +258,27 @@ def _run_clips(
     readers = {role: ShardReader(task.inputs[role], schemas[role]) for role in roles}
     primary, others = roles[0], roles[1:]
     indexes = {role: readers[role].row_group_of() for role in others}
+    # Only the columns the stage declares (ClipStage.columns) are read and decoded.
+    columns = {role: stage.read_columns(role) for role in roles}
     try:
-        for row in readers[primary].iter_rows():
+        for row in readers[primary].iter_rows(columns[primary]):
             clip_id = row["clip_id"]
             start = time.perf_counter()
-            joined: dict[str, Any] = {primary: row}
+            joined: dict[str, Any] = {primary: _declared(stage, primary, row, columns[primary])}
             absent = [role for role in others if clip_id not in indexes[role]]
             if absent:  # rejected upstream in another branch: nothing to join with
                 log.info("%s clip=%s not in input(s) %s", task_label(task), clip_id, absent)
                 _settled(task, clip_id, CLIP_UNMATCHED, start, on_clip)
                 continue
             for role in others:
-                group = readers[role].read_row_group(indexes[role][clip_id])
-                joined[role] = next(r for r in group if r["clip_id"] == clip_id)
+                group = readers[role].read_row_group(indexes[role][clip_id], columns[role])
+                found = next(r for r in group if r["clip_id"] == clip_id)
+                joined[role] = _declared(stage, role, found, columns[role])
             outcome = CLIP_DONE
             try:
                 writer.write_row(stage.process(joined))
+            except UndeclaredColumnError:  # a bug in the stage's declaration, not in the clip
+                raise
             except Exception as exc:  # one bad clip must not stop the shard
                 fp = task.input_fingerprints.get(primary, "")
                 rejects.append(_reject(task, stage, clip_id, exc, fp))
@@ -272,3 +287,12 @@ def _run_clips(
     finally:
         for reader in readers.values():
             reader.__exit__()
+
+
+def _declared(
+    stage: ClipStage, role: str, row: dict[str, Any], columns: list[str] | None
+) -> Mapping[str, Any]:
+    """``row`` as ``process`` gets it: a :class:`DeclaredRow` when only ``columns`` were read."""
+    if columns is None:
+        return row
+    return DeclaredRow(row, stage.name, role, stage.input_schemas()[role].column_names)

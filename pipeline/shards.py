@@ -317,9 +317,11 @@ class ShardReader:
                 index[row["clip_id"]] = i
         return index
 
-    def read_row_group(self, i: int) -> list[dict[str, Any]]:
-        """Read the rows of row group ``i`` (verified against their content hashes)."""
-        return self._checked(self._read_group(i), i)
+    def read_row_group(self, i: int, columns: list[str] | None = None) -> list[dict[str, Any]]:
+        """Read the rows of row group ``i`` (all columns: verified against their content hashes;
+        a few ``columns``: page checksums only, like :meth:`iter_rows`)."""
+        rows = self._read_group(i, columns)
+        return rows if columns is not None else self._checked(rows, i)
 
     def __enter__(self) -> ShardReader:
         return self

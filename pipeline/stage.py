@@ -7,7 +7,9 @@ Two kinds of stage (see docs/design.md):
 - :class:`ClipStage` maps one clip to one output row. It may read several input shards
   (roles, each with a declared schema); rows are joined by ``clip_id`` within the shard index.
   ``optional_inputs`` are roles a workflow may connect or leave out (e.g. cleaned poses that
-  replace the clip's own); ``process`` gets only the roles that are connected.
+  replace the clip's own); ``process`` gets only the roles that are connected. ``columns``
+  declares, per role, the columns ``process`` reads: the executor reads only those from the
+  Parquet shard (a role left out is read whole).
 
 A stage raises :class:`ClipRejected` (or any exception) for a clip it cannot process; the
 executor records it in the rejects table and goes on. Stages never import Dask: the executor
@@ -102,20 +104,120 @@ class SourceStage(Stage):
 class ClipStage(Stage):
     """A stage that maps one clip (joined over its input roles) to one output row."""
 
+    # input role -> the columns ``process`` reads of it; the executor reads only those (plus
+    # ``clip_id``) and hands ``process`` a :class:`DeclaredRow`. A role left out is read whole.
+    # Checked against the role's schema when the stage is registered (:func:`check_columns`).
+    columns: ClassVar[Mapping[str, tuple[str, ...]]] = {}
+
+    @classmethod
+    def read_columns(cls, role: str) -> list[str] | None:
+        """The columns the executor reads of ``role``, in schema order; None = every column.
+
+        ``clip_id`` (the join key) is always among them; a role without a declaration, or one
+        whose declaration names every column, is read whole (and its rows hash-verified).
+        """
+        declared = cls.columns.get(role)
+        if declared is None:
+            return None
+        names = cls.input_schemas()[role].column_names
+        wanted = {"clip_id", *declared}
+        if wanted.issuperset(names):
+            return None
+        return [name for name in names if name in wanted]
+
     @abstractmethod
     def process(self, rows: Mapping[str, Mapping[str, Any]]) -> dict[str, Any]:
         """Return the output row for one clip given its row in every input role."""
+
+
+class UndeclaredColumnError(StageError, LookupError):
+    """A stage read a column of an input role that its ``columns`` declaration leaves out."""
+
+
+class DeclaredRow(dict[str, Any]):
+    """One input row holding only the columns a stage declared (see ``ClipStage.columns``).
+
+    Reading (``row[k]``, ``row.get(k)``) a column of the role's schema that was not read raises
+    :class:`UndeclaredColumnError` naming the stage, role and column, so a declaration that
+    misses a column fails loudly instead of reading as null. ``k in row`` is False for such a
+    column (helpers such as ``clip_from_row`` treat an absent optional column like null).
+    """
+
+    def __init__(
+        self, values: Mapping[str, Any], stage: str, role: str, schema_columns: tuple[str, ...]
+    ) -> None:
+        super().__init__(values)
+        self.stage = stage  # stage name, for the error message
+        self.role = role  # input role of this row
+        self.schema_columns = schema_columns  # every column of the role's schema
+
+    def _undeclared(self, key: object) -> UndeclaredColumnError | None:
+        if key in self.schema_columns and not dict.__contains__(self, key):
+            return UndeclaredColumnError(
+                f"stage {self.stage!r} reads column {key!r} of input role {self.role!r}, which "
+                f"its `columns` declaration leaves out (declared: {sorted(self)})"
+            )
+        return None
+
+    def __getitem__(self, key: str) -> Any:
+        error = self._undeclared(key)
+        if error is not None:
+            raise error
+        return dict.__getitem__(self, key)
+
+    def get(self, key: str, default: Any = None) -> Any:
+        """``row[key]`` when present, else ``default`` (an undeclared schema column raises)."""
+        error = self._undeclared(key)
+        if error is not None:
+            raise error
+        return dict.get(self, key, default)
+
+
+def join_columns(*declarations: Mapping[str, tuple[str, ...]]) -> dict[str, tuple[str, ...]]:
+    """Merge column declarations role by role (order kept, duplicates dropped).
+
+    For a stage that reads its own columns plus those a shared helper reads, e.g.
+    ``join_columns({"clips": ("video",)}, CAMERA_COLUMNS)``.
+    """
+    merged: dict[str, tuple[str, ...]] = {}
+    for declaration in declarations:
+        for role, names in declaration.items():
+            merged[role] = tuple(dict.fromkeys((*merged.get(role, ()), *names)))
+    return merged
+
+
+def check_columns(cls: type[ClipStage]) -> None:
+    """Raise :class:`StageError` listing every declared role or column the schemas lack."""
+    schemas = cls.input_schemas()
+    problems: list[str] = []
+    for role, names in cls.columns.items():
+        if role not in schemas:
+            problems.append(f"role {role!r} is not an input role (roles: {sorted(schemas)})")
+            continue
+        if isinstance(names, str):
+            problems.append(f"role {role!r} must list column names, got the string {names!r}")
+            continue
+        known = schemas[role].column_names
+        problems += [
+            f"role {role!r} has no column {name!r} in schema {schemas[role].name!r}"
+            for name in names
+            if name not in known
+        ]
+    if problems:
+        raise StageError(f"stage {cls.name!r} columns: " + "; ".join(problems))
 
 
 _REGISTRY: dict[str, type[Stage]] = {}
 
 
 def register_stage(cls: type[Stage]) -> type[Stage]:
-    """Add a stage class to the registry; refuses a name that is already taken."""
+    """Add a stage class to the registry; refuses a name that is taken or bad ``columns``."""
     if cls.name in _REGISTRY:
         raise StageError(
             f"stage name {cls.name!r} is already registered by {_REGISTRY[cls.name].__module__}"
         )
+    if issubclass(cls, ClipStage):
+        check_columns(cls)
     _REGISTRY[cls.name] = cls
     return cls
 

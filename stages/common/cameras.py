@@ -27,6 +27,19 @@ from egosim.schemas.poses import POSES
 
 CAMERA_ROLES: dict[str, ShardSchema] = {"poses": POSES, "cameras": DEPTH_CAMERA}
 
+# The columns resolve_cameras reads, per role: add them to a stage's ``columns`` declaration
+# (``pipeline.stage.join_columns``) when the stage calls it.
+CAMERA_COLUMNS: dict[str, tuple[str, ...]] = {
+    "clips": ("clip_id", "num_frames", "intrinsics", "world_from_cam"),
+    "poses": ("world_from_cam",),
+    "cameras": ("intrinsics", "world_from_cam"),
+}
+# The columns first_frame_depth and depth_is_unknown_by_model read, per role.
+DEPTH0_COLUMNS: dict[str, tuple[str, ...]] = {
+    "clips": ("clip_id", "static_depth", "depth", "depth_unit_m"),
+    "cameras": ("depth0", "depth_unit_m", "static_camera", "camera_model"),
+}
+
 
 @dataclass(frozen=True)
 class Cameras:

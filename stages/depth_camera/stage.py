@@ -660,6 +660,22 @@ class DepthCameraStage(ClipStage):
     inputs: ClassVar[Mapping[str, ShardSchema]] = {"clips": CLIPS}
     output = DEPTH_CAMERA
     backends = BACKENDS
+    # What estimate() reads of the clip (the executor decodes nothing else): frames, hand
+    # masks (features there are ignored), the source's own camera and depth (backend given).
+    columns: ClassVar[Mapping[str, tuple[str, ...]]] = {
+        "clips": (
+            "num_frames",
+            "height",
+            "width",
+            "video",
+            "hand_mask",
+            "intrinsics",
+            "world_from_cam",
+            "static_depth",
+            "depth",
+            "depth_unit_m",
+        )
+    }
     config: DepthCameraConfig
 
     def estimate(self, row: Mapping[str, Any]) -> CameraEstimate:

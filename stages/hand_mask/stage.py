@@ -39,30 +39,24 @@ from typing import Any, ClassVar, Literal
 import numpy as np
 
 from egosim.pipeline import media
-from egosim.pipeline.clip_io import clip_from_row
+from egosim.pipeline.clip_io import CLIP_REQUIRED_COLUMNS, clip_from_row
 from egosim.pipeline.geometry import project_world_points
 from egosim.pipeline.records import Clip
-from egosim.pipeline.stage import ClipRejected, ClipStage, ConfigError, StageConfig
+from egosim.pipeline.stage import (
+    ClipRejected,
+    ClipStage,
+    ConfigError,
+    StageConfig,
+    join_columns,
+)
 from egosim.schemas import CLIPS, ShardSchema
 from egosim.schemas.hand_mask import HAND_MASK
 from egosim.schemas.hands import HANDS
-from egosim.stages.common.cameras import CAMERA_ROLES, resolve_cameras
+from egosim.stages.common.cameras import CAMERA_COLUMNS, CAMERA_ROLES, resolve_cameras
 from egosim.stages.hand_mask.arm_region import ArmParams, hand_arm_masks
 from egosim.stages.hand_mask.capsules import CapsuleParams, draw_hands
 from egosim.stages.hand_mask.propagate import PropagationParams, propagate_hands
 from egosim.stages.hand_mask.sam import SamSegmenter, mask_box
-
-# Columns of a clips row this stage does not read: left undecoded.
-_UNUSED_COLUMNS = (
-    "depth",
-    "static_video",
-    "static_depth",
-    "first_frame_clean",
-    "hand_mask",
-    "object_mask",
-    "object_poses",
-    "num_objects",
-)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -187,6 +181,22 @@ class HandMaskStage(ClipStage):
     # missed it, and only its certain seeds (skeleton, arm strip) carried with confidence.
     # 7: a robot clip's embodiment_mask (URDF arm) added
     backends = ("keypoints", "sam")
+    # What process reads (the executor decodes nothing else): the frames, joints and camera
+    # of the clip, the robot arm's mask, the cleaned joints.
+    columns: ClassVar[Mapping[str, tuple[str, ...]]] = join_columns(
+        {
+            "clips": (
+                *CLIP_REQUIRED_COLUMNS,
+                "world_from_cam",
+                "hand_joints",
+                "hand_valid",
+                "hand_confidence",
+                "embodiment_mask",
+            ),
+            "hands": ("num_frames", "hand_joints", "hand_valid", "hand_confidence"),
+        },
+        CAMERA_COLUMNS,
+    )
 
     def __init__(self, config: StageConfig | None = None) -> None:
         super().__init__(config)
@@ -222,7 +232,7 @@ class HandMaskStage(ClipStage):
     def process(self, rows: Mapping[str, Mapping[str, Any]]) -> dict[str, Any]:
         """Masks for one clips row; see the module docstring."""
         row = rows["clips"]
-        clip = clip_from_row({**row, **dict.fromkeys(_UNUSED_COLUMNS)})
+        clip = clip_from_row(row)
         cams = resolve_cameras(rows)
         clip = dataclasses.replace(
             clip, intrinsics=cams.intrinsics, world_from_cam=cams.world_from_cam

@@ -33,8 +33,8 @@ from typing import Any, ClassVar, Literal
 import numpy as np
 
 from egosim.pipeline import media
-from egosim.pipeline.clip_io import clip_from_row
-from egosim.pipeline.stage import ClipRejected, ClipStage, ConfigError, StageConfig
+from egosim.pipeline.clip_io import CLIP_REQUIRED_COLUMNS, clip_from_row
+from egosim.pipeline.stage import ClipRejected, ClipStage, ConfigError, StageConfig, join_columns
 from egosim.schemas import CLIPS, ShardSchema
 from egosim.schemas.hand_mask import HAND_MASK
 from egosim.schemas.inpaint import (
@@ -43,7 +43,13 @@ from egosim.schemas.inpaint import (
     FILL_REPROJECTED,
     INPAINT,
 )
-from egosim.stages.common.cameras import CAMERA_ROLES, first_frame_depth, resolve_cameras
+from egosim.stages.common.cameras import (
+    CAMERA_COLUMNS,
+    CAMERA_ROLES,
+    DEPTH0_COLUMNS,
+    first_frame_depth,
+    resolve_cameras,
+)
 from egosim.stages.inpaint.aligned_fill import aligned_fill
 from egosim.stages.inpaint.diffusers_backend import DiffusersInpainter
 from egosim.stages.inpaint.reproject_fill import (
@@ -57,16 +63,6 @@ from egosim.stages.inpaint.reproject_fill import (
 
 STILL_TRANSLATION_M = 1e-4  # poses closer than this (and STILL_ROTATION_RAD) are a still camera
 STILL_ROTATION_RAD = 1e-4
-
-_UNUSED_COLUMNS = (
-    "static_video",
-    "static_depth",
-    "first_frame_clean",
-    "hand_mask",
-    "object_mask",
-    "object_poses",
-    "num_objects",
-)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -132,6 +128,13 @@ class InpaintStage(ClipStage):
     optional_inputs: ClassVar[Mapping[str, ShardSchema]] = CAMERA_ROLES  # replace the clip's camera
     output = INPAINT
     backends = ("reproject", "opencv", "diffusers")
+    # What process reads (the executor decodes nothing else): the frames and per-frame depth of
+    # the clip, the hand masks, the camera and frame-0 depth (shared rules of common.cameras).
+    columns: ClassVar[Mapping[str, tuple[str, ...]]] = join_columns(
+        {"clips": (*CLIP_REQUIRED_COLUMNS, "depth", "depth_unit_m"), "hand_mask": ("hand_mask",)},
+        CAMERA_COLUMNS,
+        DEPTH0_COLUMNS,
+    )
 
     def __init__(self, config: StageConfig | None = None) -> None:
         super().__init__(config)
@@ -212,8 +215,12 @@ class InpaintStage(ClipStage):
         # Per-frame depth (agreement test) only from the clip, and only when no other role
         # supplies the cameras' depth (see the module docstring).
         per_frame = cfg.depth_tolerance > 0 and rows.get("cameras") is None
-        unused = _UNUSED_COLUMNS if per_frame else (*_UNUSED_COLUMNS, "depth")
-        clip = clip_from_row({**row, **dict.fromkeys(unused)})
+        keep = (
+            (*CLIP_REQUIRED_COLUMNS, "depth", "depth_unit_m")
+            if per_frame
+            else CLIP_REQUIRED_COLUMNS
+        )
+        clip = clip_from_row({key: row[key] for key in keep})  # frames (and depth) decoded
         masks = media.decode_lossless_video(rows["hand_mask"]["hand_mask"], f"clip {clip_id} mask")
         if masks.shape != (clip.num_frames, clip.height, clip.width):
             raise ClipRejected(

@@ -16,11 +16,11 @@ import numpy as np
 
 from egosim.pipeline import media
 from egosim.pipeline.geometry import se3_problems
-from egosim.pipeline.stage import ClipRejected, ClipStage, ConfigError, StageConfig
+from egosim.pipeline.stage import ClipRejected, ClipStage, ConfigError, StageConfig, join_columns
 from egosim.schemas import CLIPS, ShardSchema
 from egosim.schemas.hands import HANDS
 from egosim.schemas.keypoints import KEYPOINTS
-from egosim.stages.common.cameras import CAMERA_ROLES, resolve_cameras
+from egosim.stages.common.cameras import CAMERA_COLUMNS, CAMERA_ROLES, resolve_cameras
 from egosim.stages.keypoint_render.draw import draw_skeleton_video, project_hands
 
 
@@ -57,6 +57,15 @@ class KeypointRenderStage(ClipStage):
     optional_inputs: ClassVar[Mapping[str, ShardSchema]] = CAMERA_ROLES  # replace the clip's camera
     output = KEYPOINTS
     backends = ("opencv",)
+    # What process reads (the executor decodes nothing else): the clip's size and camera, the
+    # cleaned joints.
+    columns: ClassVar[Mapping[str, tuple[str, ...]]] = join_columns(
+        {
+            "clips": ("num_frames", "height", "width", "fps"),
+            "hands": ("num_frames", "hand_joints", "hand_valid", "hand_confidence"),
+        },
+        CAMERA_COLUMNS,
+    )
     config: KeypointRenderConfig
 
     def process(self, rows: Mapping[str, Mapping[str, Any]]) -> dict[str, Any]:

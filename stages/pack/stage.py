@@ -34,7 +34,7 @@ import numpy as np
 
 from egosim.pipeline import media
 from egosim.pipeline.geometry import scale_intrinsics
-from egosim.pipeline.stage import ClipRejected, ClipStage, ConfigError, StageConfig
+from egosim.pipeline.stage import ClipRejected, ClipStage, ConfigError, StageConfig, join_columns
 from egosim.schemas import CLIPS, ShardSchema
 from egosim.schemas.captions import CAPTIONS
 from egosim.schemas.depth_camera import DEPTH_CAMERA
@@ -44,7 +44,12 @@ from egosim.schemas.keypoints import KEYPOINTS
 from egosim.schemas.pack import PACK
 from egosim.schemas.poses import POSES
 from egosim.schemas.scene import SCENE_RENDER
-from egosim.stages.common.cameras import first_frame_depth, resolve_cameras
+from egosim.stages.common.cameras import (
+    CAMERA_COLUMNS,
+    DEPTH0_COLUMNS,
+    first_frame_depth,
+    resolve_cameras,
+)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -140,6 +145,29 @@ class PackStage(ClipStage):
     }
     output = PACK
     backends = ("default",)
+    # What process reads (the executor decodes nothing else); check_inputs_agree compares the
+    # frame count and size of every role that has them, so each role lists those too.
+    columns: ClassVar[Mapping[str, tuple[str, ...]]] = join_columns(
+        {
+            "clips": ("num_frames", "height", "width", "fps", "video", "first_frame_clean"),
+            "scene_render": (
+                "num_frames",
+                "height",
+                "width",
+                "visible_fraction",
+                "scene_video",
+                "visible",
+            ),
+            "keypoints": ("num_frames", "height", "width", "keypoint_visible", "skeleton_video"),
+            "captions": ("text",),
+            "inpaint": ("height", "width", "first_frame"),
+            "cameras": ("num_frames", "height", "width", "registered"),
+            "hand_mask": ("num_frames", "height", "width", "hand_mask"),
+        },
+        {"clips": ("hand_mask",)},
+        CAMERA_COLUMNS,
+        DEPTH0_COLUMNS,
+    )
     config: PackConfig
 
     def process(self, rows: Mapping[str, Mapping[str, Any]]) -> dict[str, Any]:

@@ -39,12 +39,14 @@ import numpy as np
 
 from egosim.pipeline import media
 from egosim.pipeline.geometry import se3_problems, transform_points, unproject_depth
-from egosim.pipeline.stage import ClipRejected, ClipStage, ConfigError, StageConfig
+from egosim.pipeline.stage import ClipRejected, ClipStage, ConfigError, StageConfig, join_columns
 from egosim.schemas import CLIPS, ShardSchema
 from egosim.schemas.inpaint import INPAINT
 from egosim.schemas.scene import SCENE_CLOUD, SceneCloud, cloud_from_row  # noqa: F401 (re-exported)
 from egosim.stages.common.cameras import (
+    CAMERA_COLUMNS,
     CAMERA_ROLES,
+    DEPTH0_COLUMNS,
     depth_is_unknown_by_model,
     first_frame_depth,
     resolve_cameras,
@@ -227,6 +229,17 @@ class SceneCloudStage(ClipStage):
     optional_inputs: ClassVar[Mapping[str, ShardSchema]] = {**CAMERA_ROLES, "inpaint": INPAINT}
     output = SCENE_CLOUD
     backends = ("first_frame",)
+    # What process reads (the executor decodes nothing else): frame 0's image (inpainted, clean
+    # or masked), its depth and confidence, the camera.
+    columns: ClassVar[Mapping[str, tuple[str, ...]]] = join_columns(
+        {
+            "clips": ("height", "width", "first_frame_clean", "hand_mask", "video"),
+            "cameras": ("confidence0",),
+            "inpaint": ("first_frame", "fill_source"),
+        },
+        CAMERA_COLUMNS,
+        DEPTH0_COLUMNS,
+    )
     # 2: static_depth beats depth for frames+hand_mask; image_source names the depth
     # 3: a static camera gets a plane at STATIC_PLANE_DEPTH instead of a reject
     # 4: so does a rotation-only camera (depth_camera camera_model "rotation")

@@ -21,11 +21,11 @@ from typing import Any, ClassVar
 import numpy as np
 
 from egosim.pipeline import media
-from egosim.pipeline.stage import ClipRejected, ClipStage, ConfigError, StageConfig
+from egosim.pipeline.stage import ClipRejected, ClipStage, ConfigError, StageConfig, join_columns
 from egosim.schemas import CLIPS, ShardSchema
 from egosim.schemas.scene import SCENE_CLOUD, SCENE_RENDER, cloud_from_row
 from egosim.schemas.state import STATE, scene_cloud_row_from_state
-from egosim.stages.common.cameras import CAMERA_ROLES, resolve_cameras
+from egosim.stages.common.cameras import CAMERA_COLUMNS, CAMERA_ROLES, resolve_cameras
 from egosim.stages.scene_render.splat import SplatError, render_point_cloud
 
 
@@ -86,6 +86,11 @@ class SceneRenderStage(ClipStage):
     }
     output = SCENE_RENDER
     backends = ("torch_splat",)
+    # What process reads of the clip (its size and camera; the executor decodes nothing
+    # else); the cloud's roles (state, scene_cloud) are read whole.
+    columns: ClassVar[Mapping[str, tuple[str, ...]]] = join_columns(
+        {"clips": ("num_frames", "height", "width", "fps")}, CAMERA_COLUMNS
+    )
     version = 3  # 3: renders a state row (optional role) as well as a scene_cloud row
     config: SceneRenderConfig
 

@@ -31,13 +31,13 @@ import numpy as np
 
 from egosim.pipeline import media
 from egosim.pipeline.geometry import project_world_points
-from egosim.pipeline.stage import ClipRejected, ClipStage, StageError
+from egosim.pipeline.stage import ClipRejected, ClipStage, StageError, join_columns
 from egosim.schemas import CLIPS, ShardSchema
 from egosim.schemas.hand_mask import HAND_MASK
 from egosim.schemas.hands import HANDS
 from egosim.schemas.scene import SCENE_CLOUD
 from egosim.schemas.state import STATE
-from egosim.stages.common.cameras import CAMERA_ROLES, resolve_cameras
+from egosim.stages.common.cameras import CAMERA_COLUMNS, CAMERA_ROLES, resolve_cameras
 from egosim.stages.state_fusion.config import StateFusionConfig
 from egosim.stages.state_fusion.fusion import (
     SOURCE_PREVIOUS,
@@ -172,6 +172,17 @@ class StateFusionStage(ClipStage):
     }
     output = STATE
     backends = ("geometric", "grounded_sam")
+    # What process reads (the executor decodes nothing else): the clip's frames, depth and
+    # camera, the cleaned joints, the hand masks; the state roles are read whole.
+    columns: ClassVar[Mapping[str, tuple[str, ...]]] = join_columns(
+        {
+            "clips": ("num_frames", "height", "width", "video", "depth", "depth_unit_m"),
+            "hands": ("num_frames", "hand_joints", "hand_valid"),
+            "hand_mask": ("hand_mask",),
+            "cameras": ("depth0", "depth_unit_m"),
+        },
+        CAMERA_COLUMNS,
+    )
     config: StateFusionConfig
     segmenter: Segmenter | None = None  # grounded_sam: built on first use; one set here wins
 
