@@ -14,7 +14,7 @@ import time
 
 from egosim.pipeline.clip_io import row_from_clip
 from egosim.stages.depth_camera.stage import DepthCameraConfig, DepthCameraStage
-from egosim.stages.world import WorldConfig, render_clip
+from egosim.world import WorldConfig, render_clip
 
 
 def bench_depth_camera() -> list[dict]:

@@ -35,7 +35,7 @@ from egosim.schemas.pack import PACK
 from egosim.stages.common.latents_dataset import open_training_data
 from egosim.stages.common.pack_dataset import PackDataset
 from egosim.stages.encode.stage import EncodeConfig, EncodeStage
-from egosim.stages.world import WorldConfig, render_clip
+from egosim.world import WorldConfig, render_clip
 
 SIZES = ((9, 64, 64), (17, 128, 224))  # (T, H, W): tiny-wan's default, a larger CPU size
 STEPS = 4  # optimizer steps per run (the first is left out of the mean)

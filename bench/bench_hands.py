@@ -31,8 +31,8 @@ def _clip_frames() -> np.ndarray:
         view = frames[:NUM_FRAMES, :, HOT3D_RGB_X[0] : HOT3D_RGB_X[1]]  # (61, 610, 426, 3)
         plan = plan_resize(view.shape[2], view.shape[1], WIDTH, HEIGHT)
         return np.stack([plan.apply(f) for f in view])
-    from egosim.stages.world.clip import render_clip  # no shared data: the synthetic world
-    from egosim.stages.world.config import WorldConfig
+    from egosim.world.clip import render_clip  # no shared data: the synthetic world
+    from egosim.world.config import WorldConfig
 
     return render_clip(WorldConfig()).frames[:NUM_FRAMES]
 

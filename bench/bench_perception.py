@@ -6,7 +6,7 @@ import time
 
 from egosim.stages.hand_mask.stage import HandMaskStage
 from egosim.stages.inpaint.reproject_fill import dilate, opencv_fill, reproject_fill
-from egosim.stages.world import WorldConfig, render_clip
+from egosim.world import WorldConfig, render_clip
 
 
 def bench_hand_mask_inpaint() -> list[dict]:

@@ -22,7 +22,7 @@ from egosim.stages.pose_clean.harness import (
     spike_frames,
 )
 from egosim.stages.pose_clean.stage import PoseCleanConfig, clean_batch
-from egosim.stages.world.camera_path import camera_path
+from egosim.world.camera_path import camera_path
 
 FPS = 16.0
 MODES = ("tabletop", "wild")

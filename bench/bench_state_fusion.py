@@ -7,7 +7,7 @@ for a generated clip), :func:`measure_state_update`
    world before the interaction, through the ``state_fusion`` stage's ``process``;
 2. fuses the interaction video onto state 0 (``previous_state``) into state 1;
 3. compares both with the ground-truth scene after the interaction
-   (``egosim.stages.world.state_truth``). State 0 is the no-update baseline: what a simulator
+   (``egosim.world.state_truth``). State 0 is the no-update baseline: what a simulator
    that never updates its state would render next.
 
 Segment 2 (the paper's Table 2 analogue, oracle generator): both states rendered along a second
@@ -47,8 +47,8 @@ from egosim.stages.state_fusion.metrics import (
 from egosim.stages.state_fusion.segmenters import Segmenter
 from egosim.stages.state_fusion.stage import StateFusionStage
 from egosim.stages.state_fusion.state_io import state_from_row
-from egosim.stages.world import WorldConfig, render_clip
-from egosim.stages.world.state_truth import (
+from egosim.world import WorldConfig, render_clip
+from egosim.world.state_truth import (
     look_back_clip,
     look_back_path,
     moved_objects,
@@ -307,7 +307,7 @@ def segment_two(config: WorldConfig, clip: Clip, row1: dict[str, Any]) -> dict[s
 
 def _on_table(points: np.ndarray) -> np.ndarray:
     """``(N,)`` bool: over the synthetic table top, up to 0.4 m above it (world frame)."""
-    from egosim.stages.world.scene import TABLE_HI, TABLE_LO, TABLE_TOP_Z
+    from egosim.world.scene import TABLE_HI, TABLE_LO, TABLE_TOP_Z
 
     inside = np.all((points[:, :2] >= TABLE_LO) & (points[:, :2] <= TABLE_HI), axis=1)
     return inside & (points[:, 2] > TABLE_TOP_Z - 0.005) & (points[:, 2] < TABLE_TOP_Z + 0.4)

@@ -6,10 +6,10 @@ import os
 import time
 
 from egosim.pipeline.geometry import intrinsics_from_fov
-from egosim.stages.world import WorldConfig, render_clip
-from egosim.stages.world.camera_path import camera_path
-from egosim.stages.world.render import WorldRenderer
-from egosim.stages.world.scene import build_scene
+from egosim.world import WorldConfig, render_clip
+from egosim.world.camera_path import camera_path
+from egosim.world.render import WorldRenderer
+from egosim.world.scene import build_scene
 
 
 def _one_core() -> set[int] | None:

@@ -61,7 +61,7 @@ class FuzzResult:
 def make_shards(folder: Path) -> list[Path]:
     """A small synthetic clips shard (2 clips, 9 frames, 32x48) and a rejects shard."""
     from egosim.pipeline.clip_io import write_clips
-    from egosim.stages.world import WorldConfig, render_clip
+    from egosim.world import WorldConfig, render_clip
 
     folder.mkdir(parents=True, exist_ok=True)
     clips = folder / "clips.parquet"

@@ -6,7 +6,7 @@
 ``OUT/hand_free_real.json`` and contact sheets ``OUT/*.png`` (real | mask | inpainted | truth
 [| Telea]). About 4 minutes on 2 shared cores; each line gives the seconds of masks + fill.
 
-Synthetic world (``egosim.stages.world``; ``[variant:]mode:seed``). Tuned on: the default
+Synthetic world (``egosim.world``; ``[variant:]mode:seed``). Tuned on: the default
 variant (tabletop seeds 0-3 and tabletop 2 / wild 5 were looked at while the arm search was
 built). ``alt`` (another hand/arm model with sleeves and upper arms, cameras and scenes) came
 after the method was built; of it, tabletop 0, wild 1, tabletop 3, wild 4 and wild 6 have since
@@ -66,7 +66,7 @@ from egosim.pipeline import media
 from egosim.stages.hand_mask.stage import HandMaskConfig, HandMaskStage, masks_from_keypoints
 from egosim.stages.inpaint.reproject_fill import dilate, opencv_fill
 from egosim.stages.inpaint.stage import InpaintStage
-from egosim.stages.world import WorldConfig, render_clip
+from egosim.world import WorldConfig, render_clip
 
 DWM = "dwm_realworld/realworld_dynamic"
 FAR_PX = 50  # mask farther than this from a hand or its arm corridor is a false positive

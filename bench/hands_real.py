@@ -174,8 +174,8 @@ def count_figures(path: Path) -> list[dict[str, float]]:
 def synthetic_figures(seeds: list[int], variant: str = "default") -> dict[str, dict[str, float]]:
     """Accuracy against the synthetic world's true joints, palm-PnP vs translation-only lift, on
     the world ``variant`` ("default": the one the backend was tuned on; "alt": held out)."""
-    from egosim.stages.world.clip import render_clip
-    from egosim.stages.world.config import WorldConfig
+    from egosim.world.clip import render_clip
+    from egosim.world.config import WorldConfig
 
     parts: dict[str, list] = {"palm_pnp": [], "translation": []}
     seconds = []

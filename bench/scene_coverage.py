@@ -222,8 +222,8 @@ def synthetic_case(
 ) -> dict[str, Any] | None:
     """Figures of one synthetic clip with estimated (plane-sweep) depth; None if not available."""
     from egosim.pipeline.clip_io import write_clips
-    from egosim.stages.world.clip import render_clip
-    from egosim.stages.world.config import WorldConfig
+    from egosim.world.clip import render_clip
+    from egosim.world.config import WorldConfig
 
     kwargs: dict[str, Any] = {"seed": seed, "mode": mode, "height": SYN_H, "width": SYN_W}
     if variant:

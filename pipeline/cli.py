@@ -299,8 +299,8 @@ def synth(
 ) -> None:
     """Render clips from the synthetic world as clips shards or EgoDex HDF5+MP4 files."""
     from egosim.pipeline.clip_io import write_clip_shards
-    from egosim.stages.world import WorldConfig, render_clip
-    from egosim.stages.world.egodex_export import write_egodex
+    from egosim.world import WorldConfig, render_clip
+    from egosim.world.egodex_export import write_egodex
 
     try:
         if fmt not in ("shards", "egodex"):

@@ -24,7 +24,7 @@ from egosim.stages.ingest.stage import CLIP_PRESETS, IngestConfig
 from egosim.stages.ingest.standardise import WindowPolicy, longest_model_clip, resample_windows
 from egosim.stages.ingest.video_source import read_video_clips, standardise_clip
 from egosim.stages.pack.stage import sample_frame_indices
-from egosim.stages.world import WorldConfig, render_clip
+from egosim.world import WorldConfig, render_clip
 from tests.conftest import make_clip, one_shard_task, shared_data, smooth_frames
 
 SIZE = {"height": 48, "width": 80}  # small frames: the policy is about time

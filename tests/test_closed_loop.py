@@ -33,8 +33,8 @@ from egosim.stages.state_fusion.closed_loop import ClosedLoopConfig, run_closed_
 from egosim.stages.state_fusion.metrics import centroid_error
 from egosim.stages.state_fusion.stage import StateFusionStage
 from egosim.stages.state_fusion.state_io import state_from_row
-from egosim.stages.world import WorldConfig, render_clip
-from egosim.stages.world.state_truth import look_back_clip, moved_objects, scene_truth
+from egosim.world import WorldConfig, render_clip
+from egosim.world.state_truth import look_back_clip, moved_objects, scene_truth
 from tests.conftest import translated
 
 REPO = Path(__file__).resolve().parents[1]

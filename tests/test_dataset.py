@@ -17,8 +17,8 @@ from egosim.pipeline.runner import run_workflow
 from egosim.pipeline.shards import ShardReader
 from egosim.pipeline.workflow import load_workflow
 from egosim.stages.ingest.stage import IngestConfig, IngestStage
-from egosim.stages.world import WorldConfig, render_clip
-from egosim.stages.world.egodex_export import write_egodex
+from egosim.world import WorldConfig, render_clip
+from egosim.world.egodex_export import write_egodex
 
 REPO = Path(__file__).resolve().parents[1]
 TINY = ["height=64", "width=112", "num_frames=9", "fps=8"]

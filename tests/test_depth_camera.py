@@ -33,7 +33,7 @@ from egosim.stages.depth_camera.stage import (
     DepthCameraStage,
     estimate_sfm,
 )
-from egosim.stages.world import WorldConfig, render_clip
+from egosim.world import WorldConfig, render_clip
 from tests.conftest import make_clip
 
 

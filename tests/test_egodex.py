@@ -8,12 +8,13 @@ import h5py
 import numpy as np
 import pytest
 
+from egosim.pipeline.egodex_format import EGODEX_HAND_JOINTS
 from egosim.pipeline.geometry import look_at, project_world_points
 from egosim.pipeline.media import write_video_file
 from egosim.pipeline.records import Clip
 from egosim.pipeline.stage import ClipRejected
-from egosim.stages.ingest.egodex import EGODEX_HAND_JOINTS, read_egodex_clip
-from egosim.stages.world.egodex_export import write_egodex
+from egosim.stages.ingest.egodex import read_egodex_clip
+from egosim.world.egodex_export import write_egodex
 
 T, H, W = 6, 48, 64
 MIN_PSNR_DB = 35.0  # H.264 at CRF 18 on smooth frames

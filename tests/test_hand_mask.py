@@ -22,7 +22,7 @@ from egosim.schemas.hands import HANDS
 from egosim.stages.hand_mask.capsules import CapsuleParams, draw_hand, hand_scale_px
 from egosim.stages.hand_mask.sam import build_prompts, mask_box
 from egosim.stages.hand_mask.stage import HandMaskConfig, HandMaskStage
-from egosim.stages.world import WorldConfig, render_clip
+from egosim.world import WorldConfig, render_clip
 from tests.conftest import shared_data, translated, write_poses
 
 SEEDS = (0, 1, 2, 3)

@@ -20,11 +20,11 @@ from egosim.stages.hands.filters import (
     to_hands,
 )
 from egosim.stages.hands.stage import HandsStage
-from egosim.stages.world.camera_path import camera_path
-from egosim.stages.world.clip import hand_joints, render_clip
-from egosim.stages.world.config import WorldConfig
-from egosim.stages.world.interaction import script_interaction
-from egosim.stages.world.scene import build_scene
+from egosim.world.camera_path import camera_path
+from egosim.world.clip import hand_joints, render_clip
+from egosim.world.config import WorldConfig
+from egosim.world.interaction import script_interaction
+from egosim.world.scene import build_scene
 from tests.conftest import write_poses
 
 FPS = 16.0

@@ -394,8 +394,8 @@ def test_synthetic_world_3d_against_true_joints(mediapipe: object) -> None:
     """
     from egosim.stages.hands.mediapipe_backend import hands_from_raw
     from egosim.stages.hands.metrics import hand_accuracy
-    from egosim.stages.world.clip import render_clip
-    from egosim.stages.world.config import WorldConfig
+    from egosim.world.clip import render_clip
+    from egosim.world.config import WorldConfig
 
     clip = render_clip(WorldConfig(seed=13, mode="tabletop"))
     params = MediaPipeParams()

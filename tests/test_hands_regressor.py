@@ -30,8 +30,8 @@ from egosim.stages.hands.regressor_backend import (  # noqa: E402
     save_regressor,
 )
 from egosim.stages.hands.stage import HandsConfig  # noqa: E402
-from egosim.stages.world.clip import render_clip  # noqa: E402
-from egosim.stages.world.config import WorldConfig  # noqa: E402
+from egosim.world.clip import render_clip  # noqa: E402
+from egosim.world.config import WorldConfig  # noqa: E402
 
 TINY = RegressorSpec(
     image_size=64, patch_size=16, hidden_size=32, num_layers=2, num_heads=2, head_size=32

@@ -26,7 +26,7 @@ from egosim.stages.inpaint.diffusers_backend import (
 )
 from egosim.stages.inpaint.reproject_fill import dilate, opencv_fill, reproject_fill
 from egosim.stages.inpaint.stage import InpaintConfig, InpaintStage
-from egosim.stages.world import WorldConfig, render_clip
+from egosim.world import WorldConfig, render_clip
 from tests.conftest import one_shard_task, translated, write_cameras
 
 SEEDS = (0, 1, 2, 3)

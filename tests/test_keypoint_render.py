@@ -17,8 +17,8 @@ from egosim.stages.keypoint_render.draw import (
     draw_skeleton_frame,
     project_hands,
 )
-from egosim.stages.world.clip import render_clip
-from egosim.stages.world.config import WorldConfig
+from egosim.world.clip import render_clip
+from egosim.world.config import WorldConfig
 from tests.conftest import translated, write_cameras, write_poses
 
 H, W, T = 64, 112, 6

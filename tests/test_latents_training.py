@@ -204,7 +204,7 @@ def test_wan_clip_size_pack_encodes_and_trains_one_step(wan_folder: Path, tmp_pa
     """Done-when: a 61x480x832 pack (a synthetic-world clip) -> encode with tiny random Wan
     encoders -> one training step of tiny-wan on the latents shard (5-13 min on one shared core:
     the tiny random Wan VAE takes about 1 s per 480x832 frame on CPU, three videos per clip)."""
-    from egosim.stages.world import WorldConfig, render_clip
+    from egosim.world import WorldConfig, render_clip
 
     t, h, w = 61, 480, 832
     clip = render_clip(WorldConfig(seed=0, height=h, width=w, num_frames=t))

@@ -24,7 +24,7 @@ from egosim.stages.ingest import lerobot_source as reader
 from egosim.stages.ingest.lerobot_export import HEAD_KEY, export_lerobot
 from egosim.stages.ingest.robot_source import RobotEpisode, episode_clip, pose_from_xyz_quat
 from egosim.stages.keypoint_render.stage import KeypointRenderConfig, KeypointRenderStage
-from egosim.stages.world import WorldConfig, render_clip
+from egosim.world import WorldConfig, render_clip
 
 T, H, W = 9, 64, 112
 POSE_TOL = 1e-6

@@ -37,8 +37,8 @@ from egosim.stages.depth_camera.metric_scale import (
     splat_depth,
     surface_depth,
 )
-from egosim.stages.world.clip import render_clip
-from egosim.stages.world.config import WorldConfig
+from egosim.world.clip import render_clip
+from egosim.world.config import WorldConfig
 
 
 def sfm_units(clip: Clip, factor: float) -> tuple[np.ndarray, np.ndarray]:

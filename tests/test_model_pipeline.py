@@ -28,7 +28,7 @@ from egosim.stages.common.packed import PackRowError, sample_from_pack_row
 from egosim.stages.evaluate.report import format_table, overall
 from egosim.stages.pack.stage import PackStage
 from egosim.stages.train.run import TrainJob, run_training
-from egosim.stages.world import WorldConfig, render_clip
+from egosim.world import WorldConfig, render_clip
 
 H, W, T = 64, 112, 9  # clip size
 PH, PW = 32, 56  # packed (training) size

@@ -20,7 +20,7 @@ from egosim.stages.depth_camera.plane_sweep import (
     PlaneSweepResult,
     plane_sweep,
 )
-from egosim.stages.world import WorldConfig, render_clip
+from egosim.world import WorldConfig, render_clip
 
 SOURCES = [4, 8, 12, 16, 20]  # source frames of the 21-frame scene
 

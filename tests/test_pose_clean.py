@@ -36,7 +36,7 @@ from egosim.stages.pose_clean.stage import (
     clean_batch,
     clean_trajectory,
 )
-from egosim.stages.world.camera_path import camera_path
+from egosim.world.camera_path import camera_path
 from tests.conftest import make_clip, translated, write_cameras
 
 T, FPS = 61, 16.0

@@ -1,6 +1,6 @@
 """Robot arm masks from a URDF + joint states against the synthetic robot's ground truth.
 
-The world renders its arm from its own forward kinematics (stages/world/robot.py); the mask
+The world renders its arm from its own forward kinematics (world/robot.py); the mask
 path reads only the URDF the world wrote and the joint states (yourdfpy kinematics, trimesh
 geometry, open3d ray casting). Tolerances: link poses 1e-9 m / rotation entries; undilated mask
 IoU >= 0.99 (cylinder tessellations differ: 24 segments in the world, trimesh's own in the URDF
@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 
 from egosim.stages.common.urdf_mask import UrdfMaskError, arm_masks, load_urdf
-from egosim.stages.world import WorldConfig
-from egosim.stages.world.robot import ARM, arm_urdf, link_poses, render_robot_clip
+from egosim.world import WorldConfig
+from egosim.world.robot import ARM, arm_urdf, link_poses, render_robot_clip
 
 H, W, T = 240, 416, 6
 
@@ -86,7 +86,7 @@ def test_synthetic_robot_clip_through_ingest() -> None:
     from egosim.pipeline.geometry import project_world_points
     from egosim.stages.ingest import synthetic_source
     from egosim.stages.ingest.stage import IngestConfig
-    from egosim.stages.world.robot import FINGER_LENGTH
+    from egosim.world.robot import FINGER_LENGTH
 
     cfg = IngestConfig(  # 1 px growth at half the default size (the default 2 px at 480x832)
         synthetic_count=1, synthetic_robot_every=1, height=H, width=W, num_frames=5, fps=8.0,

@@ -31,7 +31,7 @@ from egosim.stages.ingest.robot_writers import (
     write_lerobot_dataset,
 )
 from egosim.stages.ingest.stage import IngestConfig, IngestStage
-from egosim.stages.world import WorldConfig, render_clip
+from egosim.world import WorldConfig, render_clip
 
 T, H, W, FPS = 9, 64, 112, 16.0
 POSE_TOL = 1e-6  # pose entries, metres and rotation-matrix entries

@@ -40,8 +40,8 @@ from egosim.stages.scene_render.splat import (
     render_point_cloud,
 )
 from egosim.stages.scene_render.stage import SceneRenderStage
-from egosim.stages.world.clip import render_clip
-from egosim.stages.world.config import WorldConfig
+from egosim.world.clip import render_clip
+from egosim.world.config import WorldConfig
 from tests.conftest import one_shard_task, translated, write_cameras, write_poses
 
 H, W, T = 64, 112, 8

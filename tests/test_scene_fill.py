@@ -23,8 +23,8 @@ from egosim.stages.scene_cloud.densify import (
 )
 from egosim.stages.scene_cloud.stage import build_scene_cloud, cloud_from_row
 from egosim.stages.scene_render.splat import close_cracks, render_point_cloud
-from egosim.stages.world.clip import render_clip
-from egosim.stages.world.config import WorldConfig
+from egosim.world.clip import render_clip
+from egosim.world.config import WorldConfig
 from tests.conftest import one_shard_task
 from tests.test_scene import _analytic_frame
 

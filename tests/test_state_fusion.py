@@ -43,7 +43,7 @@ from egosim.stages.state_fusion.fusion import (
 from egosim.stages.state_fusion.metrics import centroid_error
 from egosim.stages.state_fusion.stage import StateFusionStage, observation_from_rows
 from egosim.stages.state_fusion.state_io import row_from_state, state_from_row
-from egosim.stages.world import WorldConfig, render_clip
+from egosim.world import WorldConfig, render_clip
 from tests.conftest import one_shard_task
 
 REPO = Path(__file__).resolve().parents[1]

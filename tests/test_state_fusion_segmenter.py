@@ -22,7 +22,7 @@ from egosim.stages.state_fusion.segmenters import (
     SegmenterError,
     text_prompt,
 )
-from egosim.stages.world import WorldConfig, render_clip
+from egosim.world import WorldConfig, render_clip
 
 VOCAB = ["[PAD]", "[UNK]", "[CLS]", "[SEP]", "[MASK]", ".", "a", "cup", "box", "bowl"]
 

@@ -15,11 +15,11 @@ from egosim.pipeline.geometry import (
     unproject_depth,
 )
 from egosim.pipeline.records import Clip
-from egosim.stages.world import WorldConfig, WorldConfigError, render_clip
-from egosim.stages.world.hands import hand_joints_local
-from egosim.stages.world.interaction import script_interaction
-from egosim.stages.world.render import WorldRenderer
-from egosim.stages.world.scene import TABLE_TOP_Z, build_scene
+from egosim.world import WorldConfig, WorldConfigError, render_clip
+from egosim.world.hands import hand_joints_local
+from egosim.world.interaction import script_interaction
+from egosim.world.render import WorldRenderer
+from egosim.world.scene import TABLE_TOP_Z, build_scene
 
 H, W = 96, 160
 MIDDLE_CHAIN = [0, 9, 10, 11, 12]

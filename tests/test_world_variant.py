@@ -9,10 +9,10 @@ from egosim.pipeline.geometry import project_world_points, transform_points, unp
 from egosim.pipeline.records import Clip
 from egosim.stages.ingest import synthetic_source
 from egosim.stages.ingest.stage import IngestConfig
-from egosim.stages.world import WorldConfig, WorldConfigError, render_clip
-from egosim.stages.world.camera_alt import alt_fov_deg
-from egosim.stages.world.clip import hand_joints
-from egosim.stages.world.hands_alt import (
+from egosim.world import WorldConfig, WorldConfigError, render_clip
+from egosim.world.camera_alt import alt_fov_deg
+from egosim.world.clip import hand_joints
+from egosim.world.hands_alt import (
     FOREARM_LENGTH_ALT,
     MAX_STRETCH,
     UPPER_ARM_LENGTH,
@@ -22,10 +22,10 @@ from egosim.stages.world.hands_alt import (
     lean,
     tube,
 )
-from egosim.stages.world.interaction import script_interaction
-from egosim.stages.world.render import WorldRenderer
-from egosim.stages.world.scene_alt import ALT_COLOURS, build_scene_alt
-from egosim.stages.world.textures import COLOURS
+from egosim.world.interaction import script_interaction
+from egosim.world.render import WorldRenderer
+from egosim.world.scene_alt import ALT_COLOURS, build_scene_alt
+from egosim.world.textures import COLOURS
 
 H, W = 96, 160
 

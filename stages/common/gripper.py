@@ -221,7 +221,7 @@ GRIPPER_PRESETS: dict[str, GripperGeometry] = {
     "synthetic": GripperGeometry(
         name="synthetic", palm_offset_m=0.04, finger_length_m=0.05, max_opening_m=0.08
     ),
-    # The synthetic world's URDF arm (stages/world/robot.py): EE = its ``palm`` link, z along
+    # The synthetic world's URDF arm (world/robot.py): EE = its ``palm`` link, z along
     # the fingers, the left finger (thumb chain) at +y; fingers from 0.03 m, 0.055 m long; the
     # inner faces are 2 x the finger joint apart (0..0.08 m).
     "egosim_arm": GripperGeometry(

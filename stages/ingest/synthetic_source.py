@@ -11,9 +11,9 @@ from egosim.pipeline.records import Clip
 from egosim.pipeline.stage import ClipRejected
 from egosim.stages.common.gripper import gripper_geometry, gripper_hand_arrays
 from egosim.stages.common.urdf_mask import arm_masks
-from egosim.stages.world.clip import render_clip
-from egosim.stages.world.config import VARIANTS, WorldConfig
-from egosim.stages.world.robot import render_robot_clip
+from egosim.world.clip import render_clip
+from egosim.world.config import VARIANTS, WorldConfig
+from egosim.world.robot import render_robot_clip
 
 ROBOT_GRIPPER = "egosim_arm"  # gripper preset of the world's URDF arm
 

@@ -1,6 +1,6 @@
 """The "alt" variant's camera set-up: per-seed field of view, a higher, steeper, rolled head.
 
-Against the default (:mod:`egosim.stages.world.camera_path`): the head sits higher and closer to
+Against the default (:mod:`egosim.world.camera_path`): the head sits higher and closer to
 the table, so it looks down more steeply; it rolls by a few degrees; it aims at a different spot;
 its motion has other amplitudes and frequencies; the field of view changes with the seed.
 """
@@ -10,8 +10,8 @@ from __future__ import annotations
 import numpy as np
 
 from egosim.pipeline.geometry import look_at
-from egosim.stages.world.camera_path import _wobble, view_directions
-from egosim.stages.world.scene import TABLE_TOP_Z
+from egosim.world.camera_path import _wobble, view_directions
+from egosim.world.scene import TABLE_TOP_Z
 
 FOV_SPREAD_DEG = 15.0  # the alt FOV is the configured one plus an offset in +-FOV_SPREAD_DEG
 

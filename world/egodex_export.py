@@ -1,7 +1,8 @@
 """Write a :class:`~egosim.pipeline.records.Clip` as an EgoDex episode (``<stem>.hdf5`` + ``.mp4``).
 
-The layout and the joint and camera conventions are the ones :mod:`egosim.stages.ingest.egodex`
-reads; both directions share its constants. What the export fills, and how:
+The layout and the joint and camera conventions are :mod:`egosim.pipeline.egodex_format`'s, the
+ones the ingest stage's EgoDex reader uses: both directions share its constants. What the export
+fills, and how:
 
 - ``camera/intrinsic`` from the clip's intrinsics; ``transforms/camera`` from ``world_from_cam``.
 - ``transforms/<side><joint>`` for the 25 ARKit joints of each hand: translation = joint position,
@@ -24,14 +25,14 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from egosim.pipeline.media import write_video_file
-from egosim.pipeline.records import Clip, ClipValueError
-from egosim.stages.ingest.egodex import (
+from egosim.pipeline.egodex_format import (
     EGODEX_HAND_JOINTS,
     EGODEX_METACARPALS,
     EGODEX_SIDES,
     ours_to_egodex_camera,
 )
+from egosim.pipeline.media import write_video_file
+from egosim.pipeline.records import Clip, ClipValueError
 
 METACARPAL_FRACTION = 0.3  # metacarpal joint position on the wrist -> knuckle segment
 EGODEX_DTYPE = np.float32  # dtype of transforms, confidences and intrinsics in EgoDex files

@@ -14,9 +14,9 @@ import numpy as np
 
 from egosim.pipeline.geometry import transform_points, unproject_depth
 from egosim.pipeline.records import Clip
-from egosim.stages.world.clip import _setup
-from egosim.stages.world.config import WorldConfig
-from egosim.stages.world.render import WorldRenderer, to_uint8
+from egosim.world.clip import _setup
+from egosim.world.config import WorldConfig
+from egosim.world.render import WorldRenderer, to_uint8
 
 
 @dataclass

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from egosim.pipeline.geometry import look_at
-from egosim.stages.world.scene import TABLE_TOP_Z
+from egosim.world.scene import TABLE_TOP_Z
 
 
 def view_directions(to_focus: np.ndarray, yaw: np.ndarray, pitch: np.ndarray) -> np.ndarray:

@@ -1,6 +1,6 @@
 """The "alt" variant's hands and arms: a second, differently built body for held-out checks.
 
-The skeleton is the default one (:func:`egosim.stages.world.hands.hand_joints_local`, the 21
+The skeleton is the default one (:func:`egosim.world.hands.hand_joints_local`, the 21
 MANO-order joints are ground truth); only the surface around it is built differently:
 
 - hand: a sphere at every finger joint, a flattened ellipsoid on every phalanx and a convex-hull
@@ -21,8 +21,8 @@ import numpy as np
 from scipy.spatial import ConvexHull
 
 from egosim.pipeline.geometry import invert_se3, transform_points
-from egosim.stages.world.hands import BONES
-from egosim.stages.world.meshes import Mesh, lathe, merge
+from egosim.world.hands import BONES
+from egosim.world.meshes import Mesh, lathe, merge
 
 # Skin-tone ramp (RGB 0..1), light to deep; a seed picks a point on it.
 SKIN_RAMP = np.array(

@@ -15,8 +15,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from egosim.pipeline.geometry import invert_se3, make_se3, slerp_rotations
-from egosim.stages.world.hands import axis_rotation, hand_joints_local
-from egosim.stages.world.scene import PLACE_HI, PLACE_LO, TABLE_TOP_Z, Scene, lid_pose, spot_is_free
+from egosim.world.hands import axis_rotation, hand_joints_local
+from egosim.world.scene import PLACE_HI, PLACE_LO, TABLE_TOP_Z, Scene, lid_pose, spot_is_free
 
 GRASP_CURL = 0.5  # finger closure while holding
 REST_CURL = 0.15  # finger closure of a relaxed hand

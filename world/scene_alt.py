@@ -1,6 +1,6 @@
 """The "alt" variant's scene: another room, a round pedestal table, other objects and colours.
 
-It keeps the default's contract (:mod:`egosim.stages.world.scene`): world frame, table top at
+It keeps the default's contract (:mod:`egosim.world.scene`): world frame, table top at
 ``TABLE_TOP_Z``, objects in ``PLACE_LO..PLACE_HI`` with kinds ``box`` and ``cylinder`` to pick
 (here a tapered carton and a bottle), a ``container`` followed by its ``lid`` when articulated
 (the lid hinged as :func:`lid_pose` says), background bodies in world coordinates. Textures stay
@@ -13,8 +13,8 @@ from __future__ import annotations
 import numpy as np
 
 from egosim.pipeline.geometry import transform_points
-from egosim.stages.world import meshes
-from egosim.stages.world.scene import (
+from egosim.world import meshes
+from egosim.world.scene import (
     PICKABLE,
     PLACE_HI,
     PLACE_LO,
@@ -25,7 +25,7 @@ from egosim.stages.world.scene import (
     lid_pose,
     yaw_pose,
 )
-from egosim.stages.world.textures import Texture, make_texture
+from egosim.world.textures import Texture, make_texture
 
 # Named colours (RGB 0..1) of the alt objects; none is a name of the default palette.
 ALT_COLOURS: dict[str, tuple[float, float, float]] = {

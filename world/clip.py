@@ -6,21 +6,21 @@ import numpy as np
 
 from egosim.pipeline.geometry import intrinsics_from_fov
 from egosim.pipeline.records import Clip
-from egosim.stages.world.camera_alt import alt_fov_deg, camera_path_alt
-from egosim.stages.world.camera_path import camera_path
-from egosim.stages.world.config import WorldConfig
-from egosim.stages.world.hands import (
+from egosim.world.camera_alt import alt_fov_deg, camera_path_alt
+from egosim.world.camera_path import camera_path
+from egosim.world.config import WorldConfig
+from egosim.world.hands import (
     FOREARM_LENGTH,
     forearm_mesh,
     hand_joints_world,
     hand_mesh,
 )
-from egosim.stages.world.hands_alt import AltBody
-from egosim.stages.world.interaction import LEFT_SIDE, RIGHT_SIDE, Interaction, script_interaction
-from egosim.stages.world.meshes import Mesh
-from egosim.stages.world.render import WorldRenderer, to_uint8
-from egosim.stages.world.scene import Scene, build_scene
-from egosim.stages.world.scene_alt import build_scene_alt
+from egosim.world.hands_alt import AltBody
+from egosim.world.interaction import LEFT_SIDE, RIGHT_SIDE, Interaction, script_interaction
+from egosim.world.meshes import Mesh
+from egosim.world.render import WorldRenderer, to_uint8
+from egosim.world.scene import Scene, build_scene
+from egosim.world.scene_alt import build_scene_alt
 
 SKIN_TONES = np.array(
     [[0.96, 0.80, 0.69], [0.90, 0.70, 0.56], [0.78, 0.57, 0.42], [0.56, 0.38, 0.26]]

@@ -14,8 +14,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from egosim.pipeline.geometry import make_se3
-from egosim.stages.world import meshes
-from egosim.stages.world.textures import COLOURS, Texture, make_texture
+from egosim.world import meshes
+from egosim.world.textures import COLOURS, Texture, make_texture
 
 TABLE_TOP_Z = 0.74  # height of the table top above the floor
 TABLE_LO = np.array([-0.45, -0.75])  # table top corner (x, y) nearest the person, on their right

@@ -17,8 +17,8 @@ import numpy as np
 import open3d as o3d
 
 from egosim.pipeline.geometry import invert_se3, pixel_grid, project_points, transform_points
-from egosim.stages.world.meshes import Mesh
-from egosim.stages.world.scene import Body, Scene
+from egosim.world.meshes import Mesh
+from egosim.world.scene import Body, Scene
 
 LIGHT_DIR = np.array([0.35, -0.45, 0.82]) / np.linalg.norm([0.35, -0.45, 0.82])  # towards light
 AMBIENT, DIFFUSE = 0.42, 0.58

@@ -11,7 +11,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from egosim.pipeline.geometry import transform_points
-from egosim.stages.world.meshes import CapsuleTemplate, Mesh, box, merge
+from egosim.world.meshes import CapsuleTemplate, Mesh, box, merge
 
 # Metacarpophalangeal joint (x, y for the right hand) and phalanx lengths, metres, per finger.
 FINGERS = (

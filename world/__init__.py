@@ -4,7 +4,7 @@
 :class:`egosim.pipeline.records.Clip`.
 """
 
-from egosim.stages.world.clip import render_clip
-from egosim.stages.world.config import WorldConfig, WorldConfigError
+from egosim.world.clip import render_clip
+from egosim.world.config import WorldConfig, WorldConfigError
 
 __all__ = ["WorldConfig", "WorldConfigError", "render_clip"]

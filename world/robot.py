@@ -24,9 +24,9 @@ from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from egosim.pipeline.geometry import make_se3
-from egosim.stages.world import meshes
-from egosim.stages.world.config import WorldConfig
-from egosim.stages.world.meshes import Mesh
+from egosim.world import meshes
+from egosim.world.config import WorldConfig
+from egosim.world.meshes import Mesh
 
 
 @dataclass(frozen=True)
@@ -273,9 +273,9 @@ def render_robot_clip(config: WorldConfig) -> RobotClip:
     replaces the hands: it reaches over the first object, closes its fingers and lifts. Objects do
     not move. The arm mask is where the arm's ray-cast depth is nearer than the scene's.
     """
-    from egosim.stages.world.clip import _setup  # the world's scene and camera set-up
-    from egosim.stages.world.render import WorldRenderer, to_uint8
-    from egosim.stages.world.scene import TABLE_TOP_Z
+    from egosim.world.clip import _setup  # the world's scene and camera set-up
+    from egosim.world.render import WorldRenderer, to_uint8
+    from egosim.world.scene import TABLE_TOP_Z
 
     t, h, w = config.num_frames, config.height, config.width
     scene, intrinsics, world_from_cam = _setup(config)
