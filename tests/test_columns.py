@@ -222,7 +222,6 @@ def _column_hashes(run: Path) -> dict[tuple[str, str, str], str]:
     return out
 
 
-@pytest.mark.slow
 def test_dataset_shards_are_identical_with_declared_columns_or_all(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
@@ -231,6 +230,7 @@ def test_dataset_shards_are_identical_with_declared_columns_or_all(
     Synthetic human and robot clips (the robot's embodiment_mask reaches hand_mask) through
     every step of workflows/dataset.yaml, once as the stages declare and once with every
     column read; every column of every row of every shard (rejects included) must hash alike.
+    About 10 s; dropping ``embodiment_mask`` from hand_mask's declaration makes it fail.
     """
     overrides = [f"ingest.{kv}" for kv in [*TINY, "synthetic_count=2", "synthetic_robot_every=2"]]
     overrides += ["pack.frame_stride=1", "ingest.robot_mask_dilate_px=1"]
@@ -243,7 +243,7 @@ def test_dataset_shards_are_identical_with_declared_columns_or_all(
         run_workflow(wf, everything, scheduler="here")
     a, b = _column_hashes(declared), _column_hashes(everything)
     assert {k[0] for k in a} >= {s.name for s in wf.steps}  # every step wrote shards
-    with ShardReader(declared / "pack" / "shard-00000.parquet") as reader:
-        assert reader.num_rows >= 1  # something reached the end
+    with ShardReader(declared / "pack" / "shard-00000.parquet") as reader:  # both clips packed
+        assert reader.read_column("clip_id") == ["synth-robot-00000", "synth-tabletop-00001"]
     assert a.keys() == b.keys()
     assert [k for k in a if a[k] != b[k]] == []
