@@ -82,8 +82,8 @@ TRAIN_THREADS ?= $(shell nproc)
 TRAIN_SET ?=
 train: setup
 	OMP_NUM_THREADS=$(TRAIN_THREADS) $(BIN)/egosim train --data $(DATA) --preset tiny --out $(RUN) \
-		--steps $(TRAIN_STEPS) --set batch_size=2 --set lr=5e-4 --set warmup_steps=50 \
-		--set checkpoint_every=500 $(foreach s,$(TRAIN_SET),--set $(s))
+		--steps $(TRAIN_STEPS) --set batch_size=2 --set optim.lr=5e-4 \
+		--set optim.warmup_steps=50 --set checkpoint_every=500 $(foreach s,$(TRAIN_SET),--set $(s))
 
 # The same training on TRAIN_RANKS processes (torchrun; gloo on CPU, NCCL + FSDP2 on GPUs):
 # batch_size=1 per rank on 2 ranks is make train's global batch of 2.
@@ -91,7 +91,7 @@ TRAIN_RANKS ?= 2
 train-ddp: setup
 	OMP_NUM_THREADS=1 $(BIN)/torchrun --standalone --nproc_per_node $(TRAIN_RANKS) \
 		-m egosim.pipeline.cli train --data $(DATA) --preset tiny --out $(RUN) \
-		--steps $(TRAIN_STEPS) --set batch_size=1 --set lr=5e-4 --set warmup_steps=50 \
+		--steps $(TRAIN_STEPS) --set batch_size=1 --set optim.lr=5e-4 --set optim.warmup_steps=50 \
 		--set checkpoint_every=500 $(foreach s,$(TRAIN_SET),--set $(s))
 
 bench: setup

@@ -23,7 +23,7 @@ from egosim.model.conditioning import TrainingSample
 from egosim.model.network import build_model
 from egosim.model.presets import get_preset
 from egosim.model.sampler import sample
-from egosim.model.train import TrainConfig, train
+from egosim.model.train import OptimConfig, TrainConfig, train
 
 
 def _samples(n: int, t: int, h: int, w: int) -> list[TrainingSample]:
@@ -68,7 +68,7 @@ def bench_train_tiny(steps: int = 10, batch_size: int = 4) -> list[dict]:
         cfg = TrainConfig(
             steps=steps,
             batch_size=batch_size,
-            warmup_steps=2,
+            optim=OptimConfig(warmup_steps=2),
             checkpoint_every=0,
             preview_steps=0,
             device="cpu",
@@ -117,7 +117,7 @@ def _rank_worker(spec: Path) -> None:
     cfg = TrainConfig(
         steps=RANKS_STEPS,
         batch_size=RANKS_BATCH,
-        warmup_steps=2,
+        optim=OptimConfig(warmup_steps=2),
         checkpoint_every=0,
         preview_steps=0,
         device="cpu",

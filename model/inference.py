@@ -23,6 +23,7 @@ from egosim.model.errors import CheckpointMismatchError
 from egosim.model.lora import LoRAConfig
 from egosim.model.network import ModelBundle, build_model
 from egosim.model.train import (
+    OptimConfig,
     TrainConfig,
     _trainable,
     latest_checkpoint,
@@ -58,15 +59,26 @@ def resolve_checkpoint(path: str | Path) -> Path:
     return found
 
 
+OPTIM_KEYS = ("lr", "warmup_steps", "weight_decay", "betas", "grad_clip")  # flat before optim
+
+
 def config_from_dict(values: dict) -> TrainConfig:
-    """Rebuild a :class:`TrainConfig` from its ``dataclasses.asdict`` form (checkpoint, JSON)."""
+    """Rebuild a :class:`TrainConfig` from its ``dataclasses.asdict`` form (checkpoint, JSON).
+
+    Configs saved before the ``optim`` group (flat ``lr``, ``warmup_steps``, ...) are read into
+    it, so older checkpoints still load for sampling.
+    """
     names = {f.name for f in dataclasses.fields(TrainConfig)}
-    kw = {k: v for k, v in values.items() if k in names}
+    optim = dict(values.get("optim") or {k: values[k] for k in OPTIM_KEYS if k in values})
+    if "betas" in optim:
+        optim["betas"] = tuple(optim["betas"])
+    kw = {k: v for k, v in values.items() if k in names and k != "optim"}
+    kw["optim"] = OptimConfig(**optim)
     if isinstance(kw.get("lora"), dict):
         lora = dict(kw["lora"])
         lora["targets"] = tuple(lora.get("targets", ()))
         kw["lora"] = LoRAConfig(**lora)
-    for key in ("betas", "dropout_targets"):
+    for key in ("dropout_targets",):
         if key in kw:
             kw[key] = tuple(kw[key])
     return TrainConfig(**kw)

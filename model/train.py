@@ -70,6 +70,36 @@ CHECKPOINT_GROUPS = ("model", "ema", "optimizer")  # safetensors files of a chec
 
 
 @dataclass(frozen=True)
+class OptimConfig:
+    """AdamW and its learning-rate schedule (``--set optim.lr=1e-5``)."""
+
+    lr: float = 1e-4  # peak learning rate (EgoSim / DWM: 1e-4 class)
+    warmup_steps: int = 10  # linear warmup from lr/warmup to lr, then constant
+    weight_decay: float = 0.0  # AdamW decoupled weight decay
+    betas: tuple[float, float] = (0.9, 0.999)  # AdamW betas
+    grad_clip: float = 1.0  # max global grad norm (<= 0: no clipping)
+
+    def __post_init__(self) -> None:
+        problems = []
+        if not self.lr > 0:
+            problems.append(f"lr must be > 0, got {self.lr}")
+        if self.warmup_steps < 0:
+            problems.append(f"warmup_steps must be >= 0, got {self.warmup_steps}")
+        if self.weight_decay < 0:
+            problems.append(f"weight_decay must be >= 0, got {self.weight_decay}")
+        if len(self.betas) != 2 or not all(0 <= b < 1 for b in self.betas):
+            problems.append(f"betas must be two values in [0, 1), got {self.betas}")
+        if problems:
+            raise ModelConfigError("OptimConfig: " + "; ".join(problems))
+
+    def lr_at(self, step: int) -> float:
+        """Learning rate of optimizer step ``step`` (0-based): linear warmup, then constant."""
+        if self.warmup_steps and step < self.warmup_steps:
+            return self.lr * (step + 1) / self.warmup_steps
+        return self.lr
+
+
+@dataclass(frozen=True)
 class TrainConfig:
     """Everything a training run depends on (saved as the run's resolved config)."""
 
@@ -77,11 +107,7 @@ class TrainConfig:
     steps: int = 100  # optimizer steps in total
     batch_size: int = 1  # samples per micro-batch on each rank
     grad_accum: int = 1  # micro-batches per optimizer step
-    lr: float = 1e-4  # peak learning rate (EgoSim / DWM: 1e-4 class)
-    warmup_steps: int = 10  # linear warmup from lr/warmup to lr, then constant
-    weight_decay: float = 0.0  # AdamW decoupled weight decay
-    betas: tuple[float, float] = (0.9, 0.999)  # AdamW betas
-    grad_clip: float = 1.0  # max global grad norm (<= 0: no clipping)
+    optim: OptimConfig = field(default_factory=OptimConfig)  # AdamW and the LR schedule
     ema_decay: float | None = None  # EMA of trainable weights (None: off), e.g. 0.999
     finetune: str = "full"  # "full" (EgoSim) or "lora" (DWM)
     lora: LoRAConfig = field(default_factory=LoRAConfig)  # adapters when finetune == "lora"
@@ -109,9 +135,7 @@ class TrainConfig:
         for name in ("steps", "batch_size", "grad_accum", "keep_checkpoints"):
             if getattr(self, name) < 1:
                 problems.append(f"{name} must be >= 1, got {getattr(self, name)}")
-        if not self.lr > 0:
-            problems.append(f"lr must be > 0, got {self.lr}")
-        for name in ("warmup_steps", "checkpoint_every", "preview_every", "preview_steps"):
+        for name in ("checkpoint_every", "preview_every", "preview_steps"):
             if getattr(self, name) < 0:
                 problems.append(f"{name} must be >= 0, got {getattr(self, name)}")
         if self.ema_decay is not None and not 0 < self.ema_decay < 1:
@@ -133,12 +157,6 @@ class TrainConfig:
             problems.append(f"wandb must be one of {WANDB_MODES}, got {self.wandb!r}")
         if problems:
             raise ModelConfigError("TrainConfig: " + "; ".join(problems))
-
-    def lr_at(self, step: int) -> float:
-        """Learning rate of optimizer step ``step`` (0-based): linear warmup, then constant."""
-        if self.warmup_steps and step < self.warmup_steps:
-            return self.lr * (step + 1) / self.warmup_steps
-        return self.lr
 
 
 @dataclass
@@ -275,7 +293,10 @@ def build_state(config: TrainConfig, ctx: parallel.DistContext) -> TrainState:
         parallel.shard_denoiser(bundle.denoiser, ctx, bf16=_use_bf16(config, ctx.device))
     params = _trainable(bundle)
     optimizer = torch.optim.AdamW(
-        list(params.values()), lr=config.lr, betas=config.betas, weight_decay=config.weight_decay
+        list(params.values()),
+        lr=config.optim.lr,
+        betas=config.optim.betas,
+        weight_decay=config.optim.weight_decay,
     )
     ema = _ema_copy(params) if config.ema_decay is not None else None
     return TrainState(bundle, params, optimizer, ema)
@@ -638,7 +659,7 @@ def _optimizer_step(
     ctx: parallel.DistContext,
 ) -> tuple[float, float, float]:
     """One optimizer step (``grad_accum`` micro-batches): (loss mean over ranks, grad norm, lr)."""
-    lr = config.lr_at(state.step)
+    lr = config.optim.lr_at(state.step)
     for group in state.optimizer.param_groups:
         group["lr"] = lr
     state.optimizer.zero_grad(set_to_none=True)
@@ -653,8 +674,8 @@ def _optimizer_step(
         step_loss += float(loss.detach()) / config.grad_accum
     params = list(state.params.values())
     grad_norm = (
-        parallel.to_float(torch.nn.utils.clip_grad_norm_(params, config.grad_clip))
-        if config.grad_clip > 0
+        parallel.to_float(torch.nn.utils.clip_grad_norm_(params, config.optim.grad_clip))
+        if config.optim.grad_clip > 0
         else float("nan")
     )
     state.optimizer.step()

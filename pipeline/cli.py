@@ -344,7 +344,8 @@ def train(
     ),
     steps: Annotated[int | None, typer.Option("--steps", help="Optimizer steps in total.")] = None,
     set_: Annotated[
-        list[str] | None, typer.Option("--set", help="TrainConfig field key=value (e.g. lr=3e-4).")
+        list[str] | None,
+        typer.Option("--set", help="TrainConfig field key=value (e.g. optim.lr=3e-4)."),
     ] = None,
     fresh: Annotated[bool, typer.Option("--fresh", help="Ignore existing checkpoints.")] = False,
     sample_steps: Annotated[
@@ -359,7 +360,7 @@ def train(
 
     Many processes: ``torchrun --nproc_per_node N -m egosim.pipeline.cli train ...`` (FSDP2;
     --set batch_size is per rank). Settings are TrainConfig fields, nested ones dotted:
-    --set lr=1e-5 --set lora.rank=64; an unknown key or a bad value is refused.
+    --set optim.lr=1e-5 --set lora.rank=64; an unknown key or a bad value is refused.
     """
     from egosim.model.train import TrainConfig
     from egosim.pipeline.stage import build_config

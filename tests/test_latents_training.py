@@ -14,7 +14,7 @@ from egosim.model.conditioning import LatentSample, TrainingSample, encode_batch
 from egosim.model.encoders import EncoderFolders, load_encoders
 from egosim.model.errors import SampleError
 from egosim.model.network import build_model
-from egosim.model.train import TrainConfig, train
+from egosim.model.train import OptimConfig, TrainConfig, train
 from egosim.model.vae import PackedVAE
 from egosim.pipeline import media
 from egosim.pipeline.shards import ShardWriter
@@ -142,7 +142,7 @@ def test_a_folder_made_by_egosim_stage_opens(tiny_runs, tmp_path: Path) -> None:
 def _config(**kw) -> TrainConfig:
     base = {
         "steps": 2,
-        "warmup_steps": 1,
+        "optim": OptimConfig(warmup_steps=1),
         "preview_steps": 0,
         "cond_dropout": 0.0,
         "checkpoint_every": 0,
@@ -160,7 +160,8 @@ def test_tiny_training_from_latents_equals_training_on_the_fly(tiny_runs, tmp_pa
 def _train_tiny_wan_from_latents(run: Path, folder: Path, out: Path):
     data = open_training_data(run)
     assert isinstance(data, LatentsDataset)
-    config = _config(preset="tiny-wan", steps=1, weights_dir=str(folder), lr=1e-2)
+    optim = OptimConfig(lr=1e-2, warmup_steps=1)
+    config = _config(preset="tiny-wan", steps=1, weights_dir=str(folder), optim=optim)
     return data, config, train(config, data, out)
 
 

@@ -14,7 +14,7 @@ from typer.testing import CliRunner
 from egosim.model.errors import CheckpointMismatchError
 from egosim.model.inference import load_trained
 from egosim.model.metrics import psnr
-from egosim.model.train import TrainConfig
+from egosim.model.train import OptimConfig, TrainConfig
 from egosim.pipeline import media
 from egosim.pipeline.cli import app
 from egosim.pipeline.clip_io import write_clips
@@ -168,7 +168,9 @@ def test_pack_row_with_wrong_size_is_named(chain) -> None:
 def run_dir(chain) -> Path:
     """A 4-step tiny training run on the packed clip."""
     out = chain["dir"] / "run"
-    config = TrainConfig(steps=4, preview_steps=2, checkpoint_every=2, warmup_steps=1)
+    config = TrainConfig(
+        steps=4, preview_steps=2, checkpoint_every=2, optim=OptimConfig(warmup_steps=1)
+    )
     summary = run_training(TrainJob((str(chain["pack"]),), str(out), config, sample_steps=2))
     assert summary["step"] == 4 and summary["resumed_from"] == 0
     return out
@@ -188,7 +190,8 @@ def test_train_writes_run_and_resumes(chain, run_dir: Path, tmp_path: Path) -> N
         app,
         [
             *("train", "--data", str(chain["pack"]), "--out", str(run_dir), "--steps", "6"),
-            *("--set", "preview_steps=0", "--set", "warmup_steps=1", "--set", "checkpoint_every=2"),
+            *("--set", "preview_steps=0", "--set", "optim.warmup_steps=1"),
+            *("--set", "checkpoint_every=2"),
             *("--sample-steps", "0"),
         ],
     )
@@ -197,7 +200,7 @@ def test_train_writes_run_and_resumes(chain, run_dir: Path, tmp_path: Path) -> N
     assert summary["resumed_from"] == 4 and summary["step"] == 6
     # A bad --set is a clear error naming the field.
     result = CliRunner().invoke(
-        app, ["train", "--data", str(chain["pack"]), "--out", str(tmp_path), "--set", "lr=-1"]
+        app, ["train", "--data", str(chain["pack"]), "--out", str(tmp_path), "--set", "optim.lr=-1"]
     )
     assert result.exit_code == 2 and "lr must be > 0" in result.output
 
@@ -312,7 +315,7 @@ def test_simulate_stage_checks_its_config() -> None:
 def test_train_runs_as_one_dask_task_on_a_gpu_worker(chain, tmp_path: Path) -> None:
     from distributed import LocalCluster
 
-    config = TrainConfig(steps=1, preview_steps=0, warmup_steps=0)
+    config = TrainConfig(steps=1, preview_steps=0, optim=OptimConfig(warmup_steps=0))
     job = TrainJob((str(chain["pack"]),), str(tmp_path / "run"), config, sample_steps=0)
     with LocalCluster(
         n_workers=1,

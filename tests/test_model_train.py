@@ -15,7 +15,7 @@ from egosim.model.conditioning import TrainingSample
 from egosim.model.errors import CheckpointMismatchError, MissingEmbeddingError
 from egosim.model.presets import PRESETS
 from egosim.model.sampler import sample
-from egosim.model.train import TrainConfig, latest_checkpoint, sample_stream, train
+from egosim.model.train import OptimConfig, TrainConfig, latest_checkpoint, sample_stream, train
 
 
 @pytest.fixture(autouse=True)
@@ -50,11 +50,10 @@ CFG = TrainConfig(
     steps=4,
     batch_size=2,
     grad_accum=2,
-    warmup_steps=2,
+    optim=OptimConfig(lr=1e-3, warmup_steps=2),
     checkpoint_every=2,
     ema_decay=0.9,
     preview_steps=2,
-    lr=1e-3,
 )
 
 
@@ -89,7 +88,7 @@ def test_run_directory(tmp_path: Path) -> None:
     lines = [json.loads(x) for x in (tmp_path / "metrics.jsonl").read_text().splitlines()]
     assert [r["step"] for r in lines] == [1, 2]
     assert {"loss", "lr", "grad_norm", "samples_per_second", "peak_memory_mb"} <= set(lines[0])
-    assert lines[0]["lr"] == pytest.approx(CFG.lr / 2)  # warmup
+    assert lines[0]["lr"] == pytest.approx(CFG.optim.lr / 2)  # warmup
     assert (tmp_path / "previews" / "step_00000002.png").stat().st_size > 0
     ckpt = latest_checkpoint(tmp_path)
     assert ckpt.name == "step_00000002" and ckpt.is_dir()
@@ -202,3 +201,17 @@ def test_old_single_file_checkpoint_is_not_resumed(tmp_path: Path) -> None:
     save_tree(tmp_path / "checkpoints" / "step_00000001.safetensors", {"model": {}}, 2)
     with pytest.raises(CheckpointMismatchError, match=r"format 2.*--fresh"):
         train(CFG, DATA, tmp_path)
+
+
+def test_configs_saved_with_flat_optimiser_names_still_load() -> None:
+    """Runs saved before the ``optim`` group wrote lr, warmup_steps, ... at the top level."""
+    import dataclasses
+
+    from egosim.model.inference import config_from_dict
+
+    saved = dataclasses.asdict(CFG)
+    flat = {k: v for k, v in saved.items() if k != "optim"}
+    flat.update({"lr": 3e-4, "warmup_steps": 5, "betas": [0.8, 0.95], "grad_clip": 0.5})
+    old = config_from_dict(flat)
+    assert old.optim == OptimConfig(lr=3e-4, warmup_steps=5, betas=(0.8, 0.95), grad_clip=0.5)
+    assert config_from_dict(saved) == CFG  # the current layout round-trips

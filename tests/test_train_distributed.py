@@ -27,7 +27,7 @@ import torch
 
 from egosim.model.conditioning import TrainingSample
 from egosim.model.network import build_model
-from egosim.model.train import TrainConfig, checkpoint_path, train
+from egosim.model.train import OptimConfig, TrainConfig, checkpoint_path, train
 
 LOSS_RTOL = 1e-4  # relative tolerance on per-step losses (see the module docstring)
 WEIGHT_ATOL = 1e-4  # absolute tolerance on trained weights after 4 steps
@@ -38,12 +38,11 @@ BASE = TrainConfig(
     steps=4,
     batch_size=1,
     grad_accum=2,
-    warmup_steps=2,
+    optim=OptimConfig(lr=1e-3, warmup_steps=2),
     checkpoint_every=2,
     keep_checkpoints=4,
     ema_decay=0.9,
     preview_steps=0,
-    lr=1e-3,
     device="cpu",
     progress=False,
     tensorboard=False,
@@ -91,8 +90,9 @@ def _worker(spec: Path) -> None:
     ctx = init_distributed("cpu")
     for job in json.loads(spec.read_text()):
         overrides = dict(job["config"])
-        if "lora" in overrides:
-            overrides["lora"] = dataclasses.replace(BASE.lora, **overrides["lora"])
+        for group in ("lora", "optim"):  # nested groups arrive as dicts (JSON)
+            if group in overrides:
+                overrides[group] = dataclasses.replace(getattr(BASE, group), **overrides[group])
         config = dataclasses.replace(BASE, **overrides)
         result = train(config, DATA, job["run_dir"], max_steps=job["max_steps"], ctx=ctx)
         if ctx.is_main:
@@ -199,7 +199,7 @@ def test_lora_on_two_ranks_exports_what_was_trained(tmp_path: Path) -> None:
     from egosim.model.lora import load_patch_embedding
 
     job = _job(tmp_path, "lora")
-    job["config"] = {"finetune": "lora", "lora": {"rank": 4, "alpha": 8.0}, "lr": 1e-2}
+    job["config"] = {"finetune": "lora", "lora": {"rank": 4, "alpha": 8.0}, "optim": {"lr": 1e-2}}
     _torchrun(tmp_path, [job])
     ours = load_trained(tmp_path / "lora", device="cpu", use_ema=False)
     trained = ours.bundle.denoiser.transformer.eval()

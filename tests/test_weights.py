@@ -23,7 +23,7 @@ from egosim.model.errors import WeightsMismatchError
 from egosim.model.inference import load_trained
 from egosim.model.network import build_transformer, count_parameters, load_transformer
 from egosim.model.presets import PRESETS, ModelPreset, TextSpec
-from egosim.model.train import TrainConfig, train
+from egosim.model.train import OptimConfig, TrainConfig, train
 from egosim.model.weights import (
     EXPORT_RECORD,
     LAYOUT_DIFFUSERS,
@@ -286,7 +286,11 @@ def _sample(seed: int) -> TrainingSample:
 @pytest.mark.parametrize("finetune", ["full", "lora"])
 def test_export_round_trips_a_trained_run(tmp_path: Path, finetune: str) -> None:
     config = TrainConfig(
-        steps=2, lr=1e-2, warmup_steps=1, ema_decay=0.5, preview_steps=0, finetune=finetune
+        steps=2,
+        optim=OptimConfig(lr=1e-2, warmup_steps=1),
+        ema_decay=0.5,
+        preview_steps=0,
+        finetune=finetune,
     )
     if finetune == "lora":
         config = dataclasses.replace(config, lora=dataclasses.replace(config.lora, rank=4))

@@ -120,17 +120,19 @@ def test_workflow_orders_steps_and_applies_overrides() -> None:
 def test_build_config_is_strict_and_nested() -> None:
     from egosim.model.train import TrainConfig
 
-    cfg = build_config(TrainConfig, {"lora.rank": "8", "betas": "0.8, 0.9"}, "train")
-    assert cfg.lora.rank == 8 and cfg.betas == (0.8, 0.9)
+    cfg = build_config(TrainConfig, {"lora.rank": "8", "optim.betas": "0.8, 0.9"}, "train")
+    assert cfg.lora.rank == 8 and cfg.optim.betas == (0.8, 0.9)
+    assert build_config(TrainConfig, {"optim.lr": "1e-5"}, "train").optim.lr == 1e-5
     assert build_config(TrainConfig, {"lora": {"alpha": 2}}, "train").lora.alpha == 2.0
     for params, expected in (
         ({"lora": "8"}, "parameter 'lora': expected LoRAConfig fields"),
         ({"lora.rnk": "8"}, "unknown parameter 'lora.rnk'"),
         ({"steps.x": "1"}, "parameter 'steps' has no fields"),
-        ({"betas": "0.9"}, "expected 2 values, got '0.9'"),
+        ({"optim.betas": "0.9"}, "expected 2 values, got '0.9'"),
         ({"steps": "2.5"}, "expected an integer, got '2.5'"),
-        ({"lr": "fast"}, "expected a number, got 'fast'"),
-        ({"lr": True}, "expected a number, got True"),
+        ({"optim.lr": "fast"}, "expected a number, got 'fast'"),
+        ({"optim.lr": True}, "expected a number, got True"),
+        ({"lr": "1e-4"}, "unknown parameter 'lr'"),
         ({"finetune": ["full"]}, "expected a string, got ['full']"),
         ({"ema_decay": "x"}, "got 'x'"),
     ):
