@@ -13,7 +13,8 @@ with the default :class:`~egosim.stages.hands.mediapipe_backend.MediaPipeParams`
   frames listed by eye in ``RENDER_GAPS``, count as ``on_unrendered``, not as false positives);
   side-label agreement: of the detections that lie on a rendered hand, the fraction whose side
   is that hand's colour; the mean distance from the keypoint centroid to the rendered hand's
-  pixel centroid on frames where both exist.
+  pixel centroid on frames where both exist. Each clip twice: as the file holds it, and "as
+  ingested" (:func:`as_ingested`: the frames the ``hands`` stage of ``bench.real_video`` gets).
 - **Fixed-camera and EgoDex videos** (``realworld_fixed/*.mp4``, ``egodex_sample/sample.mp4``),
   cut into clips by ingest's own windowing with its egosim preset (16 fps by nearest timestamp,
   scaled to cover 480x832 and centre-cropped; 61-frame windows, then a 1 + 4k tail of at least
@@ -35,6 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
+from egosim.pipeline import media
 from egosim.pipeline.geometry import intrinsics_from_fov
 from egosim.pipeline.media import read_video_file
 from egosim.pipeline.stage import ClipRejected
@@ -44,13 +46,14 @@ from egosim.stages.hands.mediapipe_backend import (
     hands_from_raw,
 )
 from egosim.stages.hands.metrics import combine, hand_accuracy
-from egosim.stages.ingest.stage import CLIP_PRESETS
+from egosim.stages.ingest.stage import CLIP_PRESETS, IngestConfig
 from egosim.stages.ingest.standardise import Window, WindowPolicy, plan_resize, resample_windows
 
 DEFAULT_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 MIN_RENDER_PIXELS = 150  # a render shows a hand when at least this many pixels have its colour
 FAR_PX = 40.0  # a detection this far (px) from every rendered hand pixel is a false positive
 EGOSIM = CLIP_PRESETS["egosim"]  # the clip format real videos are cut to (ingest's default)
+DWM = CLIP_PRESETS["dwm"]  # the format DWM clips are ingested in (bench.real_video)
 SIDES = ("left", "right")
 # Frames whose render leaves out a hand that is plainly in view (checked by eye on the real frames;
 # 00013 frame 8 renders only the right hand): a detection there away from the rendered hands is
@@ -69,9 +72,12 @@ def render_masks(render: np.ndarray) -> np.ndarray:
     return np.stack([green, red], axis=1)
 
 
-def dwm_figures(video: Path, render_path: Path) -> dict[str, float]:
-    """Recall, false positives, side agreement and centroid distance on one DWM clip."""
+def dwm_figures(video: Path, render_path: Path, ingested: bool = False) -> dict[str, float]:
+    """Recall, false positives, side agreement and centroid distance on one DWM clip; with
+    ``ingested``, on the frames the ``hands`` stage gets (:func:`as_ingested`)."""
     frames, _ = read_video_file(video)
+    if ingested:
+        frames = as_ingested(frames)
     render, _ = read_video_file(render_path)
     t = min(len(frames), len(render))
     frames, render = frames[:t], render[:t]
@@ -120,6 +126,16 @@ def dwm_figures(video: Path, render_path: Path) -> dict[str, float]:
     out["centroid_px"] = float(np.mean(dists)) if dists else float("nan")
     out["size"] = float(w)
     return out
+
+
+def as_ingested(frames: np.ndarray) -> np.ndarray:
+    """``frames (T, H, W, 3)`` of a DWM clip as ``ingest.preset=dwm`` stores them: same size and
+    frame rate (8 fps, 480x720), H.264 at ingest's default quality, decoded again. (The stored
+    clip of ``bench.real_video``'s 00013 run is pixel-identical to this.) The second lossy pass
+    changes what the palm detector finds: on 00013 MediaPipe alone then finds a hand on 7
+    frames, and the tracker has to carry both hands through the rest."""
+    data = media.encode_rgb_video(frames, DWM.fps, IngestConfig().crf)
+    return np.stack(media.decode_rgb_video(data))
 
 
 def _dist_to_mask(mask: np.ndarray, point: np.ndarray) -> float:
@@ -240,7 +256,9 @@ def real(data: Path) -> None:
     dyn = data / "dwm_realworld" / "realworld_dynamic"
     print("DWM dynamic clips (ground-truth hand renders; 'false_pos' = far from any render)")
     for video in sorted((dyn / "videos").glob("*.mp4")):
-        print(_line(video.stem, dwm_figures(video, dyn / "videos_hands" / video.name)))
+        render = dyn / "videos_hands" / video.name
+        print(_line(video.stem, dwm_figures(video, render)))
+        print(_line(f"{video.stem} (as ingested)", dwm_figures(video, render, ingested=True)))
     print("Fixed-camera and EgoDex videos (16 fps, 480x832, ingest's windows: NAME@START)")
     others = sorted((data / "dwm_realworld" / "realworld_fixed").glob("*.mp4"))
     others.append(data / "egodex_sample" / "sample.mp4")

@@ -31,6 +31,7 @@ INPUT_SIZE = 224  # the landmark model's square input, pixels
 ROI_JOINTS = (0, 1, 2, 3, 5, 6, 9, 10, 13, 14, 17, 18)
 ROI_SCALE = 2.0  # the ROI's side over the rotated box of ROI_JOINTS (MediaPipe's value)
 ROI_SHIFT = -0.1  # ROI centre moved along the hand's axis by this fraction of the box (MediaPipe)
+MIN_STRETCH_GAIN = 2.0  # crops spanning half the intensity range or more are not stretched
 
 
 class LandmarkRuntimeUnavailableError(ImportError):
@@ -106,6 +107,24 @@ def _model_path(complexity: int) -> Path:
     return path
 
 
+def stretch_contrast(x: np.ndarray, max_gain: float) -> np.ndarray:
+    """``x (..., H, W, 3)`` in [0, 1] with its 1st-99th percentile range stretched onto [0, 1],
+    the gain capped at ``max_gain``; a crop whose range needs a gain below
+    :data:`MIN_STRETCH_GAIN` (well exposed) is returned as it is.
+
+    Head-mounted video of dim rooms shows hands dark, in dark sleeves: on DWM clip 00013 the
+    landmark model's presence score on the right hand's crops stays below 0.2 at frames 20-21 as
+    recorded and rises above it once the crop is stretched.
+    """
+    lo, hi = np.percentile(x, (1.0, 99.0))
+    gain = min(max_gain, 1.0 / max(float(hi - lo), 1e-6))
+    if gain < MIN_STRETCH_GAIN:
+        return x
+    mid = 0.5 * (lo + hi)  # the stretch keeps the range's middle unless that clips it
+    low = float(np.clip(mid - 0.5 / gain, 0.0, 1.0 - 1.0 / gain))
+    return np.clip((x - low) * gain, 0.0, 1.0).astype(np.float32)
+
+
 class LandmarkModel:
     """``hand_landmark_{full,lite}.tflite`` on ROIs, one thread (see the module docstring)."""
 
@@ -122,8 +141,9 @@ class LandmarkModel:
         # Outputs by name: Identity landmarks (63), _1 presence, _2 handedness, _3 world (63).
         self._out = {d["name"]: d["index"] for d in self._interp.get_output_details()}
 
-    def run(self, frame: np.ndarray, roi: Roi) -> RoiLandmarks:
-        """Landmarks of the hand in ``roi`` of ``frame (H, W, 3)`` uint8 RGB."""
+    def run(self, frame: np.ndarray, roi: Roi, max_gain: float = 1.0) -> RoiLandmarks:
+        """Landmarks of the hand in ``roi`` of ``frame (H, W, 3)`` uint8 RGB; the crop's contrast
+        is stretched by up to ``max_gain`` first (:func:`stretch_contrast`; 1 = as it is)."""
         crop = cv2.warpAffine(
             frame,
             roi.crop_from_frame(),
@@ -132,6 +152,8 @@ class LandmarkModel:
             borderMode=cv2.BORDER_CONSTANT,
         )  # (224, 224, 3)
         x = (crop.astype(np.float32) / 255.0)[None]  # (1, 224, 224, 3) in [0, 1]
+        if max_gain > 1.0:
+            x = stretch_contrast(x, max_gain)
         self._interp.set_tensor(self._input, x)
         self._interp.invoke()
         lm = self._interp.get_tensor(self._out["Identity"]).reshape(NUM_HAND_JOINTS, 3)
@@ -167,6 +189,8 @@ class TrackParams:
     duplicate_distance: float = 0.5  # a hand this near (in hand sizes) one already there is it
     flow: bool = True  # carry the ROI by the optical flow of the landmarks between frames
     max_steps: int = 1000  # frames a hand is followed from its last palm-detector detection
+    max_coast: int = 3  # frames a lost hand's landmarks are carried by the flow alone
+    max_gain: float = 4.0  # dark, flat crops get their contrast stretched by up to this gain
 
 
 def flow_shift(prev_gray: np.ndarray, next_gray: np.ndarray, points: np.ndarray) -> np.ndarray:
@@ -202,8 +226,12 @@ def track_through_misses(
     followed hand lands in a free slot. A hand at frame ``f`` is looked for at ``f +- 1`` in the
     ROI its landmarks predict (:func:`roi_from_landmarks`, moved by :func:`flow_shift`) unless a
     hand is already there; it is kept when the model's presence score is at least
-    ``min_presence`` and its size and position stay plausible, and then followed on. Returns
-    ``tracked (T, K)`` bool: the slots filled here.
+    ``min_presence`` and its size and position stay plausible, and then followed on. Where the
+    model does not find it (motion blur, a hand half out of the frame for a moment), its
+    landmarks are carried on by the optical flow alone (the camera's motion moves the hand in the
+    image) for up to ``max_coast`` frames, and the search goes on from there; the frames crossed
+    that way stay empty (the sides step bridges them). Returns ``tracked (T, K)`` bool: the slots
+    filled here.
     """
     params = params or TrackParams()
     t = present.shape[0]
@@ -212,64 +240,65 @@ def track_through_misses(
     grey = [cv2.cvtColor(f, cv2.COLOR_RGB2GRAY) if params.flow else None for f in frames]
     for direction in (1, -1):
         order = range(t) if direction > 0 else range(t - 1, -1, -1)
+        coasting: dict[int, list[tuple[np.ndarray, int, int]]] = {}  # frame -> (uv, coast, steps)
         for f in order:
             g = f + direction
             if not 0 <= g < t:
                 continue
-            for k in np.flatnonzero(present[f]):
-                if steps[f, k] >= params.max_steps:
+            sources = [(uv[f, k], 0, int(steps[f, k])) for k in np.flatnonzero(present[f])]
+            for src, coast, step in sources + coasting.pop(f, []):
+                if step >= params.max_steps:
                     continue
-                src = uv[f, k]  # (21, 2)
                 size = _size(src)
                 if _near_any(src.mean(axis=0), size, uv[g], present[g], params.duplicate_distance):
                     continue
-                free = np.flatnonzero(~present[g])
-                if free.size == 0:
+                if not (~present[g]).any():
                     continue
-                res = _search(model, frames[g], src, grey[f], grey[g], params)
-                if res.presence < params.min_presence:
+                move = flow_shift(grey[f], grey[g], src) if params.flow else np.zeros(2)  # (2,)
+                res = _search(model, frames[g], src, move, params)
+                if not _plausible(res, src, params) or _near_any(
+                    res.uv.mean(axis=0), _size(res.uv), uv[g], present[g], params.duplicate_distance
+                ):  # lost here (or it slid onto a hand already there)
+                    if coast < params.max_coast and 0 <= g + direction < t:
+                        coasting.setdefault(g, []).append((src + move, coast + 1, step + 1))
                     continue
-                new_size = _size(res.uv)
-                ratio = new_size / max(size, 1e-6)
-                jump = float(np.linalg.norm(res.uv.mean(axis=0) - src.mean(axis=0)))
-                if not (1 / params.max_size_change <= ratio <= params.max_size_change):
-                    continue
-                if jump > params.max_jump * max(size, new_size):
-                    continue
-                if _near_any(
-                    res.uv.mean(axis=0), new_size, uv[g], present[g], params.duplicate_distance
-                ):
-                    continue  # it slid onto a hand already there
-                s = int(free[0])
+                s = int(np.flatnonzero(~present[g])[0])
                 uv[g, s], world[g, s], label_right[g, s] = res.uv, res.world, res.right
                 present[g, s], tracked[g, s] = True, True
-                steps[g, s] = steps[f, k] + 1
+                steps[g, s] = step + 1
     return tracked
 
 
+def _plausible(res: RoiLandmarks, src: np.ndarray, params: TrackParams) -> bool:
+    """Whether the model's answer ``res`` is the hand of landmarks ``src (21, 2)``: present
+    enough, of a similar size and not too far (see :class:`TrackParams`)."""
+    if res.presence < params.min_presence:
+        return False
+    size, new_size = _size(src), _size(res.uv)
+    ratio = new_size / max(size, 1e-6)
+    if not 1 / params.max_size_change <= ratio <= params.max_size_change:
+        return False
+    jump = float(np.linalg.norm(res.uv.mean(axis=0) - src.mean(axis=0)))
+    return jump <= params.max_jump * max(size, new_size)
+
+
 def _search(
-    model: LandmarkModel,
-    frame: np.ndarray,
-    src: np.ndarray,
-    grey_from: np.ndarray | None,
-    grey_to: np.ndarray | None,
-    params: TrackParams,
+    model: LandmarkModel, frame: np.ndarray, src: np.ndarray, move: np.ndarray, params: TrackParams
 ) -> RoiLandmarks:
     """The most present hand among ROIs around the one ``src (21, 2)`` predicts in ``frame``.
 
-    Tried: the predicted ROI moved by the optical flow (when ``params.flow``) at every scale and
+    Tried: the predicted ROI moved by ``move (2,)`` pixels (the optical flow) at every scale and
     downward shift of ``params`` (head-mounted cameras tilt up and down, so hands move mostly
-    vertically in the image), and unmoved; when none holds a hand, the ``wider`` set (larger and
-    sideways-shifted ROIs: fast hands). The search stops at the first answer with
-    ``good_presence``. The best answer is refined once on its own ROI.
+    vertically in the image), and unmoved (when ``params.unmoved`` and there is a move); when
+    none holds a hand, the ``wider`` set (larger and sideways-shifted ROIs: fast hands). The
+    search stops at the first answer with ``good_presence``. The best answer is refined once on
+    its own ROI.
     """
     base = roi_from_landmarks(src)
-    moves = [np.zeros(2)]
-    if params.flow and grey_from is not None and grey_to is not None:
-        moves = [flow_shift(grey_from, grey_to, src)] + ([np.zeros(2)] if params.unmoved else [])
+    moves = [move] + ([np.zeros(2)] if params.unmoved and np.any(move != 0) else [])
     rois = [
-        Roi(base.centre + move + np.array([0.0, shift * base.side]), base.side * scale, base.up)
-        for i, move in enumerate(moves)
+        Roi(base.centre + m + np.array([0.0, shift * base.side]), base.side * scale, base.up)
+        for i, m in enumerate(moves)
         for scale in (params.scales if i == 0 else (1.0,))
         for shift in (params.shifts if i == 0 else (0.0,))
     ]
@@ -282,13 +311,13 @@ def _search(
     for i, roi in enumerate(rois + wider):
         if i == len(rois) and best is not None and best.presence >= params.min_presence:
             break  # the wider set only when the others found nothing
-        res = model.run(frame, roi)
+        res = model.run(frame, roi, params.max_gain)
         if best is None or res.presence > best.presence:
             best = res
         if best.presence >= params.good_presence:
             break  # clearly found: the remaining ROIs cannot matter much
     if params.refine and best.presence >= params.min_presence:
-        again = model.run(frame, roi_from_landmarks(best.uv))
+        again = model.run(frame, roi_from_landmarks(best.uv), params.max_gain)
         if again.presence >= best.presence:
             best = again
     return best

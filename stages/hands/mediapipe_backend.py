@@ -17,7 +17,10 @@ Steps, for one clip:
    the ROI its previous landmarks predict, moved by optical flow
    (:mod:`egosim.stages.common.roi_landmarks`), so a hand found at frame 3 is also found at
    frames 0-2. On DWM clip 00013 this raised left-hand recall from 0.17 to 1.0, right 0.42 to
-   0.96; on HOT3D both hands went from 61% to 76% of frames.
+   0.96; on HOT3D both hands went from 61% to 76% of frames. A hand the landmark model loses
+   (a blurred frame while the head turns, a hand half out of the frame) is carried on by the
+   optical flow alone for up to ``track.max_coast`` frames and looked for again there, and dark
+   crops are contrast-stretched (``track.max_gain``) before the model sees them.
 2. **Sides** (:func:`assign_sides`): MediaPipe's labels assume a mirrored (selfie) image, so on
    egocentric video its "Left" is the real right hand, and the labels flip now and then. Detections
    are linked into tracks (nearest centroid frame to frame); each track takes one side from its

@@ -166,7 +166,9 @@ class HandsStage(ClipStage):
     # 2: mediapipe lifts by palm PnP (not translation only), drops overlapping detections,
     # links tracks across gaps less far; the spike filter also tests the palm's orientation.
     # 3: mediapipe follows found hands through detector misses, forwards and backwards in time.
-    version = 3
+    # 4: ... carrying a lost hand's ROI by the optical flow for a few frames, on contrast-stretched
+    # crops (dark, sleeved hands of head-mounted video).
+    version = 4
     description = "3D hand joints per frame from the clip's labels, de-duplicated and de-spiked"
     config_class = HandsConfig
     inputs: ClassVar[Mapping[str, ShardSchema]] = {"clips": CLIPS}
