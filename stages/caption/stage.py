@@ -33,6 +33,8 @@ class CaptionStage(ClipStage):
     inputs: ClassVar[Mapping[str, ShardSchema]] = {"clips": CLIPS}
     output = CAPTIONS
     backends = ("source",)
+    # What process reads of the clip (the executor decodes nothing else): its own text.
+    columns: ClassVar[Mapping[str, tuple[str, ...]]] = {"clips": ("text",)}
     config: CaptionConfig
 
     def process(self, rows: Mapping[str, Mapping[str, Any]]) -> dict[str, Any]:

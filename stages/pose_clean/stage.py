@@ -281,6 +281,11 @@ class PoseCleanStage(ClipStage):
     optional_inputs: ClassVar[Mapping[str, ShardSchema]] = {"cameras": DEPTH_CAMERA}
     output = POSES
     backends = METHODS
+    # What process reads (the executor decodes nothing else): a trajectory and its frame rate.
+    columns: ClassVar[Mapping[str, tuple[str, ...]]] = {
+        "clips": ("num_frames", "fps", "world_from_cam"),
+        "cameras": ("world_from_cam", "posed_by"),
+    }
     config: PoseCleanConfig
 
     def process(self, rows: Mapping[str, Mapping[str, Any]]) -> dict[str, Any]:
