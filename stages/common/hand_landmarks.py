@@ -25,7 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from egosim.stages.common.roi_landmarks import LandmarkModel, track_through_misses
+from egosim.stages.common.roi_landmarks import LandmarkModel, TrackParams, track_through_misses
 
 NUM_JOINTS = 21  # MediaPipe / MANO joint count per hand
 MAX_HANDS = 2  # hands detected per frame
@@ -45,6 +45,11 @@ class HandLandmarkParams:
     model_complexity: int = 1  # landmark model: 0 lite, 1 full
     track_misses: bool = True  # follow found hands through detector misses, forwards and
     # backwards (the landmark model on flow-carried ROIs, :mod:`.roi_landmarks`; ai-edge-litert)
+    # How hands are followed: the hands v3 tracker (no flow-carrying through misses, crops as they
+    # are). The hands stage's v4 tracker also finds dark, blurred and edge-cut hands, but moved DWM
+    # 00013's metric scale 0.094 -> 0.084 and its hand/surface ratio 1.53 -> 1.71 (further from 1);
+    # with no true scale to check it against, the scale keeps the detections it was measured with.
+    track: TrackParams = TrackParams(max_coast=0, max_gain=1.0)  # noqa: RUF009 (frozen)
 
     def __post_init__(self) -> None:
         problems = []
@@ -118,7 +123,7 @@ def detect_hand_landmarks(
     if params.track_misses and out.present.any():
         model = LandmarkModel(params.model_complexity)
         tracked = track_through_misses(
-            frames, out.uv, out.world, out.score, out.present, model
+            frames, out.uv, out.world, out.score, out.present, model, params.track
         )  # fills uv, world, score and present in place
         out.score[tracked] = 0.5  # the side of a followed hand is not scored here
     return out
