@@ -9,7 +9,10 @@ landmark model (``hand_landmark_full.tflite``, shipped inside the ``mediapipe`` 
 run with a TFLite runtime (``ai-edge-litert``) on ROIs built the way MediaPipe builds them
 (:func:`roi_from_landmarks`), carried from frame to frame by optical flow
 (:func:`flow_shift`), forwards and backwards in time from every detection
-(:func:`track_through_misses`), so a hand found at frame 3 is also followed back to frame 0.
+(:func:`track_through_misses`), so a hand found at frame 3 is also followed back to frame 0. A
+hand the model loses for a frame or two (motion blur while the head turns, a hand half out of
+the frame) is carried on by the flow and taken up again when the model finds it clearly; dark
+crops (dim rooms, sleeves) are contrast-stretched first (:func:`stretch_contrast`).
 
 Crops are rotated so that the wrist-to-knuckles direction points up, as MediaPipe's are; the
 landmarks come back in crop pixels and are mapped to the frame through the same affine map.
@@ -190,6 +193,7 @@ class TrackParams:
     flow: bool = True  # carry the ROI by the optical flow of the landmarks between frames
     max_steps: int = 1000  # frames a hand is followed from its last palm-detector detection
     max_coast: int = 3  # frames a lost hand's landmarks are carried by the flow alone
+    reacquire_presence: float = 0.5  # presence needed to take a hand up again after carrying it
     max_gain: float = 4.0  # dark, flat crops get their contrast stretched by up to this gain
 
 
@@ -229,9 +233,11 @@ def track_through_misses(
     ``min_presence`` and its size and position stay plausible, and then followed on. Where the
     model does not find it (motion blur, a hand half out of the frame for a moment), its
     landmarks are carried on by the optical flow alone (the camera's motion moves the hand in the
-    image) for up to ``max_coast`` frames, and the search goes on from there; the frames crossed
-    that way stay empty (the sides step bridges them). Returns ``tracked (T, K)`` bool: the slots
-    filled here.
+    image) for up to ``max_coast`` frames, and the search goes on from there; a hand taken up
+    again that way needs ``reacquire_presence`` (nothing vouches for it but the flow: on the
+    synthetic world, accepting it at ``min_presence`` raised recall 0.60 -> 0.68 but the mean
+    orientation error 13.5 -> 22.5 degrees), and the frames crossed stay empty (the sides step
+    bridges them). Returns ``tracked (T, K)`` bool: the slots filled here.
     """
     params = params or TrackParams()
     t = present.shape[0]
@@ -256,7 +262,8 @@ def track_through_misses(
                     continue
                 move = flow_shift(grey[f], grey[g], src) if params.flow else np.zeros(2)  # (2,)
                 res = _search(model, frames[g], src, move, params)
-                if not _plausible(res, src, params) or _near_any(
+                need = params.min_presence if coast == 0 else params.reacquire_presence
+                if not _plausible(res, src, need, params) or _near_any(
                     res.uv.mean(axis=0), _size(res.uv), uv[g], present[g], params.duplicate_distance
                 ):  # lost here (or it slid onto a hand already there)
                     if coast < params.max_coast and 0 <= g + direction < t:
@@ -269,10 +276,10 @@ def track_through_misses(
     return tracked
 
 
-def _plausible(res: RoiLandmarks, src: np.ndarray, params: TrackParams) -> bool:
-    """Whether the model's answer ``res`` is the hand of landmarks ``src (21, 2)``: present
-    enough, of a similar size and not too far (see :class:`TrackParams`)."""
-    if res.presence < params.min_presence:
+def _plausible(res: RoiLandmarks, src: np.ndarray, presence: float, params: TrackParams) -> bool:
+    """Whether the model's answer ``res`` is the hand of landmarks ``src (21, 2)``: at least
+    ``presence``, of a similar size and not too far (see :class:`TrackParams`)."""
+    if res.presence < presence:
         return False
     size, new_size = _size(src), _size(res.uv)
     ratio = new_size / max(size, 1e-6)
