@@ -7,7 +7,7 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 TOP = {"pipeline": "egosim.pipeline", "schemas": "egosim.schemas", "stages": "egosim.stages",
-       "model": "egosim.model"}  # fmt: skip
+       "model": "egosim.model", "world": "egosim.world"}  # fmt: skip
 
 
 def test_every_subpackage_is_listed_in_pyproject() -> None:
