@@ -39,7 +39,10 @@ Steps, for one clip:
    landmarks are rotated onto that palm to give each joint a depth, and each joint is put on its
    pixel's ray. The points are then scaled about the camera centre (which keeps the projection)
    so that their median depth equals the median depth observed under the 2D landmarks; without
-   depth the template's average-hand size sets the distance. Then to world
+   depth the template's average-hand size sets the distance. A palm seen edge-on has no PnP
+   pose in front of the camera: it takes the rotation and depth of the same hand's nearest frame
+   with one (within ``max_gap`` frames; :func:`lift_with_rotation`) rather than MediaPipe's own
+   axes, whose 74-82 degree turn the spike filter would drop. Then to world
    with ``world_from_cam``.
 
 :func:`mediapipe_hands` runs all of it; :func:`mediapipe_detections` wraps it for the stage.
@@ -68,6 +71,7 @@ from egosim.stages.hands.filters import Detections
 BRIDGED_CONFIDENCE_FACTOR = 0.5  # confidence of interpolated frames relative to detected ones
 MIDDLE_MCP = 9  # joint index of the middle finger's knuckle (hand size: wrist to it)
 PALM_JOINTS = (0, 5, 9, 13, 17)  # wrist and the index, middle, ring and pinky knuckles
+MIN_POSE_DEPTH = 0.05  # metres: a palm pose with a joint nearer the camera does not pose others
 # An average adult right palm (metres; x from the wrist towards the fingers, y towards the thumb,
 # z = 0: the palm is taken as flat): wrist to middle knuckle 9 cm, index to pinky knuckle 6.4 cm.
 # Rows follow PALM_JOINTS; a left hand mirrors y.
@@ -524,6 +528,20 @@ def _palm_pnp_lift(
     prefer_fingers_away: bool,
 ) -> np.ndarray | None:
     """The ``"palm_pnp"`` lift of :func:`lift_to_camera` (no depth scaling); None on failure."""
+    pose = palm_pnp_pose(uv, world_landmarks, intrinsics, right, prefer_fingers_away)
+    return None if pose is None else pose[0]
+
+
+def palm_pnp_pose(
+    uv: np.ndarray,
+    world_landmarks: np.ndarray,
+    intrinsics: np.ndarray,
+    right: bool = True,
+    prefer_fingers_away: bool = True,
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """The palm-PnP lift (see :func:`lift_to_camera`) and its rotation: ``(points (21, 3) camera
+    metres, cam_from_landmarks (3, 3))`` taking MediaPipe's world-landmark axes to the camera's;
+    None when the PnP fails (a palm seen edge-on: its knuckles on one image line)."""
     candidates = palm_candidates(uv, intrinsics, right)  # each (5, 3)
     if not candidates:
         return None
@@ -537,10 +555,31 @@ def _palm_pnp_lift(
     rot = best_rotation(world_landmarks[palm], chosen)  # (3, 3) cam_from_landmarks
     model = (world_landmarks - world_landmarks[palm].mean(axis=0)) @ rot.T + chosen.mean(axis=0)
     z = np.maximum(model[:, 2], 1e-3)  # (21,) depth of each joint from the posed model
+    return _on_rays(uv, z, intrinsics), rot
+
+
+def _on_rays(uv: np.ndarray, z: np.ndarray, intrinsics: np.ndarray) -> np.ndarray:
+    """Camera points ``(21, 3)``: each pixel of ``uv (21, 2)`` on its ray at depth ``z (21,)``."""
     fx, fy, cx, cy = np.asarray(intrinsics, dtype=np.float64)
     x_n = (uv[:, 0] - cx) / fx  # (21,)
     y_n = (uv[:, 1] - cy) / fy  # (21,)
     return np.stack([x_n * z, y_n * z, z], axis=1)  # (21, 3) on each landmark's ray
+
+
+def lift_with_rotation(
+    uv: np.ndarray,
+    world_landmarks: np.ndarray,
+    intrinsics: np.ndarray,
+    cam_from_landmarks: np.ndarray,
+    median_depth: float,
+) -> np.ndarray:
+    """Camera joints ``(21, 3)`` of a hand whose palm PnP failed, posed like a neighbouring frame:
+    the world landmarks turned by that frame's ``cam_from_landmarks (3, 3)`` give each joint its
+    depth offset, the whole hand sits at ``median_depth`` (metres, the neighbour's), and each
+    joint is put on its own pixel's ray (so the result reprojects onto ``uv (21, 2)``)."""
+    turned = (world_landmarks - world_landmarks.mean(axis=0)) @ cam_from_landmarks.T  # (21, 3)
+    z = np.maximum(turned[:, 2] - np.median(turned[:, 2]) + median_depth, 1e-3)  # (21,)
+    return _on_rays(uv, z, intrinsics)
 
 
 def _angle_deg(rot: np.ndarray) -> float:
@@ -601,23 +640,62 @@ def hands_from_raw(
     lm = side_landmarks(raw, width, params)
     t = raw.present.shape[0]
     joints = np.full((t, 2, NUM_HAND_JOINTS, 3), np.nan)
+    poses = _palm_poses(lm, intrinsics, params) if params.lift == "palm_pnp" else {}
     for f, s in zip(*np.nonzero(lm.present), strict=True):
         observed = depth_under(depth[f], lm.uv[f, s]) if depth is not None else None
-        points_cam = lift_to_camera(
-            lm.uv[f, s],
-            lm.world[f, s],
-            intrinsics,
-            observed,
-            right=bool(s == RIGHT),
-            method=params.lift,
-            prefer_fingers_away=params.prefer_fingers_away,
-        )
+        near = _nearest_pose(poses, f, s, params.max_gap)
+        if (f, s) not in poses and near is not None:  # palm PnP failed here: pose a neighbour's
+            points_cam = lift_with_rotation(
+                lm.uv[f, s], lm.world[f, s], intrinsics, near[1], float(np.median(near[0][:, 2]))
+            )
+            if observed is not None and np.isfinite(observed) and observed > 0:
+                points_cam = points_cam * (observed / float(np.median(points_cam[:, 2])))
+        else:
+            points_cam = lift_to_camera(
+                lm.uv[f, s],
+                lm.world[f, s],
+                intrinsics,
+                observed,
+                right=bool(s == RIGHT),
+                method=params.lift,
+                prefer_fingers_away=params.prefer_fingers_away,
+            )
         if world_from_cam is not None:
             points_cam = transform_points(world_from_cam[f], points_cam)  # now world
         joints[f, s] = points_cam
     valid = lm.present & np.all(np.isfinite(joints), axis=(2, 3))
     conf = np.repeat(np.where(valid, lm.confidence, 0.0)[..., None], NUM_HAND_JOINTS, axis=2)
     return MediaPipeResult(joints, valid, conf, lm, raw)
+
+
+def _palm_poses(
+    lm: SideLandmarks, intrinsics: np.ndarray, params: MediaPipeParams
+) -> dict[tuple[int, int], tuple[np.ndarray, np.ndarray]]:
+    """``(frame, side) -> (points (21, 3), cam_from_landmarks (3, 3))`` where the palm PnP works
+    and puts every joint at least :data:`MIN_POSE_DEPTH` in front of the camera (a pose with
+    joints at the camera's centre is a degenerate one: it must not pose its neighbours)."""
+    out = {}
+    for f, s in zip(*np.nonzero(lm.present), strict=True):
+        pose = palm_pnp_pose(
+            lm.uv[f, s], lm.world[f, s], intrinsics, bool(s == RIGHT), params.prefer_fingers_away
+        )
+        if pose is not None and float(pose[0][:, 2].min()) >= MIN_POSE_DEPTH:
+            out[(int(f), int(s))] = pose
+    return out
+
+
+def _nearest_pose(
+    poses: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]], f: int, s: int, reach: int
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """The palm pose of side ``s`` nearest in time to frame ``f`` within ``reach`` frames (the
+    earlier on a tie); None when there is none. (A palm seen edge-on for a frame otherwise fell
+    back to the translation lift in MediaPipe's own axes, 74-82 degrees off, and the spike filter
+    then dropped the frame: DWM 00013's right hand at frame 24.)"""
+    for d in range(1, reach + 1):
+        for g in (f - d, f + d):
+            if (g, s) in poses:
+                return poses[(g, s)]
+    return None
 
 
 def mediapipe_detections(clip: Clip, params: MediaPipeParams | None = None) -> Detections:

@@ -167,7 +167,8 @@ class HandsStage(ClipStage):
     # links tracks across gaps less far; the spike filter also tests the palm's orientation.
     # 3: mediapipe follows found hands through detector misses, forwards and backwards in time.
     # 4: ... carrying a lost hand's ROI by the optical flow for a few frames, on contrast-stretched
-    # crops (dark, sleeved hands of head-mounted video).
+    # crops (dark, sleeved hands of head-mounted video); a palm seen edge-on (no palm PnP) is
+    # posed like the nearest frame instead of in MediaPipe's own axes.
     version = 4
     description = "3D hand joints per frame from the clip's labels, de-duplicated and de-spiked"
     config_class = HandsConfig
