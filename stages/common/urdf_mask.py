@@ -20,7 +20,7 @@ import cv2
 import numpy as np
 import open3d as o3d
 
-from egosim.pipeline.geometry import pixel_grid
+from egosim.pipeline.geometry import transform_points, unproject_depth
 
 
 class UrdfMaskError(ValueError):
@@ -79,14 +79,13 @@ def arm_masks(
         raise UrdfMaskError(f"joint_positions hold NaN or inf at frames {bad[:5].tolist()}")
     bases = np.broadcast_to(np.asarray(world_from_base, dtype=np.float64), (t, 4, 4))
     robot = load_urdf(urdf)
-    fx, fy, cx, cy = np.asarray(intrinsics, dtype=np.float64)
-    uv = pixel_grid(height, width).reshape(-1, 2)  # pixel centres (integer + 0.5)
-    dirs = np.stack([(uv[:, 0] - cx) / fx, (uv[:, 1] - cy) / fy, np.ones(len(uv))], axis=1)
+    # camera rays through the pixel centres, z = 1 (so t_hit is the z-depth)
+    dirs = unproject_depth(np.ones((height, width)), intrinsics).reshape(-1, 3)  # (H*W, 3)
     kernel = np.ones((2 * dilate_px + 1, 2 * dilate_px + 1), np.uint8)
     out = np.zeros((t, height, width), np.uint8)
     for k in range(t):
         verts, faces = arm_triangles(robot, joint_names, q[k])
-        world = verts @ bases[k][:3, :3].T + bases[k][:3, 3]
+        world = transform_points(bases[k], verts)
         scene = o3d.t.geometry.RaycastingScene()
         scene.add_triangles(world.astype(np.float32), faces.astype(np.uint32))
         rays = np.empty((len(dirs), 6), np.float32)
