@@ -189,3 +189,40 @@ def test_hand_mask_masks_the_robot_arm_of_a_robot_clip() -> None:
     no_urdf = HandMaskStage().process({"clips": {**row, "embodiment_mask": None}})
     keypoints_only = media.decode_lossless_video(no_urdf["hand_mask"]).astype(bool)
     assert (keypoints_only & truth).sum() / truth.sum() < 0.6
+
+
+def test_robot_logs_with_bad_joint_states_are_rejected_by_name(tmp_path) -> None:
+    from egosim.pipeline.stage import ClipRejected
+    from egosim.stages.common.gripper import gripper_geometry
+    from egosim.stages.ingest.lerobot_source import LeRobotOptions, read_lerobot_episode
+    from egosim.stages.ingest.robot_source import ArmModel
+    from egosim.stages.ingest.robot_writers import RobotEpisodeArrays, write_lerobot_dataset
+
+    t, fps = 4, 8.0
+    robot = render_robot_clip(WorldConfig(seed=2, height=48, width=80, num_frames=t, fps=fps))
+    urdf = tmp_path / "arm.urdf"
+    urdf.write_text(robot.urdf)
+    geom = gripper_geometry("egosim_arm")
+
+    def episode(q: np.ndarray | None, names: list[str]) -> RobotEpisodeArrays:
+        return RobotEpisodeArrays(
+            frames=robot.frames, fps=fps, intrinsics=robot.intrinsics,
+            world_from_cam=robot.world_from_cam, world_from_ee=robot.world_from_ee[:, None],
+            gripper_state=geom.state_from_opening(robot.opening)[:, None],
+            joint_positions=q, joint_names=names,
+        )  # fmt: skip
+
+    nan = robot.joint_positions.copy()
+    nan[2, 3] = np.nan
+    names = list(robot.joint_names)
+    opts = LeRobotOptions(intrinsics=tuple(robot.intrinsics))
+    arm = ArmModel(str(urdf), world_from_base=tuple(robot.world_from_base.ravel()))
+    cases = [
+        (episode(nan, names), r"ds0_ep000000 .*joint states are NaN or infinite in 1 frame"),
+        (episode(None, []), r"ds1_ep000000 .*a URDF was given but the log has no joint states"),
+        (episode(robot.joint_positions, []), r"ds2_ep000000 .*8 joint-state columns but 0 joint"),
+    ]
+    for i, (ep, message) in enumerate(cases):
+        root = write_lerobot_dataset(tmp_path / f"ds{i}", [ep])
+        with pytest.raises(ClipRejected, match=message):
+            read_lerobot_episode(root, 0, opts, geom, arm)
