@@ -23,10 +23,9 @@ from egosim.model.presets import (
 )
 from egosim.model.text import HashedTextEncoder, PrecomputedTextEncoder
 from egosim.model.vae import build_vae
-from egosim.model.weights import read_weights_folder
+from egosim.model.weights import IGNORED_DIFFUSERS_KEYS, read_weights_folder
 
 IMAGE_TOKENS = 257  # CLIP ViT-H/14 tokens Wan's image branch takes (CLS + 16 x 16 patches)
-_IGNORED_KEYS = ("norm_added_q",)  # keys diffusers itself drops when loading Wan checkpoints
 
 
 def build_transformer(
@@ -78,27 +77,6 @@ def widen_patch_embedding(
     return transformer
 
 
-def _weights_folder(folder: Path) -> Path:
-    sub = folder / "transformer"
-    return sub if sub.is_dir() else folder
-
-
-def read_weight_shapes(folder: str | Path) -> dict[str, tuple[int, ...]]:
-    """Tensor name -> shape of every ``*.safetensors`` file in a diffusers transformer folder."""
-    from safetensors import safe_open
-
-    folder = _weights_folder(Path(folder))
-    files = sorted(folder.glob("*.safetensors"))
-    if not files:
-        raise WeightsMismatchError(f"no .safetensors files in {folder}")
-    shapes: dict[str, tuple[int, ...]] = {}
-    for path in files:
-        with safe_open(path, framework="pt") as f:
-            for key in f.keys():  # noqa: SIM118 (safe_open is not a mapping)
-                shapes[key] = tuple(f.get_slice(key).get_shape())
-    return shapes
-
-
 def check_weight_shapes(
     preset: ModelPreset, shapes: dict[str, tuple[int, ...]], in_channels: int
 ) -> None:
@@ -121,7 +99,9 @@ def check_weight_shapes(
                 f"preset {preset.name!r}: tensor {key!r} has shape {got} in the weights folder, "
                 f"the preset expects {want}"
             )
-    extra = sorted(k for k in shapes if k not in expected and not k.endswith(_IGNORED_KEYS))
+    extra = sorted(
+        k for k in shapes if k not in expected and not k.endswith(IGNORED_DIFFUSERS_KEYS)
+    )
     if extra:
         raise WeightsMismatchError(
             f"preset {preset.name!r}: weights folder has tensors the preset lacks: {extra[:5]}"
