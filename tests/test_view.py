@@ -122,6 +122,10 @@ def test_message_times_are_the_clip_timestamps(run: Path, exported: dict) -> Non
         assert got == want, topic
     stamps = [_ns(m.timestamp) for _, m in exported["messages"]["/camera/image"]]
     assert stamps == want  # header stamps agree with log times
+    for topic in ("/camera/trajectory", "/camera_raw/trajectory"):
+        messages = exported["messages"][topic]
+        assert [t for t, _ in messages] == want, topic
+        assert [_ns(m.timestamp) for _, m in messages] == want, topic  # restamped every frame
     assert [t for t, _ in exported["messages"]["/scene/cloud"]] == want[:1]
 
 

@@ -232,6 +232,8 @@ def write_clip_view(
         used["/state/cloud"] = step("state")
 
     times = [fx.time_ns(s) for s in clip.timestamps]
+    # A trajectory is the whole (T, 4, 4) path at every frame: build it once, restamp per frame.
+    paths = {topic: fx.poses_in_frame(0, frames[child]) for topic, child in trajectories.items()}
     path = Path(path)
     tmp = path.with_name(path.name + ".tmp")
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -250,8 +252,9 @@ def write_clip_view(
                 )
                 for child, poses in frames.items():
                     write("/tf", fx.frame_transform(ns, fx.WORLD_FRAME, child, poses[i]), ns)
-                for topic, child in trajectories.items():
-                    write(topic, fx.poses_in_frame(ns, frames[child]), ns)
+                for topic, path_msg in paths.items():
+                    path_msg.timestamp.CopyFrom(fx.stamp(ns))  # serialised by write, then reused
+                    write(topic, path_msg, ns)
                 for topic, video in videos.items():
                     write(topic, fx.image_message(ns, CAMERA_FRAME, video[i], fmt, quality), ns)
                 for topic, mask in masks.items():
