@@ -95,14 +95,6 @@ def tensor_bytes(tensor: torch.Tensor, dtype: str) -> bytes:
     raise ValueError(f"dtype must be one of {sorted(STORAGE_DTYPES)}, got {dtype!r}")
 
 
-def _device(name: str) -> str:
-    if name != "auto":
-        return name
-    import torch
-
-    return "cuda" if torch.cuda.is_available() else "cpu"
-
-
 class EncodeStage(ClipStage):
     """Precompute VAE latents and text / image features of packed clips."""
 
@@ -123,6 +115,7 @@ class EncodeStage(ClipStage):
     def encoders(self) -> FrozenEncoders:
         """The preset's frozen encoders (loaded on first use)."""
         if self._encoders is None:
+            from egosim.model.distributed import resolve_device
             from egosim.model.encoders import EncoderFolders, load_encoders
 
             cfg = self.config
@@ -134,7 +127,7 @@ class EncodeStage(ClipStage):
                 image_processor=cfg.image_processor_dir,
             )
             self._encoders = load_encoders(
-                cfg.preset, folders, _device(cfg.device), cfg.encoder_dtype
+                cfg.preset, folders, resolve_device(cfg.device), cfg.encoder_dtype
             )
         return self._encoders
 
