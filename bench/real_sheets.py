@@ -32,12 +32,18 @@ STEPS = {
 }
 
 
-def clip_sheet(run: Path, cid: str) -> np.ndarray | None:
+def read_roles(run: Path) -> dict[str, dict[str, dict]]:
+    """Rows of each role's step of ``run`` by clip id, every shard read once."""
+    return {role: read_step(run, step) for role, step in STEPS.items()}
+
+
+def clip_sheet(by_role: dict[str, dict[str, dict]], cid: str) -> np.ndarray | None:
     """The contact sheet ``(H', W', 3)`` RGB of one clip, or None when a step is missing.
 
-    The layout is :func:`egosim.pipeline.report.sheets.clip_sheet` (the dataset report's).
+    ``by_role`` is :func:`read_roles` of the run. The layout is
+    :func:`egosim.pipeline.report.sheets.clip_sheet` (the dataset report's).
     """
-    rows = {role: read_step(run, step).get(cid) for role, step in STEPS.items()}
+    rows = {role: by_role[role].get(cid) for role in STEPS}
     if any(row is None for row in rows.values()):
         return None
     return sheets.clip_sheet(sheets.decode_views(cid, rows))
@@ -53,8 +59,9 @@ def main() -> int:
     out.mkdir(parents=True, exist_ok=True)
     written = 0
     for run in sorted(p for p in args.runs.iterdir() if (p / "ingest").is_dir()):
-        for cid in read_step(run, "ingest", ["clip_id"]):
-            sheet = clip_sheet(run, cid)
+        by_role = read_roles(run)
+        for cid in by_role["clips"]:
+            sheet = clip_sheet(by_role, cid)
             if sheet is None:
                 print(f"{run.name}/{cid}: a step is missing (rejected?), no sheet")
                 continue
