@@ -513,10 +513,17 @@ def lift_to_camera(
         raise ValueError(f"lift method must be 'palm_pnp' or 'translation', got {method!r}")
     if points is None:  # translation asked for, or the PnP failed
         points = place_by_translation(uv, world_landmarks, intrinsics, weights)
+    return scale_to_depth(points, observed_depth)
+
+
+def scale_to_depth(points: np.ndarray, observed_depth: float | None) -> np.ndarray:
+    """``points (N, 3)`` camera metres scaled about the camera centre (every projection kept) so
+    that their median depth is ``observed_depth``; unchanged when it is None, not finite or not
+    positive, or the points' median depth is not positive."""
     if observed_depth is not None and np.isfinite(observed_depth) and observed_depth > 0:
         median_z = float(np.median(points[:, 2]))
         if median_z > 0:
-            points = points * (observed_depth / median_z)
+            return points * (observed_depth / median_z)
     return points
 
 
@@ -643,13 +650,14 @@ def hands_from_raw(
     poses = _palm_poses(lm, intrinsics, params) if params.lift == "palm_pnp" else {}
     for f, s in zip(*np.nonzero(lm.present), strict=True):
         observed = depth_under(depth[f], lm.uv[f, s]) if depth is not None else None
-        near = _nearest_pose(poses, f, s, params.max_gap)
-        if (f, s) not in poses and near is not None:  # palm PnP failed here: pose a neighbour's
+        if (f, s) in poses:  # the palm-PnP lift, already computed by _palm_poses
+            points_cam = scale_to_depth(poses[(f, s)][0], observed)
+        elif (near := _nearest_pose(poses, f, s, params.max_gap)) is not None:
+            # palm PnP failed here: pose it like the neighbour
             points_cam = lift_with_rotation(
                 lm.uv[f, s], lm.world[f, s], intrinsics, near[1], float(np.median(near[0][:, 2]))
             )
-            if observed is not None and np.isfinite(observed) and observed > 0:
-                points_cam = points_cam * (observed / float(np.median(points_cam[:, 2])))
+            points_cam = scale_to_depth(points_cam, observed)
         else:
             points_cam = lift_to_camera(
                 lm.uv[f, s],
