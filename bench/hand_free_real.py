@@ -88,16 +88,15 @@ def mediapipe_keypoints(frames: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """
     from egosim.stages.hands.mediapipe_backend import (
         MediaPipeParams,
-        assign_sides,
-        bridge_and_smooth,
         detect_landmarks,
         drop_overlapping,
+        side_landmarks,
     )
 
     # Tracking through misses needs a TFLite runtime that may not be installed: off without it.
     params = MediaPipeParams(track_misses=importlib.util.find_spec("ai_edge_litert") is not None)
     raw = drop_overlapping(detect_landmarks(frames, params), params.duplicate_distance)
-    sides = bridge_and_smooth(raw, assign_sides(raw, frames.shape[2], params), params)
+    sides = side_landmarks(raw, frames.shape[2], params)
     return sides.uv, sides.present
 
 
