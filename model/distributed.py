@@ -36,7 +36,7 @@ import torch
 import torch.distributed as dist
 from torch import nn
 
-from egosim.model.errors import CheckpointMismatchError, ModelConfigError
+from egosim.model.errors import CheckpointMismatchError, ModelConfigError, WeightsMismatchError
 
 # DCP says so on every single-process save/load; one process is the intended default here.
 _SINGLE_PROCESS_WARNING = r"torch\.distributed is disabled, unavailable or uninitialized"
@@ -257,8 +257,9 @@ def load_tensors(
     Each rank reads only the slices its shards cover, whatever the number of ranks that wrote
     the checkpoint. Raises :class:`CheckpointMismatchError` naming a tensor the checkpoint lacks.
     """
-    from safetensors import safe_open
     from torch.distributed.checkpoint import HuggingFaceStorageReader, load
+
+    from egosim.model.weights import read_safetensors_header
 
     flat = {
         f"{group}.{name}": tensor.detach()
@@ -267,9 +268,11 @@ def load_tensors(
     }
     stored: dict[str, list[int]] = {}
     for path in sorted(folder.glob("*.safetensors")):
-        with safe_open(str(path), framework="pt") as f:
-            for key in f.keys():  # noqa: SIM118 (safe_open is not a mapping)
-                stored[key] = list(f.get_slice(key).get_shape())
+        try:  # headers only; also refuses a truncated file before DCP reads it
+            header = read_safetensors_header(path)
+        except WeightsMismatchError as exc:
+            raise CheckpointMismatchError(str(exc)) from exc
+        stored.update({key: list(shape) for key, (shape, _) in header.items()})
     for key, tensor in flat.items():
         if key not in stored:
             raise CheckpointMismatchError(f"{folder}: checkpoint has no tensor {key!r}")

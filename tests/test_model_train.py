@@ -215,3 +215,17 @@ def test_configs_saved_with_flat_optimiser_names_still_load() -> None:
     old = config_from_dict(flat)
     assert old.optim == OptimConfig(lr=3e-4, warmup_steps=5, betas=(0.8, 0.95), grad_clip=0.5)
     assert config_from_dict(saved) == CFG  # the current layout round-trips
+
+
+def test_truncated_checkpoint_file_is_refused_before_loading(tmp_path: Path) -> None:
+    from egosim.model.distributed import DistContext, load_tensors, save_tensors
+
+    one = DistContext(0, 1, 0, torch.device("cpu"))
+    save_tensors(tmp_path, {"model": {"w": torch.arange(64.0)}}, one)
+    target = {"model": {"w": torch.zeros(64)}}
+    load_tensors(tmp_path, target, one)
+    assert torch.equal(target["model"]["w"], torch.arange(64.0))
+    file = tmp_path / "model.safetensors"
+    file.write_bytes(file.read_bytes()[:-8])  # a copy cut short
+    with pytest.raises(CheckpointMismatchError, match="truncated"):
+        load_tensors(tmp_path, {"model": {"w": torch.zeros(64)}}, one)
