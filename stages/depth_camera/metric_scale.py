@@ -429,7 +429,8 @@ def estimate_metric_scale(
     ``world_from_cam (T, 4, 4)`` in reconstruction units; ``depth0 (H, W)`` frame-0 z-depth in
     the same units, 0 = unknown (None: no scale); ``confidence0 (H, W)`` in [0, 1] or None.
     Raises :class:`~egosim.stages.common.hand_landmarks.MediaPipeUnavailableError` without
-    MediaPipe.
+    MediaPipe, and :class:`~egosim.stages.common.roi_landmarks.LandmarkRuntimeUnavailableError`
+    without ai-edge-litert when ``params.detector.track_misses`` (the default) and a hand is found.
     """
     params = params or MetricScaleParams()
     if depth0 is None:  # no detection needed
