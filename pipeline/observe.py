@@ -28,6 +28,7 @@ from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any, TextIO
 
+from egosim.pipeline import storage
 from egosim.pipeline.execute import (
     CLIP_DONE,
     CLIP_REJECTED,
@@ -36,6 +37,7 @@ from egosim.pipeline.execute import (
     ShardTask,
     primary_role,
 )
+from egosim.pipeline.storage import Location
 
 log = logging.getLogger(__name__)
 
@@ -212,12 +214,14 @@ class StepProgress:
         return max(0.0, (total - self.done) / rate)
 
 
-def _num_rows(path: str) -> int | None:
-    """Rows of the shard at ``path`` from its footer, None when it cannot be read."""
+def _num_rows(loc: Location) -> int | None:
+    """Rows of the shard at ``loc`` (a path or an fsspec URL) from its footer, None when it
+    cannot be read."""
     import pyarrow.parquet as pq
 
     try:
-        return int(pq.read_metadata(path).num_rows)
+        with storage.open_read(loc) as f:
+            return int(pq.ParquetFile(f).metadata.num_rows)
     except (OSError, ValueError):
         return None
 
@@ -244,7 +248,7 @@ class ConsoleObserver(RunObserver):
         """Set up one progress line per step."""
         by_step: dict[str, list[ShardTask]] = {}
         made = {str(t.output) for t in tasks}
-        given: list[tuple[str, int, str]] = []  # (step, shard, path) reading a workflow input
+        given: list[tuple[str, int, Location]] = []  # (step, shard, input) a workflow input
         for task in tasks:
             by_step.setdefault(task.step, []).append(task)
             role = primary_role(task)
@@ -252,10 +256,10 @@ class ConsoleObserver(RunObserver):
                 path = str(task.inputs[role])
                 self.readers.setdefault(path, []).append((task.step, task.shard_index))
                 if path not in made:
-                    given.append((task.step, task.shard_index, path))
+                    given.append((task.step, task.shard_index, task.inputs[role]))
         self.steps = {step: StepProgress(step, ts) for step, ts in by_step.items()}
-        for step, shard, path in given:  # shards given to the run: their sizes are known now
-            self.steps[step].given[shard] = _num_rows(path)
+        for step, shard, loc in given:  # shards given to the run: their sizes are known now
+            self.steps[step].given[shard] = _num_rows(loc)
         self.tasks_total = len(tasks)
         if self.live:
             self._start_live(name)

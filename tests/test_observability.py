@@ -243,3 +243,19 @@ def test_live_display_draws_a_bar_per_step(tmp_path: Path) -> None:
     assert "Dask dashboard: http://127.0.0.1:8787/status" in text
     assert re.search(r"ingest\s.*2/3 clips", text) and "captions" in text, text
     assert ConsoleObserver(stream=io.StringIO()).live is False  # not a terminal: plain lines
+
+
+def test_progress_knows_the_size_of_an_input_shard_at_a_url() -> None:
+    # A workflow input given as an fsspec URL is sized through pipeline.storage, as it is read.
+    from egosim.pipeline.clip_io import write_clips
+    from tests.conftest import make_clip
+
+    src = "memory://egosim-observe-test/clips/shard-00000.parquet"
+    write_clips(src, [make_clip("c0"), make_clip("c1", seed=1)])
+    out = Path("unused") / "captions" / "shard-00000.parquet"
+    task = ShardTask(
+        "captions", "caption", {}, 0, 1, output=out, rejects=out, inputs={"clips": src}
+    )
+    observer = ConsoleObserver(stream=io.StringIO(), live=False)
+    observer.run_started("wf", [task])
+    assert observer.steps["captions"].total == 2
