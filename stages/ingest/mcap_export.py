@@ -36,6 +36,7 @@ from egosim.pipeline.export.foxglove import (
     point_cloud_message,
     poses_in_frame,
     skeleton_message,
+    stamp,
     time_ns,
 )
 from egosim.pipeline.geometry import transform_points, unproject_depth
@@ -82,6 +83,8 @@ def write_clip_mcap(
     times_ns = [start_time_ns + time_ns(t) for t in clip.timestamps]
     has_pose = clip.world_from_cam is not None
     has_hands = clip.hand_joints is not None and clip.hand_valid is not None
+    # The whole (T, 4, 4) path at every frame: built once, restamped per frame (write serialises).
+    path_msg = poses_in_frame(times_ns[0], clip.world_from_cam) if has_pose else None
     with open(tmp, "wb") as f, Writer(f) as writer:
         for i, ns in enumerate(times_ns):
 
@@ -107,8 +110,9 @@ def write_clip_mcap(
                         ns, CAMERA_FRAME, clip.static_frames[i], image_format, jpeg_quality
                     ),
                 )
-            if has_pose:
-                write("/camera/trajectory", poses_in_frame(ns, clip.world_from_cam))
+            if path_msg is not None:
+                path_msg.timestamp.CopyFrom(stamp(ns))
+                write("/camera/trajectory", path_msg)
             if has_pose and clip.depth is not None and i == 0:
                 points, colours = _depth_points(clip, max_cloud_points)
                 write("/scene/points", point_cloud_message(ns, points, colours))
