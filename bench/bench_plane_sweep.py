@@ -20,7 +20,7 @@ import cv2
 import numpy as np
 
 from egosim.pipeline.geometry import intrinsics_matrix, invert_se3
-from egosim.stages.depth_camera.plane_sweep import PlaneSweepParams, plane_sweep
+from egosim.stages.common.plane_sweep import PlaneSweepParams, plane_sweep
 from egosim.world import WorldConfig, render_clip
 
 HEIGHT, WIDTH = 240, 416  # working resolution of the sweep (the stage's default at 480x832)

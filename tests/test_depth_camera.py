@@ -25,8 +25,8 @@ from egosim.pipeline.geometry import (
 from egosim.pipeline.stage import ClipRejected, ConfigError, get_stage
 from egosim.schemas import get_schema
 from egosim.schemas.depth_camera import DEPTH_CAMERA
+from egosim.stages.common.plane_sweep import PlaneSweepParams, plane_sweep
 from egosim.stages.depth_camera import da3
-from egosim.stages.depth_camera.plane_sweep import PlaneSweepParams, plane_sweep
 from egosim.stages.depth_camera.sfm import SfmOptions, fill_unregistered, run_sfm
 from egosim.stages.depth_camera.stage import (
     DepthCameraConfig,

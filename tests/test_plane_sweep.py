@@ -13,8 +13,8 @@ import pytest
 import torch
 
 from egosim.pipeline.geometry import invert_se3, make_se3, scale_intrinsics
-from egosim.stages.depth_camera import plane_sweep as ps
-from egosim.stages.depth_camera.plane_sweep import (
+from egosim.stages.common import plane_sweep as ps
+from egosim.stages.common.plane_sweep import (
     PlaneSweepError,
     PlaneSweepParams,
     PlaneSweepResult,

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from egosim.pipeline.geometry import invert_se3
-from egosim.stages.depth_camera.plane_sweep import (
+from egosim.stages.common.plane_sweep import (
     PlaneSweepParams,
     first_frame_depth,
     select_sources,

@@ -59,13 +59,13 @@ from egosim.schemas.depth_camera import (
     POSED_BY_MOTION_MODEL,
     POSED_BY_SOURCE,
 )
-from egosim.stages.depth_camera import da3, given
-from egosim.stages.depth_camera.metric_scale import estimate_metric_scale
-from egosim.stages.depth_camera.plane_sweep import (
+from egosim.stages.common.plane_sweep import (
     PlaneSweepParams,
     first_frame_depth,
     select_sources,
 )
+from egosim.stages.depth_camera import da3, given
+from egosim.stages.depth_camera.metric_scale import estimate_metric_scale
 from egosim.stages.depth_camera.rotation_model import (
     RotationEstimate,
     RotationParams,
