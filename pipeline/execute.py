@@ -5,7 +5,9 @@ skips a task whose output exists with the same fingerprint, records rejected cli
 rejects shard next to the output, and writes both atomically (rejects first, output last, so
 an existing output always has its rejects). A clip stage's input roles are read with only the
 columns it declares (``ClipStage.columns``, plus ``clip_id`` for the join); a stage that reads
-an undeclared column fails the task (:class:`UndeclaredColumnError`), it is not a reject.
+an undeclared column fails the task (:class:`UndeclaredColumnError`), it is not a reject. Each
+role's row reaches ``process`` as the typed record of its schema
+(:mod:`egosim.pipeline.records`), which also answers the plain mapping access.
 
 It logs through ``logging.getLogger(__name__)`` (the run log, ``RUN/logs/run.log``; see
 :mod:`egosim.pipeline.observe`): a line per task started and finished and one per clip, each
@@ -25,11 +27,11 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from egosim.pipeline import storage
+from egosim.pipeline.records import Record, record_class
 from egosim.pipeline.shards import CorruptShardError, ShardReader, ShardWriter, read_shard_meta
 from egosim.pipeline.stage import (
     ClipRejected,
     ClipStage,
-    DeclaredRow,
     SourceStage,
     Stage,
     UndeclaredColumnError,
@@ -264,7 +266,7 @@ def _run_clips(
         for row in readers[primary].iter_rows(columns[primary]):
             clip_id = row["clip_id"]
             start = time.perf_counter()
-            joined: dict[str, Any] = {primary: _declared(stage, primary, row, columns[primary])}
+            joined: dict[str, Any] = {primary: _record(stage, primary, row)}
             absent = [role for role in others if clip_id not in indexes[role]]
             if absent:  # rejected upstream in another branch: nothing to join with
                 log.info("%s clip=%s not in input(s) %s", task_label(task), clip_id, absent)
@@ -273,7 +275,7 @@ def _run_clips(
             for role in others:
                 group = readers[role].read_row_group(indexes[role][clip_id], columns[role])
                 found = next(r for r in group if r["clip_id"] == clip_id)
-                joined[role] = _declared(stage, role, found, columns[role])
+                joined[role] = _record(stage, role, found)
             outcome = CLIP_DONE
             try:
                 writer.write_row(stage.process(joined))
@@ -289,10 +291,8 @@ def _run_clips(
             reader.__exit__()
 
 
-def _declared(
-    stage: ClipStage, role: str, row: dict[str, Any], columns: list[str] | None
-) -> Mapping[str, Any]:
-    """``row`` as ``process`` gets it: a :class:`DeclaredRow` when only ``columns`` were read."""
-    if columns is None:
-        return row
-    return DeclaredRow(row, stage.name, role, stage.input_schemas()[role].column_names)
+def _record(stage: ClipStage, role: str, row: dict[str, Any]) -> Record:
+    """``row`` as ``process`` gets it: the typed record of the role's schema
+    (:func:`egosim.pipeline.records.record_class`), refusing the columns that were not read."""
+    schema = stage.input_schemas()[role]
+    return record_class(schema)(row, stage.name, role, schema.column_names)

@@ -3,13 +3,38 @@
 A :class:`Clip` holds one clip with every array decoded (frames as ``uint8`` RGB, depth in metres,
 poses as 4x4 matrices). :mod:`egosim.pipeline.clip_io` turns clips into rows of the ``clips``
 shard schema and back. Shapes use ``T`` frames, ``H`` x ``W`` pixels and ``N`` objects.
+
+The typed input records (:class:`Record` and one subclass per schema, :func:`record_class`) are
+what a clip stage's ``process`` is handed per input role: the row mapping itself plus accessors
+that parse a value once, on first use, and decode a media column only when asked for
+(docs/design.md, "Typed records").
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, fields
+from typing import Any, ClassVar, Self
 
 import numpy as np
+
+from egosim.pipeline import media
+from egosim.pipeline.export.pack_rows import decode_pack_row
+from egosim.pipeline.stage import ClipRejected, DeclaredRow
+from egosim.schemas import (
+    CAPTIONS,
+    CLIPS,
+    DEPTH_CAMERA,
+    HAND_MASK,
+    HANDS,
+    INPAINT,
+    KEYPOINTS,
+    PACK,
+    SIMULATION,
+    ShardSchema,
+)
+from egosim.schemas.poses import POSES
+from egosim.schemas.scene import SCENE_RENDER
 
 NUM_HAND_JOINTS = 21
 LEFT, RIGHT = 0, 1
@@ -128,3 +153,321 @@ class Clip:
 
 
 CLIP_FIELDS = tuple(f.name for f in fields(Clip))
+
+
+# --- Typed input records: what ``ClipStage.process`` is handed (docs/design.md, "Typed records").
+
+
+class Record(DeclaredRow):
+    """One input row as a stage's ``process`` gets it: the raw columns plus typed accessors.
+
+    A record is still the row mapping (``row["fps"]``, ``row.get(...)``, ``in``), with the
+    :class:`~egosim.pipeline.stage.DeclaredRow` rule that reading a column of the schema the
+    stage did not declare raises :class:`~egosim.pipeline.stage.UndeclaredColumnError`; stages
+    not yet migrated read it exactly as before. The typed accessors of the subclasses (one per
+    schema, :func:`record_class`) parse a value once, on first use: a media column is decoded
+    only when its accessor is called, so a stage that declares only ``video`` never reads or
+    decodes depth. Build one from any mapping with :meth:`of` (tests call ``process`` with plain
+    dicts; the executor passes records, which :meth:`of` returns as they are).
+    """
+
+    schema: ClassVar[ShardSchema | None] = None  # the schema whose rows this class types
+
+    def __init__(
+        self,
+        values: Mapping[str, Any],
+        stage: str = "",
+        role: str = "",
+        schema_columns: tuple[str, ...] = (),
+    ) -> None:
+        super().__init__(values, stage, role, schema_columns)
+        self._parsed: dict[str, Any] = {}  # accessor name -> parsed value (parse once)
+
+    @classmethod
+    def of(cls, row: Mapping[str, Any]) -> Self:
+        """``row`` typed as this record: itself when it already is one, else wrapped.
+
+        A wrapped plain mapping refuses no column (it has no declaration): a missing column
+        reads as it would from the mapping.
+        """
+        if isinstance(row, cls):
+            return row
+        return cls(row)
+
+    def _once(self, key: str, parse: Callable[[], Any]) -> Any:
+        """``parse()`` the first time ``key`` is asked for, the stored value after that."""
+        if key not in self._parsed:
+            self._parsed[key] = parse()
+        return self._parsed[key]
+
+    @property
+    def clip_id(self) -> str:
+        """The clip's id (the join key; always read)."""
+        return str(self["clip_id"])
+
+    def what(self, column: str) -> str:
+        """``clip 'ID' column``: how error messages name one column of this clip."""
+        return f"clip {self.clip_id!r} {column}"
+
+    def array(self, column: str, dtype: Any, shape: tuple[int, ...]) -> np.ndarray | None:
+        """A list column as an array of ``shape`` (None when null); refuses another size."""
+
+        def parse() -> np.ndarray | None:
+            value = self[column]
+            if value is None:
+                return None
+            arr = np.asarray(value, dtype=dtype)
+            if arr.size != int(np.prod(shape)):
+                raise ClipRejected(
+                    f"{self.what(column)} has {arr.size} values, expected {shape} = "
+                    f"{int(np.prod(shape))}"
+                )
+            return arr.reshape(shape)
+
+        return self._once(f"array:{column}", parse)
+
+
+class FramedRecord(Record):
+    """A row with ``num_frames``, and ``height`` / ``width`` / ``fps`` where its schema has them."""
+
+    @property
+    def num_frames(self) -> int:
+        """Frames ``T``."""
+        return int(self["num_frames"])
+
+    @property
+    def height(self) -> int:
+        """Frame height ``H`` in pixels."""
+        return int(self["height"])
+
+    @property
+    def width(self) -> int:
+        """Frame width ``W`` in pixels."""
+        return int(self["width"])
+
+    @property
+    def size(self) -> tuple[int, int, int]:
+        """``(T, H, W)``: frames, height and width, parsed once for every check."""
+        return self.num_frames, self.height, self.width
+
+    @property
+    def fps(self) -> float:
+        """Frames per second."""
+        return float(self["fps"])
+
+    def rgb_video(self, column: str) -> np.ndarray:
+        """Decode an H.264 column to ``(T, H, W, 3)`` uint8, checked against :attr:`size`.
+
+        Raises :class:`ClipRejected` (``inputs disagree``) when it decodes to another shape.
+        """
+
+        def parse() -> np.ndarray:
+            t, h, w = self.size
+            what = f"clip {self.clip_id!r} {column}"
+            frames = media.decode_rgb_video(self[column], h, w, what)
+            if frames.shape != (t, h, w, 3):
+                raise ClipRejected(
+                    f"inputs disagree: {what} decodes to {frames.shape}, expected {(t, h, w, 3)}"
+                )
+            return frames
+
+        return self._once(f"rgb:{column}", parse)
+
+    def mask_video(self, column: str, what: str | None = None) -> np.ndarray | None:
+        """Decode a lossless mask column to ``(T, H, W)`` uint8 {0, 1} (None when null).
+
+        Checked against :attr:`size` (:class:`ClipRejected`, ``inputs disagree``); ``what``
+        names the column in that message (default ``clip 'ID' column``).
+        """
+
+        def parse() -> np.ndarray | None:
+            data = self[column]
+            if data is None:
+                return None
+            t, h, w = self.size
+            name = what or f"clip {self.clip_id!r} {column}"
+            mask = media.decode_lossless_video(data, name)
+            if mask.shape != (t, h, w):
+                raise ClipRejected(
+                    f"inputs disagree: {name} decodes to {mask.shape}, expected {(t, h, w)}"
+                )
+            return (mask > 0).astype(np.uint8)
+
+        return self._once(f"mask:{column}", parse)
+
+
+class CameraRecord(FramedRecord):
+    """A framed row with a camera: ``intrinsics`` and a per-frame ``world_from_cam``."""
+
+    @property
+    def intrinsics(self) -> np.ndarray:
+        """``(4,)`` float64 fx, fy, cx, cy in pixels."""
+        return self._once("intrinsics", lambda: np.asarray(self["intrinsics"], dtype=np.float64))
+
+    @property
+    def world_from_cam(self) -> np.ndarray | None:
+        """``(T, 4, 4)`` float64 camera-to-world poses, None when the row has none."""
+        return self.array("world_from_cam", np.float64, (self.num_frames, 4, 4))
+
+
+def require_camera_poses(world_from_cam: np.ndarray | None, clip_id: str) -> np.ndarray:
+    """``world_from_cam`` when there is one, else :class:`ClipRejected` ("no camera poses").
+
+    The one place the reject for a clip without a trajectory is worded.
+    """
+    if world_from_cam is None:
+        raise ClipRejected(f"clip {clip_id!r}: no camera poses (world_from_cam is null)")
+    return world_from_cam
+
+
+class ClipsRecord(CameraRecord):
+    """A ``clips`` row (ingest's output); :func:`egosim.pipeline.clip_io.clip_from_row` decodes
+    a whole one into a :class:`Clip`."""
+
+    schema = CLIPS
+
+    @property
+    def text(self) -> str | None:
+        """The source's description of the interaction (None when it has none)."""
+        value = self["text"]
+        return None if value is None else str(value)
+
+    @property
+    def frames(self) -> np.ndarray:
+        """``(T, H, W, 3)`` uint8 RGB: the ``video`` column, decoded once."""
+        return self.rgb_video("video")
+
+
+class HandsRecord(FramedRecord):
+    """A ``hands`` row: cleaned 3D hand joints per frame and hand slot (0 left, 1 right)."""
+
+    schema = HANDS
+
+    @property
+    def hand_joints(self) -> np.ndarray:
+        """``(T, 2, 21, 3)`` float64 world metres."""
+        return self.array("hand_joints", np.float64, (self.num_frames, 2, NUM_HAND_JOINTS, 3))
+
+    @property
+    def hand_valid(self) -> np.ndarray:
+        """``(T, 2)`` bool: the hand is present in the frame."""
+        return self.array("hand_valid", bool, (self.num_frames, 2))
+
+    @property
+    def hand_confidence(self) -> np.ndarray:
+        """``(T, 2, 21)`` float64 per-joint confidence in [0, 1]."""
+        return self.array("hand_confidence", np.float64, (self.num_frames, 2, NUM_HAND_JOINTS))
+
+
+class KeypointsRecord(FramedRecord):
+    """A ``keypoints`` row: projected hand joints and the skeleton video."""
+
+    schema = KEYPOINTS
+
+    @property
+    def keypoint_visible(self) -> np.ndarray:
+        """``(T, K)`` bool: the keypoint is in view (K = 42 joints of two hands)."""
+        return self._once("keypoint_visible", lambda: np.asarray(self["keypoint_visible"], bool))
+
+
+class SceneRenderRecord(FramedRecord):
+    """A ``scene_render`` row: the scene video along the trajectory and its visibility."""
+
+    schema = SCENE_RENDER
+
+    @property
+    def visible_fraction(self) -> np.ndarray:
+        """``(T,)`` float64: fraction of each frame's pixels a scene point landed on."""
+        return self.array("visible_fraction", np.float64, (self.num_frames,))
+
+
+class DepthCameraRecord(CameraRecord):
+    """A ``depth_camera`` row: estimated intrinsics, poses and frame-0 depth."""
+
+    schema = DEPTH_CAMERA
+
+    @property
+    def registered(self) -> np.ndarray:
+        """``(T,)`` bool: the backend estimated this frame's pose."""
+        return self._once("registered", lambda: np.asarray(self["registered"], dtype=bool))
+
+
+class PosesRecord(CameraRecord):
+    """A ``poses`` row: a cleaned trajectory (from ``pose_clean``)."""
+
+    schema = POSES
+
+
+class CaptionsRecord(Record):
+    """A ``captions`` row: the text prompt of a clip."""
+
+    schema = CAPTIONS
+
+    @property
+    def text(self) -> str:
+        """The prompt."""
+        return str(self["text"])
+
+
+class InpaintRecord(Record):
+    """An ``inpaint`` row: the hand-free first frame."""
+
+    schema = INPAINT
+
+
+class HandMaskRecord(FramedRecord):
+    """A ``hand_mask`` row: the hand (and arm) mask video."""
+
+    schema = HAND_MASK
+
+
+class PackRecord(CameraRecord):
+    """A ``pack`` row: one training sample at its packed size."""
+
+    schema = PACK
+
+    @property
+    def videos(self) -> dict[str, np.ndarray]:
+        """Every condition decoded and checked (``pipeline.export.pack_rows.decode_pack_row``)."""
+        return self._once("videos", lambda: decode_pack_row(self))
+
+    @property
+    def depth0(self) -> np.ndarray | None:
+        """``(H, W)`` float32 metres of frame 0 (0 = unknown), None when the pack has none."""
+
+        def parse() -> np.ndarray | None:
+            if self["depth0"] is None:
+                return None
+            return media.decode_depth_video(self["depth0"], self["depth_unit_m"])[0]
+
+        return self._once("depth0", parse)
+
+
+class SimulationRecord(FramedRecord):
+    """A ``simulation`` row: one generated clip."""
+
+    schema = SIMULATION
+
+
+_RECORDS: dict[str, type[Record]] = {
+    cls.schema.name: cls
+    for cls in (
+        ClipsRecord,
+        HandsRecord,
+        KeypointsRecord,
+        SceneRenderRecord,
+        DepthCameraRecord,
+        PosesRecord,
+        CaptionsRecord,
+        InpaintRecord,
+        HandMaskRecord,
+        PackRecord,
+        SimulationRecord,
+    )
+    if cls.schema is not None
+}
+
+
+def record_class(schema: ShardSchema) -> type[Record]:
+    """The record class of ``schema``'s rows (:class:`Record` for a schema without its own)."""
+    return _RECORDS.get(schema.name, Record)

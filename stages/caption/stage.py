@@ -6,6 +6,7 @@ import dataclasses
 from collections.abc import Mapping
 from typing import Any, ClassVar
 
+from egosim.pipeline.records import ClipsRecord
 from egosim.pipeline.stage import ClipStage, ConfigError, StageConfig
 from egosim.schemas import CLIPS, ShardSchema
 from egosim.schemas.captions import CAPTIONS
@@ -39,14 +40,14 @@ class CaptionStage(ClipStage):
 
     def process(self, rows: Mapping[str, Mapping[str, Any]]) -> dict[str, Any]:
         """The clip's own text (when wanted and present) or the template, with the prefix."""
-        clip = rows["clips"]
-        own = (clip.get("text") or "").strip()
+        clip = ClipsRecord.of(rows["clips"])
+        own = (clip.text or "").strip()
         use_source = self.config.prefer_source and bool(own)
         text = own if use_source else self.config.template
         if self.config.prefix:
             text = f"{self.config.prefix.strip()} {text}"
         return {
-            "clip_id": clip["clip_id"],
+            "clip_id": clip.clip_id,
             "text": text,
             "origin": "source" if use_source else "template",
         }

@@ -22,6 +22,7 @@ import dataclasses
 from collections.abc import Mapping
 from typing import TYPE_CHECKING, Any, ClassVar
 
+from egosim.pipeline.records import PackRecord
 from egosim.pipeline.stage import ClipRejected, ClipStage, ConfigError, StageConfig
 from egosim.schemas import ShardSchema
 from egosim.schemas.latents import LATENTS, STORAGE_DTYPES
@@ -136,9 +137,9 @@ class EncodeStage(ClipStage):
         from egosim.model.presets import get_preset
 
         cfg = self.config
-        row = rows["pack"]
-        cid = row["clip_id"]
-        t, h, w = int(row["num_frames"]), int(row["height"]), int(row["width"])
+        row = PackRecord.of(rows["pack"])
+        cid = row.clip_id
+        t, h, w = row.size
         preset = get_preset(cfg.preset)
         m = preset.pixel_multiple
         if h % m or w % m:
@@ -157,7 +158,7 @@ class EncodeStage(ClipStage):
             "num_frames": t,
             "height": h,
             "width": w,
-            "fps": float(row["fps"]),
+            "fps": row.fps,
             "preset": preset.name,
             "latent_frames": int(tl),
             "latent_height": int(lh),

@@ -27,11 +27,10 @@ from egosim.model.metrics import lpips_distance, psnr, ssim
 from egosim.pipeline import media
 from egosim.pipeline.clip_io import row_from_clip
 from egosim.pipeline.geometry import camera_error, invert_se3
-from egosim.pipeline.records import Clip
+from egosim.pipeline.records import Clip, PackRecord, SimulationRecord
 from egosim.pipeline.stage import ClipRejected, ClipStage, ConfigError, StageConfig, get_stage
 from egosim.schemas import ShardSchema
 from egosim.schemas.pack import EVALUATION, PACK, SIMULATION
-from egosim.stages.common.packed import decode_pack_row
 
 CameraBackend = Literal["none", "given", "sfm", "da3"]
 
@@ -104,10 +103,10 @@ class EvaluateStage(ClipStage):
 
     def process(self, rows: Mapping[str, Mapping[str, Any]]) -> dict[str, Any]:
         """Evaluate one generated clip."""
-        pack, sim = rows["pack"], rows["simulation"]
-        cid = pack["clip_id"]
-        t, h, w = int(pack["num_frames"]), int(pack["height"]), int(pack["width"])
-        videos = decode_pack_row(pack)
+        pack, sim = PackRecord.of(rows["pack"]), SimulationRecord.of(rows["simulation"])
+        cid = pack.clip_id
+        t, h, w = pack.size
+        videos = pack.videos
         gen = media.decode_rgb_video(sim["video"], h, w, f"clip {cid!r} generated video")
         if gen.shape != (t, h, w, 3):
             raise ClipRejected(
@@ -143,27 +142,25 @@ class EvaluateStage(ClipStage):
         row["note"] = "; ".join(notes)
         return row
 
-    def _cameras(self, pack: Mapping[str, Any], gen: np.ndarray, out: dict[str, Any]) -> list[str]:
+    def _cameras(self, pack: PackRecord, gen: np.ndarray, out: dict[str, Any]) -> list[str]:
         """Fill depth_err / cam_err in ``out``; returns notes on what could not be computed."""
         backend = self.config.camera_backend
-        if pack["world_from_cam"] is None:
+        ref_poses = pack.world_from_cam
+        if ref_poses is None:
             return ["no reference cameras in the pack: Depth-ERR and Cam-ERR not computed"]
         t, h, w = gen.shape[:3]
-        ref_poses = np.asarray(pack["world_from_cam"], dtype=np.float64).reshape(t, 4, 4)
-        intrinsics = np.asarray(pack["intrinsics"], dtype=np.float64)
-        ref_depth = None
-        if pack["depth0"] is not None:
-            ref_depth = media.decode_depth_video(pack["depth0"], pack["depth_unit_m"])[0]
+        intrinsics = pack.intrinsics
+        ref_depth = pack.depth0
         depth = None
         if ref_depth is not None:  # the given backend reads the source depth of frame 0
             depth = np.zeros((t, h, w), dtype=np.float32)
             depth[0] = ref_depth
         clip = Clip(
-            clip_id=str(pack["clip_id"]),
+            clip_id=pack.clip_id,
             source="generated",
             source_uri="",
-            fps=float(pack["fps"]),
-            timestamps=np.arange(t) / float(pack["fps"]),
+            fps=pack.fps,
+            timestamps=np.arange(t) / pack.fps,
             intrinsics=intrinsics,
             frames=gen,
             world_from_cam=ref_poses if backend == "given" else None,

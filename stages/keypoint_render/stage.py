@@ -16,6 +16,7 @@ import numpy as np
 
 from egosim.pipeline import media
 from egosim.pipeline.geometry import se3_problems
+from egosim.pipeline.records import ClipsRecord, HandsRecord, require_camera_poses
 from egosim.pipeline.stage import ClipRejected, ClipStage, ConfigError, StageConfig, join_columns
 from egosim.schemas import CLIPS, ShardSchema
 from egosim.schemas.hands import HANDS
@@ -70,27 +71,24 @@ class KeypointRenderStage(ClipStage):
 
     def process(self, rows: Mapping[str, Mapping[str, Any]]) -> dict[str, Any]:
         """Project and draw one clip."""
-        clip, hands = rows["clips"], rows["hands"]
-        cid = clip["clip_id"]
-        t, h, w = int(clip["num_frames"]), int(clip["height"]), int(clip["width"])
-        if int(hands["num_frames"]) != t:
+        clip, hands = ClipsRecord.of(rows["clips"]), HandsRecord.of(rows["hands"])
+        cid = clip.clip_id
+        t, h, w = clip.size
+        if hands.num_frames != t:
             raise ClipRejected(f"clip {cid!r}: hands cover {hands['num_frames']} frames, not {t}")
         cams = resolve_cameras(rows)
-        if cams.world_from_cam is None:
-            raise ClipRejected(f"clip {cid!r}: no camera poses (world_from_cam is null)")
-        poses = cams.world_from_cam  # (T, 4, 4)
+        poses = require_camera_poses(cams.world_from_cam, cid)  # (T, 4, 4)
         problems = se3_problems(poses)
         if problems:
             raise ClipRejected(
                 f"clip {cid!r}: {cams.source} world_from_cam: " + "; ".join(problems)
             )
-        joints = np.asarray(hands["hand_joints"], dtype=np.float64).reshape(t, 2, 21, 3)
-        valid = np.asarray(hands["hand_valid"], dtype=bool).reshape(t, 2)
+        valid = hands.hand_valid
         cfg = self.config
-        proj = project_hands(joints, valid, poses, cams.intrinsics, h, w, cfg.near)
+        proj = project_hands(hands.hand_joints, valid, poses, cams.intrinsics, h, w, cfg.near)
         variant = cfg.variant
         if variant == "auto":
-            conf = np.asarray(hands["hand_confidence"], dtype=np.float64).reshape(t, 2, 21)
+            conf = hands.hand_confidence
             robot = valid.any() and not conf[:, :, 9:][valid].any()
             variant = "gripper" if robot else "hand"
         video = draw_skeleton_video(proj, h, w, variant, cfg.line_width_px)
@@ -99,10 +97,10 @@ class KeypointRenderStage(ClipStage):
             "num_frames": t,
             "width": w,
             "height": h,
-            "fps": float(clip["fps"]),
+            "fps": clip.fps,
             "variant": variant,
             "keypoints_2d": proj.uv.astype(np.float32).reshape(t, -1).tolist(),
             "keypoint_depth": proj.depth.astype(np.float32).reshape(t, -1).tolist(),
             "keypoint_visible": proj.visible.reshape(t, -1).tolist(),
-            "skeleton_video": media.encode_rgb_video(video, float(clip["fps"]), cfg.crf),
+            "skeleton_video": media.encode_rgb_video(video, clip.fps, cfg.crf),
         }

@@ -34,6 +34,14 @@ import numpy as np
 
 from egosim.pipeline import media
 from egosim.pipeline.geometry import scale_intrinsics
+from egosim.pipeline.records import (
+    CaptionsRecord,
+    ClipsRecord,
+    DepthCameraRecord,
+    HandMaskRecord,
+    KeypointsRecord,
+    SceneRenderRecord,
+)
 from egosim.pipeline.stage import ClipRejected, ClipStage, ConfigError, StageConfig, join_columns
 from egosim.schemas import CLIPS, ShardSchema
 from egosim.schemas.captions import CAPTIONS
@@ -173,24 +181,23 @@ class PackStage(ClipStage):
     def process(self, rows: Mapping[str, Mapping[str, Any]]) -> dict[str, Any]:
         """Pack one clip (or reject it with the reason)."""
         cfg = self.config
-        clip = rows["clips"]
-        cid = clip["clip_id"]
-        t, h, w = int(clip["num_frames"]), int(clip["height"]), int(clip["width"])
+        clip = ClipsRecord.of(rows["clips"])
+        cid = clip.clip_id
+        t, h, w = clip.size
         check_inputs_agree(rows)
-        render, keypoints = rows["scene_render"], rows["keypoints"]
+        render = SceneRenderRecord.of(rows["scene_render"])
+        keypoints = KeypointsRecord.of(rows["keypoints"])
 
         # Quality figures over the whole clip, then the gate (every failing figure at once).
-        vis_frac = np.asarray(render["visible_fraction"], dtype=np.float64)
+        vis_frac = render.visible_fraction
         visible_fraction = float(vis_frac[1:].mean()) if t > 1 else float(vis_frac.mean())
-        cams = rows.get("cameras")
         cameras = resolve_cameras(rows)
         if cameras.source == "cameras":
-            registered_fraction = float(np.mean(np.asarray(cams["registered"], dtype=bool)))
+            registered_fraction = float(np.mean(DepthCameraRecord.of(rows["cameras"]).registered))
         else:
             registered_fraction = 0.0 if cameras.world_from_cam is None else 1.0
-        kp_vis = np.asarray(keypoints["keypoint_visible"], dtype=bool)  # (T, 42)
         index = sample_frame_indices(t, cfg.num_frames, cfg.frame_stride)
-        hand_valid_fraction = float(kp_vis[index].any(axis=1).mean())
+        hand_valid_fraction = float(keypoints.keypoint_visible[index].any(axis=1).mean())
         failed = [
             f"{name} {value:.3f} < {minimum}"
             for name, value, minimum in (
@@ -203,20 +210,17 @@ class PackStage(ClipStage):
         if failed:
             raise ClipRejected(f"quality gate: clip {cid!r}: " + "; ".join(failed))
 
-        # Decode, select frames, resize.
+        # Decode (each role's media checked against its size, which agrees with the clip's),
+        # select frames, resize.
         oh, ow = (cfg.height, cfg.width) if cfg.height else (h, w)
-        target = _rgb(clip["video"], h, w, t, f"clip {cid!r} video")
-        scene = _rgb(render["scene_video"], h, w, t, f"clip {cid!r} scene_video")
-        skeleton = _rgb(keypoints["skeleton_video"], h, w, t, f"clip {cid!r} skeleton_video")
-        visible = _mask(render["visible"], h, w, t, f"clip {cid!r} visible")
+        target = clip.frames
+        scene = render.rgb_video("scene_video")
+        skeleton = keypoints.rgb_video("skeleton_video")
+        visible = render.mask_video("visible")
         first, first_source = self._first_frame(rows, target[0], h, w)
-        hand = None
-        if rows.get("hand_mask") is not None:
-            hand = _mask(rows["hand_mask"]["hand_mask"], h, w, t, f"clip {cid!r} hand_mask")
-        elif clip.get("hand_mask") is not None:
-            hand = _mask(clip["hand_mask"], h, w, t, f"clip {cid!r} source hand_mask")
+        hand = _hand_mask(rows)
         depth0 = first_frame_depth(rows)
-        fps = float(clip["fps"]) / cfg.frame_stride
+        fps = clip.fps / cfg.frame_stride
         row = {
             "clip_id": cid,
             "num_frames": len(index),
@@ -243,7 +247,7 @@ class PackStage(ClipStage):
             else media.encode_mask_video(resize_mask(hand[index], oh, ow)),
             "depth0": None,
             "depth_unit_m": None,
-            "prompt": str(rows["captions"]["text"]),
+            "prompt": CaptionsRecord.of(rows["captions"]).text,
             "visible_fraction": visible_fraction,
             "registered_fraction": registered_fraction,
             "hand_valid_fraction": hand_valid_fraction,
@@ -257,8 +261,7 @@ class PackStage(ClipStage):
     def _first_frame(
         self, rows: Mapping[str, Mapping[str, Any]], frame0: np.ndarray, h: int, w: int
     ) -> tuple[np.ndarray, str]:
-        clip = rows["clips"]
-        cid = clip["clip_id"]
+        cid = rows["clips"]["clip_id"]
         for role, key, source in (
             ("inpaint", "first_frame", "inpaint"),
             ("clips", "first_frame_clean", "first_frame_clean"),
@@ -275,10 +278,18 @@ class PackStage(ClipStage):
         return frame0, "frame0"
 
 
+def _hand_mask(rows: Mapping[str, Mapping[str, Any]]) -> np.ndarray | None:
+    """``(T, H, W)`` {0, 1}: the ``hand_mask`` role's mask, else the clip's own, else None."""
+    if rows.get("hand_mask") is not None:
+        return HandMaskRecord.of(rows["hand_mask"]).mask_video("hand_mask")
+    clip = ClipsRecord.of(rows["clips"])
+    return clip.mask_video("hand_mask", f"clip {clip.clip_id!r} source hand_mask")
+
+
 def check_inputs_agree(rows: Mapping[str, Mapping[str, Any]]) -> None:
     """Raise :class:`ClipRejected` naming every input role whose frame count or size differs."""
-    clip = rows["clips"]
-    want = {k: int(clip[k]) for k in ("num_frames", "height", "width")}
+    clip = ClipsRecord.of(rows["clips"])
+    want = dict(zip(("num_frames", "height", "width"), clip.size, strict=True))
     problems = []
     for role, row in rows.items():
         if role in ("clips", "captions", "poses"):
@@ -286,27 +297,10 @@ def check_inputs_agree(rows: Mapping[str, Mapping[str, Any]]) -> None:
         for key, value in want.items():
             if key in row and row[key] is not None and int(row[key]) != value:
                 problems.append(f"{role} {key} is {row[key]}, clips has {value}")
-    kp = rows["keypoints"]
-    if len(kp["keypoint_visible"]) != want["num_frames"]:
+    kp = KeypointsRecord.of(rows["keypoints"]).keypoint_visible
+    if len(kp) != want["num_frames"]:
         problems.append(
-            f"keypoints has {len(kp['keypoint_visible'])} frames of keypoints, "
-            f"clips has {want['num_frames']}"
+            f"keypoints has {len(kp)} frames of keypoints, clips has {want['num_frames']}"
         )
     if problems:
-        raise ClipRejected(f"inputs disagree: clip {clip['clip_id']!r}: " + "; ".join(problems))
-
-
-def _rgb(data: bytes, h: int, w: int, t: int, what: str) -> np.ndarray:
-    frames = media.decode_rgb_video(data, h, w, what)
-    if frames.shape != (t, h, w, 3):
-        raise ClipRejected(
-            f"inputs disagree: {what} decodes to {frames.shape}, expected {(t, h, w, 3)}"
-        )
-    return frames
-
-
-def _mask(data: bytes, h: int, w: int, t: int, what: str) -> np.ndarray:
-    mask = media.decode_lossless_video(data, what)
-    if mask.shape != (t, h, w):
-        raise ClipRejected(f"inputs disagree: {what} decodes to {mask.shape}, expected {(t, h, w)}")
-    return (mask > 0).astype(np.uint8)
+        raise ClipRejected(f"inputs disagree: clip {clip.clip_id!r}: " + "; ".join(problems))

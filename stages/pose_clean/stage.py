@@ -42,6 +42,7 @@ from egosim.pipeline.geometry import (
     quat_from_matrix,
     se3_problems,
 )
+from egosim.pipeline.records import ClipsRecord
 from egosim.pipeline.stage import ClipRejected, ClipStage, ConfigError, StageConfig
 from egosim.schemas.base import ShardSchema
 from egosim.schemas.clips import CLIPS
@@ -294,14 +295,14 @@ class PoseCleanStage(ClipStage):
         The trajectory is the ``cameras`` row's ``world_from_cam`` when that role is connected,
         else the clips row's.
         """
-        row = rows["clips"]
-        clip_id = row["clip_id"]
+        row = ClipsRecord.of(rows["clips"])
+        clip_id = row.clip_id
         role = "cameras" if rows.get("cameras") is not None else "clips"
         raw = rows[role].get("world_from_cam")
         if raw is None:
             raise ClipRejected(f"clip {clip_id} has no world_from_cam: run depth_camera first")
         where = "world_from_cam" if role == "clips" else "cameras world_from_cam"
-        t = int(row["num_frames"])
+        t = row.num_frames
         try:
             flat = np.asarray(raw, dtype=np.float64)
         except (TypeError, ValueError) as exc:
@@ -322,9 +323,7 @@ class PoseCleanStage(ClipStage):
                 )
             protected = codes == POSED_BY_MAPPER
         try:
-            result = clean_trajectory(
-                flat.reshape(t, 4, 4), self.config, float(row["fps"]), protected
-            )
+            result = clean_trajectory(flat.reshape(t, 4, 4), self.config, row.fps, protected)
         except PoseInputError as exc:
             raise ClipRejected(f"clip {clip_id}: {exc}") from exc
         return {

@@ -39,6 +39,7 @@ import numpy as np
 
 from egosim.pipeline import media
 from egosim.pipeline.geometry import se3_problems, transform_points, unproject_depth
+from egosim.pipeline.records import ClipsRecord, require_camera_poses
 from egosim.pipeline.stage import ClipRejected, ClipStage, ConfigError, StageConfig, join_columns
 from egosim.schemas import CLIPS, ShardSchema
 from egosim.schemas.inpaint import INPAINT
@@ -250,16 +251,15 @@ class SceneCloudStage(ClipStage):
 
     def process(self, rows: Mapping[str, Mapping[str, Any]]) -> dict[str, Any]:
         """Build the cloud of one clip from its rows (see the module docstring)."""
-        cid = rows["clips"]["clip_id"]
+        cid = ClipsRecord.of(rows["clips"]).clip_id
         cams = resolve_cameras(rows)
-        if cams.world_from_cam is None:
-            raise ClipRejected(f"clip {cid!r}: no camera poses (world_from_cam is null)")
+        world_from_cam = require_camera_poses(cams.world_from_cam, cid)
         first = _first_frame(rows, self.config.fill)
         try:
             cloud = build_scene_cloud(
                 first.image,
                 first.depth,
-                cams.world_from_cam[0],
+                world_from_cam[0],
                 cams.intrinsics,
                 first.exclude,
                 confidence=first.confidence,
@@ -320,8 +320,8 @@ def _confidence0(rows: Mapping[str, Mapping[str, Any]], shape: tuple[int, ...]) 
 
 def _first_frame(rows: Mapping[str, Mapping[str, Any]], fill: bool = True) -> FirstFrame:
     """Frame 0's image, depth, depth confidence, pixels to leave out or fill (module docstring)."""
-    row, inpaint = rows["clips"], rows.get("inpaint")
-    cid, h, w = row["clip_id"], row["height"], row["width"]
+    row, inpaint = ClipsRecord.of(rows["clips"]), rows.get("inpaint")
+    cid, h, w = row.clip_id, row.height, row.width
     depth = first_frame_depth(rows)  # (H, W)
     depth_name = _depth_name(rows)
     confidence = None

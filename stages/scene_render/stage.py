@@ -21,6 +21,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from egosim.pipeline import media
+from egosim.pipeline.records import ClipsRecord, require_camera_poses
 from egosim.pipeline.stage import ClipRejected, ClipStage, ConfigError, StageConfig, join_columns
 from egosim.schemas import CLIPS, ShardSchema
 from egosim.schemas.scene import SCENE_CLOUD, SCENE_RENDER, cloud_from_row
@@ -96,20 +97,19 @@ class SceneRenderStage(ClipStage):
 
     def process(self, rows: Mapping[str, Mapping[str, Any]]) -> dict[str, Any]:
         """Render one clip (its ``state`` row when given, else its ``scene_cloud`` row)."""
-        clip = rows["clips"]
-        cid = clip["clip_id"]
+        clip = ClipsRecord.of(rows["clips"])
+        cid = clip.clip_id
         cloud_row = points_row(rows)
-        t, h, w = int(clip["num_frames"]), int(clip["height"]), int(clip["width"])
+        t, h, w = clip.size
         cams = resolve_cameras(rows)
-        if cams.world_from_cam is None:
-            raise ClipRejected(f"clip {cid!r}: no camera poses (world_from_cam is null)")
+        world_from_cam = require_camera_poses(cams.world_from_cam, cid)
         cloud = cloud_from_row(cloud_row)
         cfg = self.config
         try:
             result = render_point_cloud(
                 cloud.points,
                 cloud.colours,
-                cams.world_from_cam,
+                world_from_cam,
                 cams.intrinsics,
                 h,
                 w,
@@ -127,8 +127,8 @@ class SceneRenderStage(ClipStage):
             "num_frames": t,
             "width": w,
             "height": h,
-            "fps": float(clip["fps"]),
-            "scene_video": media.encode_rgb_video(result.rgb, float(clip["fps"]), cfg.crf),
+            "fps": clip.fps,
+            "scene_video": media.encode_rgb_video(result.rgb, clip.fps, cfg.crf),
             "visible": media.encode_mask_video(result.visible),
             "visible_fraction": result.visible.reshape(t, -1).mean(axis=1).tolist(),
             "splat_radius": cfg.max_splat_radius,

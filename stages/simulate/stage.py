@@ -20,6 +20,7 @@ from typing import TYPE_CHECKING, Any, ClassVar
 import numpy as np
 
 from egosim.pipeline import media
+from egosim.pipeline.records import PackRecord
 from egosim.pipeline.stage import ClipStage, ConfigError, StageConfig
 from egosim.schemas import ShardSchema
 from egosim.schemas.pack import PACK, SIMULATION
@@ -107,18 +108,18 @@ class SimulateStage(ClipStage):
     def process(self, rows: Mapping[str, Mapping[str, Any]]) -> dict[str, Any]:
         """Generate one clip from its pack row."""
         cfg = self.config
-        row = rows["pack"]
+        row = PackRecord.of(rows["pack"])
         conditions = sample_from_pack_row(row).conditions()
         model = self.model
         video = generate(model, conditions, cfg.steps, cfg.guidance_scale, cfg.seed)
         t, h, w = video.shape[:3]
         return {
-            "clip_id": row["clip_id"],
+            "clip_id": row.clip_id,
             "num_frames": t,
             "width": w,
             "height": h,
-            "fps": float(row["fps"]),
-            "video": media.encode_rgb_video(video, float(row["fps"]), cfg.crf),
+            "fps": row.fps,
+            "video": media.encode_rgb_video(video, row.fps, cfg.crf),
             "preset": model.bundle.preset.name,
             "checkpoint": "" if model.checkpoint is None else str(model.checkpoint),
             "checkpoint_step": model.step,
