@@ -178,7 +178,7 @@ def test_rotation_helpers() -> None:
 def test_pca_pose_and_file_round_trip(tmp_path: Path) -> None:
     arrays = tiny_mano()
     save_mano_arrays(arrays, tmp_path / "mano.safetensors")
-    layer = load_mano_layer(tmp_path / "mano.safetensors").double()
+    layer = load_mano_layer(tmp_path / "mano.safetensors", torch.float64)
     coeffs = torch.tensor([[0.5, -1.0, 0.2]], dtype=torch.float64)
     expected = coeffs.numpy() @ arrays["hands_components"][:3] + arrays["hands_mean"]
     np.testing.assert_allclose(layer.hand_pose_from_pca(coeffs).numpy(), expected, atol=1e-6)

@@ -45,6 +45,7 @@ from torch import nn
 from egosim.model.checkpoint import refuse_pickle
 from egosim.pipeline.stage import ConfigError
 
+MANO_FILE = "mano.safetensors"  # the converted model's name in a regressor weights folder
 NUM_MANO_JOINTS = 16  # wrist + 15 finger joints
 FINGERTIP_VERTICES = (744, 320, 443, 554, 671)  # thumb, index, middle, ring, little (official)
 # egosim joint k is MANO joint MANO_TO_EGOSIM[k] (16..20: the fingertip vertices above)
@@ -184,16 +185,15 @@ class ManoLayer(nn.Module):
             raise ManoFileError("; ".join(problems))
 
         def buffer(key: str, value: np.ndarray) -> None:
-            self.register_buffer(
-                key, torch.as_tensor(np.asarray(value, dtype=np.float64)).to(dtype)
-            )
+            tensor = torch.as_tensor(np.asarray(value, dtype=np.float64)).to(dtype)
+            self.register_buffer(key, tensor, persistent=False)  # saved in its own file
 
         for key in REQUIRED_ARRAYS:
             buffer(key, arrays[key])
         self.num_betas = int(self.shapedirs.shape[2])
         self.parents = tuple(int(p) for p in parents_from_arrays(arrays))
         tips = np.asarray(arrays.get("tip_vertices", FINGERTIP_VERTICES), dtype=np.int64)
-        self.register_buffer("tip_vertices", torch.as_tensor(tips))
+        self.register_buffer("tip_vertices", torch.as_tensor(tips), persistent=False)
         self.has_pca = "hands_components" in arrays
         if self.has_pca:
             buffer("hands_components", arrays["hands_components"])
@@ -254,6 +254,6 @@ class ManoLayer(nn.Module):
         return torch.stack(world, dim=1)
 
 
-def load_mano_layer(path: str | Path) -> ManoLayer:
-    """A :class:`ManoLayer` from a MANO safetensors file (:func:`load_mano_arrays`)."""
-    return ManoLayer(load_mano_arrays(path))
+def load_mano_layer(path: str | Path, dtype: torch.dtype = torch.float32) -> ManoLayer:
+    """A :class:`ManoLayer` (buffers in ``dtype``) from a MANO safetensors file."""
+    return ManoLayer(load_mano_arrays(path), dtype)
