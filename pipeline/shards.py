@@ -12,10 +12,12 @@ Layout of one shard file (see docs/design.md):
   such as ``s3://``) to a temporary key, moved into place, then given a completion marker
   (:mod:`egosim.pipeline.storage`), and listings ignore a shard without its marker;
 - integrity (docs/design.md, "Integrity"): Parquet page checksums (CRC32) are written and
-  verified on every read; the file footer's ``egosim.content`` key holds a SHA-256 per row of
-  everything the row holds (all columns, encoded media included; :func:`row_content_hash`) and
-  of the provenance JSON. A reader verifies each row it reads in full and raises
-  :class:`CorruptShardError` on a mismatch.
+  verified on every read; the file footer's ``egosim.content`` key holds a SHA-256 per column of
+  each row (content format 2; encoded media included; :func:`row_content_hash`), a per-row hash
+  of those (:func:`row_hash_from_columns`) and the hash of the provenance JSON. A reader
+  verifies each row it reads, in full or only the columns it read, and raises
+  :class:`CorruptShardError` on a mismatch. Format-1 shards (row hashes only) are still read:
+  their whole rows are verified, their partial reads rely on the page checksums.
 """
 
 from __future__ import annotations
@@ -40,7 +42,7 @@ from egosim.schemas.base import check_compatible
 
 SHARD_META_KEY = b"egosim.shard"
 CONTENT_KEY = b"egosim.content"  # footer key: per-row content hashes (see module doc)
-CONTENT_FORMAT = 1  # layout of the CONTENT_KEY JSON
+CONTENT_FORMAT = 2  # layout of the CONTENT_KEY JSON (1: row hashes only; 2: per column too)
 __all__ = ["TMP_MARKER"]  # re-exported: the temporary-file infix lives in storage
 
 
@@ -75,6 +77,20 @@ def row_content_hash(row: Mapping[str, Any], names: Sequence[str]) -> str:
             tag = b"j"
         h.update(tag + len(data).to_bytes(8, "little") + data)
     return h.hexdigest()
+
+
+def column_hashes(row: Mapping[str, Any], names: Sequence[str]) -> list[str]:
+    """SHA-256 (hex) of each column of a row: ``row_content_hash(row, [name])`` per name."""
+    return [row_content_hash(row, [name]) for name in names]
+
+
+def row_hash_from_columns(hashes: Sequence[str]) -> str:
+    """A format-2 row hash: SHA-256 (hex) of the row's column hashes (as bytes, in file order).
+
+    A full read recomputes each column hash once and checks both the column hashes and this
+    root, so the footer's column hashes are themselves verified whenever a row is read whole.
+    """
+    return hashlib.sha256(b"".join(bytes.fromhex(h) for h in hashes)).hexdigest()
 
 
 def package_version() -> str:
@@ -133,7 +149,7 @@ class ShardWriter:
             }
         )
         self._writer: pq.ParquetWriter | None = None
-        self._hashes: list[str] = []  # content hash of each row written, in order
+        self._hashes: list[list[str]] = []  # per-column content hashes of each row, in order
 
     def __enter__(self) -> ShardWriter:
         self._sink = storage.atomic_write(self.path)
@@ -154,7 +170,7 @@ class ShardWriter:
         where = f"{storage.name(self.path)} row {row.get('clip_id', '?')}"
         self.schema.validate_row(row, where=where)
         table = pa.Table.from_pylist([dict(row)], schema=self._arrow)
-        self._hashes.append(row_content_hash(table.to_pylist()[0], self._arrow.names))
+        self._hashes.append(column_hashes(table.to_pylist()[0], self._arrow.names))
         self._writer.write_table(table)
         self.rows_written += 1
 
@@ -170,7 +186,8 @@ class ShardWriter:
                 "format": CONTENT_FORMAT,
                 "algorithm": "sha256",
                 "meta_sha256": hashlib.sha256(self._arrow.metadata[SHARD_META_KEY]).hexdigest(),
-                "rows": self._hashes,
+                "rows": [row_hash_from_columns(h) for h in self._hashes],
+                "columns": self._hashes,
             }
             self._writer.add_key_value_metadata({CONTENT_KEY: json.dumps(content)})
         try:
@@ -186,10 +203,12 @@ class ShardWriter:
 class ShardReader:
     """Read a shard written by :class:`ShardWriter`, checking its schema name and version.
 
-    Page checksums are verified on every read. With ``verify`` (the default) every row read with
-    all its columns is hashed and compared with the hash stored at write time
-    (:class:`ContentMismatchError` on a difference); shards written before content hashes
-    existed have none to compare (``hashed`` is False) and are read as they are.
+    Page checksums are verified on every read. With ``verify`` (the default) every row read is
+    hashed and compared with the hashes stored at write time (:class:`ContentMismatchError` on a
+    difference): a whole row against its row hash, a row of a few columns against those
+    columns' hashes (content format 2; a format-1 shard has only row hashes, so its partial
+    reads rely on page checksums). Shards written before content hashes existed have none to
+    compare (``hashed`` is False) and are read as they are.
     """
 
     def __init__(
@@ -232,47 +251,102 @@ class ShardReader:
             raise CorruptShardError(f"{self.path}: unreadable provenance metadata ({exc})") from exc
         self.schema = schema
         self.verify = verify  # verify each fully read row against its stored hash
-        self.row_hashes = self._read_content(footer.get(CONTENT_KEY), raw)
+        self.row_hashes: list[str] | None = None  # stored hash of each row (None: unhashed)
+        self.column_hashes: list[list[str]] | None = None  # per row, per column (format 2)
+        self.content_format: int | None = None  # CONTENT_KEY layout (None: unhashed)
+        self._read_content(footer.get(CONTENT_KEY), raw)
         # First row index of each row group (rows are hashed in file order).
         self._starts = [0]
         for i in range(self._file.num_row_groups):
             self._starts.append(self._starts[-1] + self._file.metadata.row_group(i).num_rows)
 
-    def _read_content(self, content: bytes | None, raw_meta: bytes) -> list[str] | None:
-        """The stored per-row hashes (None for a shard written without them), checked."""
+    def _read_content(self, content: bytes | None, raw_meta: bytes) -> None:
+        """Read and check the stored hashes (none for a shard written without them).
+
+        Format 1 holds a hash per row; format 2 (:data:`CONTENT_FORMAT`) adds one per column of
+        each row, and its row hash is :func:`row_hash_from_columns` of them.
+        """
         if content is None:
-            return None
+            return
         try:
             data = json.loads(content)
+            fmt = int(data["format"])
             rows = [str(h) for h in data["rows"]]
             meta_hash = data["meta_sha256"]
+            columns = None
+            if fmt >= 2:
+                columns = [[str(h) for h in row] for row in data["columns"]]
         except (ValueError, TypeError, KeyError) as exc:
             raise CorruptShardError(f"{self.path}: unreadable content hashes ({exc})") from exc
+        if fmt not in (1, CONTENT_FORMAT):
+            raise CorruptShardError(
+                f"{self.path}: content hash format {fmt} is not one this egosim reads "
+                f"(1 or {CONTENT_FORMAT})"
+            )
         if hashlib.sha256(raw_meta).hexdigest() != meta_hash:
             raise ContentMismatchError(f"{self.path}: provenance metadata differs from its hash")
-        if len(rows) != self._file.metadata.num_rows:
+        num_rows, width = self._file.metadata.num_rows, len(self._file.schema_arrow.names)
+        if len(rows) != num_rows or (columns is not None and len(columns) != num_rows):
             raise ContentMismatchError(
-                f"{self.path}: {len(rows)} content hashes for {self._file.metadata.num_rows} rows"
+                f"{self.path}: {len(rows)} content hashes for {num_rows} rows"
             )
-        return rows
+        if columns is not None and any(len(c) != width for c in columns):
+            raise ContentMismatchError(
+                f"{self.path}: column hashes do not list one hash per column ({width})"
+            )
+        self.content_format, self.row_hashes, self.column_hashes = fmt, rows, columns
 
     @property
     def hashed(self) -> bool:
         """True when the shard stores content hashes (every shard written by this egosim)."""
         return self.row_hashes is not None
 
-    def _checked(self, rows: list[dict[str, Any]], group: int) -> list[dict[str, Any]]:
-        """``rows`` of row group ``group``, verified against their stored hashes."""
-        if self.verify and self.row_hashes is not None:
-            names = self._file.schema_arrow.names
-            for k, row in enumerate(rows):
-                index = self._starts[group] + k
-                if row_content_hash(row, names) != self.row_hashes[index]:
-                    raise ContentMismatchError(
-                        f"{self.path}: row {index} (clip {row.get('clip_id')!r}) differs from "
-                        "the content hash stored when it was written"
-                    )
+    @property
+    def columns_hashed(self) -> bool:
+        """True when a read of a few columns is verified too (content format 2)."""
+        return self.column_hashes is not None
+
+    def _checked(
+        self, rows: list[dict[str, Any]], group: int, columns: list[str] | None = None
+    ) -> list[dict[str, Any]]:
+        """``rows`` of row group ``group``, verified against their stored hashes.
+
+        A whole row (``columns`` None) is checked against its row hash (format 2: each column
+        hash and their root); a row of a few ``columns`` against those columns' hashes, when the
+        shard has them (format 1 shards: page checksums only).
+        """
+        if not self.verify or self.row_hashes is None:
+            return rows
+        names = self._file.schema_arrow.names
+        for k, row in enumerate(rows):
+            index = self._starts[group] + k
+            bad = self._row_mismatch(row, index, names, columns)
+            if bad:
+                raise ContentMismatchError(
+                    f"{self.path}: row {index} (clip {row.get('clip_id')!r}) differs from "
+                    f"the content hash stored when it was written ({bad})"
+                )
         return rows
+
+    def _row_mismatch(
+        self, row: Mapping[str, Any], index: int, names: list[str], columns: list[str] | None
+    ) -> str:
+        """What of row ``index`` differs from its stored hashes ('' when nothing does)."""
+        assert self.row_hashes is not None  # checked by the caller
+        stored = None if self.column_hashes is None else self.column_hashes[index]
+        if stored is None:  # format 1: only whole rows can be checked
+            if columns is None and row_content_hash(row, names) != self.row_hashes[index]:
+                return "row hash"
+            return ""
+        wanted = names if columns is None else columns
+        position = {name: i for i, name in enumerate(names)}
+        found = column_hashes(row, wanted)
+        differ = [n for n, h in zip(wanted, found, strict=True) if h != stored[position[n]]]
+        if differ:
+            return f"columns {differ}"
+        if columns is None and row_hash_from_columns(found) != self.row_hashes[index]:
+            return "row hash"
+        return ""
 
     @property
     def arrow_schema(self) -> pa.Schema:
@@ -292,8 +366,7 @@ class ShardReader:
     def iter_rows(self, columns: list[str] | None = None) -> Iterator[dict[str, Any]]:
         """Yield rows as dicts, one row group at a time."""
         for i in range(self._file.num_row_groups):
-            rows = self._read_group(i, columns)
-            yield from rows if columns is not None else self._checked(rows, i)
+            yield from self._checked(self._read_group(i, columns), i, columns)
 
     def _read_group(self, i: int, columns: list[str] | None = None) -> list[dict[str, Any]]:
         """Rows of row group ``i`` (page checksums verified), or :class:`CorruptShardError`."""
@@ -318,10 +391,9 @@ class ShardReader:
         return index
 
     def read_row_group(self, i: int, columns: list[str] | None = None) -> list[dict[str, Any]]:
-        """Read the rows of row group ``i`` (all columns: verified against their content hashes;
-        a few ``columns``: page checksums only, like :meth:`iter_rows`)."""
-        rows = self._read_group(i, columns)
-        return rows if columns is not None else self._checked(rows, i)
+        """Read the rows of row group ``i``, verified against their content hashes (a few
+        ``columns``: those columns' hashes, on a format-2 shard; see :meth:`_checked`)."""
+        return self._checked(self._read_group(i, columns), i, columns)
 
     def __enter__(self) -> ShardReader:
         return self
