@@ -36,7 +36,7 @@ from __future__ import annotations
 
 import json
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
@@ -119,6 +119,50 @@ def _clip(row: dict[str, Any]) -> Clip:
     ).check()
 
 
+VIEW_STEPS = (
+    DEPTH_CAMERA,
+    POSES,
+    HANDS,
+    KEYPOINTS,
+    HAND_MASK,
+    INPAINT,
+    SCENE_CLOUD,
+    SCENE_RENDER,
+    STATE,
+    CAPTIONS,
+)  # the schemas whose rows a view shows beside the clip's own
+
+
+@dataclass
+class _ClipView:
+    """What one clip's MCAP shows, gathered from the run's rows (topics in the module doc)."""
+
+    clip: Clip  # the decoded clips row
+    clip_row: dict[str, Any]  # the raw clips row
+    rows: dict[str, dict[str, Any] | None]  # schema name -> the clip's row (None: no row)
+    steps: dict[str, str]  # schema name -> the run step that wrote it
+    used: dict[str, str]  # topic -> step it came from (the metadata's "sources")
+    intrinsics: np.ndarray | None = None  # (4,) of /camera/calibration
+    camera_from: str | None = None  # schema the `camera` frame's poses came from
+    frames: dict[str, np.ndarray] = field(default_factory=dict)  # child -> (T, 4, 4) poses
+    trajectories: dict[str, str] = field(default_factory=dict)  # topic -> child frame
+    videos: dict[str, np.ndarray] = field(default_factory=dict)  # topic -> (T, H, W, 3)
+    masks: dict[str, np.ndarray] = field(default_factory=dict)  # topic -> (T, H, W) {0, 1}
+    joints: np.ndarray | None = None  # (T, 2, 21, 3) of /hands/skeleton
+    valid: np.ndarray | None = None  # (T, 2) of /hands/skeleton
+    first_frame: np.ndarray | None = None  # (H, W, 3) of /inpaint/first_frame
+    clouds: dict[str, Callable[[int], object]] = field(default_factory=dict)  # topic -> message
+
+    @property
+    def what(self) -> str:
+        """``clip 'ID'``, for error messages."""
+        return f"clip {self.clip.clip_id!r}"
+
+    def take(self, topic: str, schema_name: str) -> None:
+        """Record that ``topic`` shows the output of the step that wrote ``schema_name``."""
+        self.used[topic] = self.steps[schema_name]
+
+
 def write_clip_view(
     index: RunIndex, clip_id: str, path: Path, config: ViewConfig | None = None
 ) -> Path:
@@ -132,161 +176,175 @@ def write_clip_view(
     clip_row = index.row(CLIPS, clip_id)
     if clip_row is None:
         raise ExportError(f"{index.root}: no clip {clip_id!r} in the clips step")
-    clip = _clip(clip_row)
-    t, h, w = clip.num_frames, clip.height, clip.width
-    what = f"clip {clip_id!r}"
-    rows = {
-        s.name: index.row(s, clip_id)
-        for s in (
-            DEPTH_CAMERA,
-            POSES,
-            HANDS,
-            KEYPOINTS,
-            HAND_MASK,
-            INPAINT,
-            SCENE_CLOUD,
-            SCENE_RENDER,
-            STATE,
-            CAPTIONS,
-        )
-    }
-    used: dict[str, str] = {"/camera/image": index.steps[CLIPS.name]}
+    view = _ClipView(
+        clip=_clip(clip_row),
+        clip_row=clip_row,
+        rows={s.name: index.row(s, clip_id) for s in VIEW_STEPS},
+        steps=index.steps,
+        used={"/camera/image": index.steps[CLIPS.name]},
+    )
+    _gather_cameras(view)
+    _gather_images(view)
+    _gather_hands(view)
+    _gather_first_frame_and_clouds(view, config)
+    _write_view_mcap(view, index, Path(path), config)
+    return Path(path)
 
-    def step(schema_name: str) -> str:
-        return index.steps[schema_name]
 
+def _gather_cameras(view: _ClipView) -> None:
+    """Intrinsics and the ``camera``, ``camera_raw`` and ``camera_source`` poses (stages' rule:
+    ``poses`` > ``depth_camera`` > ``clips``)."""
+    clip, rows, t = view.clip, view.rows, view.clip.num_frames
     cams, cleaned = rows["depth_camera"], rows["poses"]
-    intrinsics = np.asarray((cams or clip_row)["intrinsics"], dtype=np.float64)
-    used["/camera/calibration"] = step("depth_camera") if cams else step("clips")
-    frames: dict[str, np.ndarray] = {}  # child frame -> (T, 4, 4) world_from_child
-    trajectories: dict[str, str] = {}  # topic -> child frame
-    camera_from = next(
+    view.intrinsics = np.asarray((cams or view.clip_row)["intrinsics"], dtype=np.float64)
+    view.take("/camera/calibration", "depth_camera" if cams else "clips")
+    view.camera_from = next(
         (n for n, r in (("poses", cleaned), ("depth_camera", cams)) if r is not None),
         "clips" if clip.world_from_cam is not None else None,
     )
-    if camera_from == "clips":
-        frames[CAMERA_FRAME] = clip.world_from_cam
-    elif camera_from is not None:
-        frames[CAMERA_FRAME] = _poses(rows[camera_from], t, f"{what} {camera_from}")
-    if camera_from is not None:
-        used["/tf:" + CAMERA_FRAME] = step(camera_from)
-        trajectories["/camera/trajectory"] = CAMERA_FRAME
+    if view.camera_from == "clips":
+        view.frames[CAMERA_FRAME] = clip.world_from_cam
+    elif view.camera_from is not None:
+        row = rows[view.camera_from]
+        view.frames[CAMERA_FRAME] = _poses(row, t, f"{view.what} {view.camera_from}")
+    if view.camera_from is not None:
+        view.take("/tf:" + CAMERA_FRAME, view.camera_from)
+        view.trajectories["/camera/trajectory"] = CAMERA_FRAME
     if cams is not None:
-        frames[RAW_CAMERA_FRAME] = _poses(cams, t, f"{what} depth_camera")
-        used["/tf:" + RAW_CAMERA_FRAME] = step("depth_camera")
-        trajectories["/camera_raw/trajectory"] = RAW_CAMERA_FRAME
+        view.frames[RAW_CAMERA_FRAME] = _poses(cams, t, f"{view.what} depth_camera")
+        view.take("/tf:" + RAW_CAMERA_FRAME, "depth_camera")
+        view.trajectories["/camera_raw/trajectory"] = RAW_CAMERA_FRAME
     if clip.world_from_cam is not None:
-        frames[SOURCE_CAMERA_FRAME] = clip.world_from_cam
-        used["/tf:" + SOURCE_CAMERA_FRAME] = step("clips")
+        view.frames[SOURCE_CAMERA_FRAME] = clip.world_from_cam
+        view.take("/tf:" + SOURCE_CAMERA_FRAME, "clips")
 
-    videos: dict[str, np.ndarray] = {"/camera/image": clip.frames}  # topic -> (T, H, W[, 3])
-    masks: dict[str, np.ndarray] = {}  # topic -> (T, H, W) {0, 1}
+
+def _gather_images(view: _ClipView) -> None:
+    """The image and mask videos; raises :class:`ExportError` when one is not ``(T, H, W)``."""
+    clip, rows, what = view.clip, view.rows, view.what
+    t, h, w = clip.num_frames, clip.height, clip.width
+    view.videos["/camera/image"] = clip.frames
     if (render := rows["scene_render"]) is not None:
-        videos["/scene/image"] = media.decode_rgb_video(
+        view.videos["/scene/image"] = media.decode_rgb_video(
             render["scene_video"], h, w, f"{what} scene_video"
         )
-        masks["/scene/visible"] = media.decode_lossless_video(render["visible"], f"{what} visible")
-        used["/scene/image"] = used["/scene/visible"] = step("scene_render")
+        view.masks["/scene/visible"] = media.decode_lossless_video(
+            render["visible"], f"{what} visible"
+        )
+        view.take("/scene/image", "scene_render")
+        view.take("/scene/visible", "scene_render")
     if (keypoints := rows["keypoints"]) is not None:
-        videos["/hands/skeleton_image"] = media.decode_rgb_video(
+        view.videos["/hands/skeleton_image"] = media.decode_rgb_video(
             keypoints["skeleton_video"], h, w, f"{what} skeleton_video"
         )
-        used["/hands/skeleton_image"] = step("keypoints")
+        view.take("/hands/skeleton_image", "keypoints")
     if (hand_mask := rows["hand_mask"]) is not None:
-        masks["/hands/mask"] = media.decode_lossless_video(
+        view.masks["/hands/mask"] = media.decode_lossless_video(
             hand_mask["hand_mask"], f"{what} hand_mask"
         )
-        used["/hands/mask"] = step("hand_mask")
-    elif clip_row.get("hand_mask") is not None:
-        masks["/hands/mask"] = media.decode_lossless_video(
-            clip_row["hand_mask"], f"{what} clips hand_mask"
+        view.take("/hands/mask", "hand_mask")
+    elif view.clip_row.get("hand_mask") is not None:
+        view.masks["/hands/mask"] = media.decode_lossless_video(
+            view.clip_row["hand_mask"], f"{what} clips hand_mask"
         )
-        used["/hands/mask"] = step("clips")
+        view.take("/hands/mask", "clips")
     bad = {
         topic: tuple(arr.shape[:3])
-        for topic, arr in (*videos.items(), *masks.items())
+        for topic, arr in (*view.videos.items(), *view.masks.items())
         if tuple(arr.shape[:3]) != (t, h, w)
     }
     if bad:
         raise ExportError(f"{what}: videos disagree with the clip's {(t, h, w)}: {bad}")
 
-    joints = valid = None
-    if (hands := rows["hands"]) is not None:
-        joints = np.asarray(hands["hand_joints"], dtype=np.float64).reshape(t, 2, 21, 3)
-        valid = np.asarray(hands["hand_valid"], dtype=bool).reshape(t, 2)
-        used["/hands/skeleton"] = step("hands")
+
+def _gather_hands(view: _ClipView) -> None:
+    """The 3D hand joints of ``/hands/skeleton``: the ``hands`` step's, else the clip's own."""
+    clip, t = view.clip, view.clip.num_frames
+    if (hands := view.rows["hands"]) is not None:
+        view.joints = np.asarray(hands["hand_joints"], dtype=np.float64).reshape(t, 2, 21, 3)
+        view.valid = np.asarray(hands["hand_valid"], dtype=bool).reshape(t, 2)
+        view.take("/hands/skeleton", "hands")
     elif clip.hand_joints is not None and clip.hand_valid is not None:
-        joints, valid = clip.hand_joints, clip.hand_valid
-        used["/hands/skeleton"] = step("clips")
+        view.joints, view.valid = clip.hand_joints, clip.hand_valid
+        view.take("/hands/skeleton", "clips")
 
-    first_frame = None
-    if (inpaint := rows["inpaint"]) is not None:
-        first_frame = media.decode_png(inpaint["first_frame"], f"{what} inpaint first_frame")
-        used["/inpaint/first_frame"] = step("inpaint")
-    clouds: dict[str, Callable[[int], object]] = {}
-    if (cloud := rows["scene_cloud"]) is not None:
-        clouds["/scene/cloud"] = _cloud(cloud, "confidence", "point_confidence", config)
-        used["/scene/cloud"] = step("scene_cloud")
-    if (state := rows["state"]) is not None:
-        clouds["/state/cloud"] = _cloud(state, "source", "point_source", config)
-        used["/state/cloud"] = step("state")
 
-    times = [fx.time_ns(s) for s in clip.timestamps]
-    # A trajectory is the whole (T, 4, 4) path at every frame: build it once, restamp per frame.
-    paths = {topic: fx.poses_in_frame(0, frames[child]) for topic, child in trajectories.items()}
-    path = Path(path)
+def _gather_first_frame_and_clouds(view: _ClipView, config: ViewConfig) -> None:
+    """The inpainted first frame and the scene and state clouds (shown at frame 0)."""
+    if (inpaint := view.rows["inpaint"]) is not None:
+        view.first_frame = media.decode_png(
+            inpaint["first_frame"], f"{view.what} inpaint first_frame"
+        )
+        view.take("/inpaint/first_frame", "inpaint")
+    if (cloud := view.rows["scene_cloud"]) is not None:
+        view.clouds["/scene/cloud"] = _cloud(cloud, "confidence", "point_confidence", config)
+        view.take("/scene/cloud", "scene_cloud")
+    if (state := view.rows["state"]) is not None:
+        view.clouds["/state/cloud"] = _cloud(state, "source", "point_source", config)
+        view.take("/state/cloud", "state")
+
+
+def _write_view_mcap(view: _ClipView, index: RunIndex, path: Path, config: ViewConfig) -> None:
+    """Write ``view`` to ``path`` (through ``path.tmp``, renamed when complete)."""
     tmp = path.with_name(path.name + ".tmp")
     path.parent.mkdir(parents=True, exist_ok=True)
-    fmt, quality = config.image_format, config.jpeg_quality
     try:
         with open(tmp, "wb") as f, Writer(f) as writer:
-
-            def write(topic: str, message: object, ns: int) -> None:
-                writer.write_message(topic, message, log_time=ns, publish_time=ns)
-
-            for i, ns in enumerate(times):
-                write(
-                    "/camera/calibration",
-                    fx.calibration_message(ns, CAMERA_FRAME, intrinsics, w, h),
-                    ns,
-                )
-                for child, poses in frames.items():
-                    write("/tf", fx.frame_transform(ns, fx.WORLD_FRAME, child, poses[i]), ns)
-                for topic, path_msg in paths.items():
-                    path_msg.timestamp.CopyFrom(fx.stamp(ns))  # serialised by write, then reused
-                    write(topic, path_msg, ns)
-                for topic, video in videos.items():
-                    write(topic, fx.image_message(ns, CAMERA_FRAME, video[i], fmt, quality), ns)
-                for topic, mask in masks.items():
-                    write(topic, fx.mask_message(ns, CAMERA_FRAME, mask[i]), ns)
-                if joints is not None:
-                    write("/hands/skeleton", fx.skeleton_message(ns, joints[i], valid[i]), ns)
-                if i == 0:
-                    if first_frame is not None:
-                        write(
-                            "/inpaint/first_frame",
-                            fx.image_message(ns, CAMERA_FRAME, first_frame, "png"),
-                            ns,
-                        )
-                    for topic, message in clouds.items():
-                        write(topic, message(ns), ns)
-            prompt = (rows["captions"] or {}).get("text") or clip.text or ""
-            writer.add_metadata(
-                METADATA_NAME,
-                {
-                    "clip_id": clip_id,
-                    "run": str(index.root),
-                    "prompt": prompt,
-                    "fps": repr(clip.fps),
-                    "camera_from": camera_from or "none",
-                    "sources": json.dumps(used, sort_keys=True),
-                    "pixel_centres": "ROS/Foxglove: integers (egosim cx, cy minus 0.5)",
-                },
-            )
+            _write_view_messages(writer, view, config)
+            writer.add_metadata(METADATA_NAME, _view_metadata(view, index))
         tmp.replace(path)
     finally:
         tmp.unlink(missing_ok=True)
-    return path
+
+
+def _write_view_messages(writer: Writer, view: _ClipView, config: ViewConfig) -> None:
+    """Every frame's messages, in time order (frame 0 also carries the first frame and clouds)."""
+    clip = view.clip
+    times = [fx.time_ns(s) for s in clip.timestamps]
+    # A trajectory is the whole (T, 4, 4) path at every frame: build it once, restamp per frame.
+    paths = {t: fx.poses_in_frame(0, view.frames[c]) for t, c in view.trajectories.items()}
+    fmt, quality = config.image_format, config.jpeg_quality
+
+    def write(topic: str, message: object, ns: int) -> None:
+        writer.write_message(topic, message, log_time=ns, publish_time=ns)
+
+    for i, ns in enumerate(times):
+        calibration = fx.calibration_message(
+            ns, CAMERA_FRAME, view.intrinsics, clip.width, clip.height
+        )
+        write("/camera/calibration", calibration, ns)
+        for child, poses in view.frames.items():
+            write("/tf", fx.frame_transform(ns, fx.WORLD_FRAME, child, poses[i]), ns)
+        for topic, path_msg in paths.items():
+            path_msg.timestamp.CopyFrom(fx.stamp(ns))  # serialised by write, then reused
+            write(topic, path_msg, ns)
+        for topic, video in view.videos.items():
+            write(topic, fx.image_message(ns, CAMERA_FRAME, video[i], fmt, quality), ns)
+        for topic, mask in view.masks.items():
+            write(topic, fx.mask_message(ns, CAMERA_FRAME, mask[i]), ns)
+        if view.joints is not None:
+            write("/hands/skeleton", fx.skeleton_message(ns, view.joints[i], view.valid[i]), ns)
+        if i == 0:
+            if view.first_frame is not None:
+                image = fx.image_message(ns, CAMERA_FRAME, view.first_frame, "png")
+                write("/inpaint/first_frame", image, ns)
+            for topic, message in view.clouds.items():
+                write(topic, message(ns), ns)
+
+
+def _view_metadata(view: _ClipView, index: RunIndex) -> dict[str, str]:
+    """The MCAP's ``egosim`` metadata record: clip, run, prompt, fps and each topic's step."""
+    clip = view.clip
+    prompt = (view.rows["captions"] or {}).get("text") or clip.text or ""
+    return {
+        "clip_id": clip.clip_id,
+        "run": str(index.root),
+        "prompt": prompt,
+        "fps": repr(clip.fps),
+        "camera_from": view.camera_from or "none",
+        "sources": json.dumps(view.used, sort_keys=True),
+        "pixel_centres": "ROS/Foxglove: integers (egosim cx, cy minus 0.5)",
+    }
 
 
 def _cloud(

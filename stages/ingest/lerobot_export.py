@@ -76,6 +76,40 @@ def _pose7(world_from_cam: np.ndarray) -> np.ndarray:
     return np.concatenate([world_from_cam[:, :3, 3], quat], axis=1)
 
 
+@dataclass
+class _StepRows:
+    """The rows of the run's other steps an episode reads, by clip id (empty: no such step)."""
+
+    conditions: dict[str, dict[str, dict]]  # condition step -> clip id -> {video column: bytes}
+    captions: dict[str, dict]  # clip id -> {"text": ...}
+    poses: dict[str, dict]  # clip id -> {"world_from_cam": ...} (cleaned poses)
+    hands: dict[str, dict]  # clip id -> {"hand_joints": ..., "hand_valid": ...}
+
+    @classmethod
+    def read(cls, run: Path) -> _StepRows:
+        """Index the condition, captions, poses and hands steps of ``run``."""
+        return cls(
+            conditions={
+                step: _index(run, step, schema, [column])
+                for step, (schema, column, _) in CONDITION_KEYS.items()
+                if (run / step).is_dir()
+            },
+            captions=_index(run, "captions", CAPTIONS, ["text"]),
+            poses=_index(run, "poses", POSES, ["world_from_cam"]),
+            hands=_index(run, "hands", HANDS, ["hand_joints", "hand_valid"]),
+        )
+
+    def missing(self, clip: dict[str, Any]) -> str | None:
+        """Why ``clip`` cannot be an episode (a condition row or camera poses lacking), or None."""
+        cid = clip["clip_id"]
+        missing = [s for s, rows in self.conditions.items() if cid not in rows]
+        if missing:
+            return f"no {', '.join(missing)} row"
+        if clip["world_from_cam"] is None and cid not in self.poses:
+            return "no camera poses"
+        return None
+
+
 def export_lerobot(run: Path, out: Path, robot_type: str = "egosim") -> ExportReport:
     """Write the clips of run folder ``run`` as a LeRobot v3.0 dataset at ``out`` (see above).
 
@@ -86,27 +120,17 @@ def export_lerobot(run: Path, out: Path, robot_type: str = "egosim") -> ExportRe
     if (out / "meta" / "info.json").exists():
         raise FileExistsError(f"{out} already holds a LeRobot dataset (meta/info.json)")
     find_shards([run / "ingest"], "ingest")  # raises FileNotFoundError when there are none
-    conditions = {
-        step: _index(run, step, schema, [column])
-        for step, (schema, column, _) in CONDITION_KEYS.items()
-        if (run / step).is_dir()
-    }
-    captions = _index(run, "captions", CAPTIONS, ["text"])
-    poses = _index(run, "poses", POSES, ["world_from_cam"])
-    hands = _index(run, "hands", HANDS, ["hand_joints", "hand_valid"])
-    video_keys = [HEAD_KEY] + [CONDITION_KEYS[s][2] for s in conditions]
+    steps = _StepRows.read(run)
+    video_keys = [HEAD_KEY] + [CONDITION_KEYS[s][2] for s in steps.conditions]
     report = ExportReport(video_keys=video_keys)
     tasks: list[str] = []
     episodes: list[dict[str, Any]] = []
     fps = size = None
     for clip in _rows(run, "ingest", CLIPS):
         cid = clip["clip_id"]
-        missing = [s for s, rows in conditions.items() if cid not in rows]
-        if missing:
-            report.skipped[cid] = f"no {', '.join(missing)} row"
-            continue
-        if clip["world_from_cam"] is None and cid not in poses:
-            report.skipped[cid] = "no camera poses"
+        reason = steps.missing(clip)
+        if reason is not None:
+            report.skipped[cid] = reason
             continue
         t, h, w = int(clip["num_frames"]), int(clip["height"]), int(clip["width"])
         fps = float(clip["fps"]) if fps is None else fps
@@ -118,45 +142,13 @@ def export_lerobot(run: Path, out: Path, robot_type: str = "egosim") -> ExportRe
             continue
         ep = report.episodes
         chunk, file = ep // CHUNKS_SIZE, ep % CHUNKS_SIZE
-        task = (captions.get(cid) or {}).get("text") or clip.get("text") or ""
+        task = (steps.captions.get(cid) or {}).get("text") or clip.get("text") or ""
         if task not in tasks:
             tasks.append(task)
-        cams = poses.get(cid, {}).get("world_from_cam") or clip["world_from_cam"]
-        world_from_cam = np.asarray(cams, dtype=np.float64).reshape(t, 4, 4)
-        hand = hands.get(cid) or clip
-        joints = hand.get("hand_joints")
-        valid = hand.get("hand_valid")
-        joints = np.zeros((t, 126)) if joints is None else np.asarray(joints).reshape(t, 126)
-        valid = np.zeros((t, 2), bool) if valid is None else np.asarray(valid, bool).reshape(t, 2)
-        stamps = np.asarray(clip["timestamps"], dtype=np.float64)
-        f32 = pa.float32()
-        table = pa.table(
-            {
-                "timestamp": pa.array((stamps - stamps[0]).astype(np.float32)),
-                "frame_index": pa.array(np.arange(t, dtype=np.int64)),
-                "episode_index": pa.array(np.full(t, ep, dtype=np.int64)),
-                "index": pa.array(np.arange(report.frames, report.frames + t, dtype=np.int64)),
-                "task_index": pa.array(np.full(t, tasks.index(task), dtype=np.int64)),
-                "observation.camera_pose": pa.array(
-                    _pose7(world_from_cam).astype(np.float32).tolist(), pa.list_(f32, 7)
-                ),
-                "observation.camera_intrinsics": pa.array(
-                    np.tile(np.asarray(clip["intrinsics"], np.float32), (t, 1)).tolist(),
-                    pa.list_(f32, 4),
-                ),
-                "observation.hand_joints": pa.array(
-                    joints.astype(np.float32).tolist(), pa.list_(f32, 126)
-                ),
-                "observation.hand_valid": pa.array(valid.tolist(), pa.list_(pa.bool_(), 2)),
-            }
-        )
+        table = _frames_table(clip, steps, ep, report.frames, tasks.index(task))
         data = out / DATA_PATH.format(chunk_index=chunk, file_index=file)
         data.parent.mkdir(parents=True, exist_ok=True)
         pq.write_table(table, data)
-        videos = {HEAD_KEY: clip["video"]}
-        for step, rows in conditions.items():
-            _, column, key = CONDITION_KEYS[step]
-            videos[key] = rows[cid][column]
         entry: dict[str, Any] = {
             "episode_index": ep,
             "tasks": [task],
@@ -167,16 +159,7 @@ def export_lerobot(run: Path, out: Path, robot_type: str = "egosim") -> ExportRe
             "dataset_to_index": report.frames + t,
             "egosim/clip_id": cid,
         }
-        for key, payload in videos.items():
-            path = out / VIDEO_PATH.format(video_key=key, chunk_index=chunk, file_index=file)
-            path.parent.mkdir(parents=True, exist_ok=True)
-            path.write_bytes(payload)
-            entry |= {
-                f"videos/{key}/chunk_index": chunk,
-                f"videos/{key}/file_index": file,
-                f"videos/{key}/from_timestamp": 0.0,
-                f"videos/{key}/to_timestamp": t / fps,
-            }
+        entry |= _write_videos(out, _episode_videos(clip, steps), chunk, file, t / fps)
         episodes.append(entry)
         report.episodes += 1
         report.frames += t
@@ -184,6 +167,73 @@ def export_lerobot(run: Path, out: Path, robot_type: str = "egosim") -> ExportRe
         raise FileNotFoundError(f"no clip of {run} could be exported: {report.skipped}")
     _write_meta(out, episodes, tasks, video_keys, fps or 0.0, size or (0, 0), robot_type)
     return report
+
+
+def _frames_table(
+    clip: dict[str, Any], steps: _StepRows, episode: int, first_index: int, task_index: int
+) -> pa.Table:
+    """The episode's per-frame table: timestamps, indexes, camera pose and intrinsics, hands.
+
+    Poses are the cleaned ``poses`` step's when it has the clip, else the clip's own; hand
+    joints the ``hands`` step's, else the clip's (zeros and not valid when neither has them).
+    """
+    cid, t = clip["clip_id"], int(clip["num_frames"])
+    cams = steps.poses.get(cid, {}).get("world_from_cam") or clip["world_from_cam"]
+    world_from_cam = np.asarray(cams, dtype=np.float64).reshape(t, 4, 4)
+    hand = steps.hands.get(cid) or clip
+    joints = hand.get("hand_joints")
+    valid = hand.get("hand_valid")
+    joints = np.zeros((t, 126)) if joints is None else np.asarray(joints).reshape(t, 126)
+    valid = np.zeros((t, 2), bool) if valid is None else np.asarray(valid, bool).reshape(t, 2)
+    stamps = np.asarray(clip["timestamps"], dtype=np.float64)
+    f32 = pa.float32()
+    return pa.table(
+        {
+            "timestamp": pa.array((stamps - stamps[0]).astype(np.float32)),
+            "frame_index": pa.array(np.arange(t, dtype=np.int64)),
+            "episode_index": pa.array(np.full(t, episode, dtype=np.int64)),
+            "index": pa.array(np.arange(first_index, first_index + t, dtype=np.int64)),
+            "task_index": pa.array(np.full(t, task_index, dtype=np.int64)),
+            "observation.camera_pose": pa.array(
+                _pose7(world_from_cam).astype(np.float32).tolist(), pa.list_(f32, 7)
+            ),
+            "observation.camera_intrinsics": pa.array(
+                np.tile(np.asarray(clip["intrinsics"], np.float32), (t, 1)).tolist(),
+                pa.list_(f32, 4),
+            ),
+            "observation.hand_joints": pa.array(
+                joints.astype(np.float32).tolist(), pa.list_(f32, 126)
+            ),
+            "observation.hand_valid": pa.array(valid.tolist(), pa.list_(pa.bool_(), 2)),
+        }
+    )
+
+
+def _episode_videos(clip: dict[str, Any], steps: _StepRows) -> dict[str, bytes]:
+    """Video key -> the episode's MP4 bytes: the clip's video and each condition step's."""
+    videos = {HEAD_KEY: clip["video"]}
+    for step, rows in steps.conditions.items():
+        _, column, key = CONDITION_KEYS[step]
+        videos[key] = rows[clip["clip_id"]][column]
+    return videos
+
+
+def _write_videos(
+    out: Path, videos: dict[str, bytes], chunk: int, file: int, seconds: float
+) -> dict[str, Any]:
+    """Copy each video to its file; returns the episode-table entries that locate them."""
+    entry: dict[str, Any] = {}
+    for key, payload in videos.items():
+        path = out / VIDEO_PATH.format(video_key=key, chunk_index=chunk, file_index=file)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_bytes(payload)
+        entry |= {
+            f"videos/{key}/chunk_index": chunk,
+            f"videos/{key}/file_index": file,
+            f"videos/{key}/from_timestamp": 0.0,
+            f"videos/{key}/to_timestamp": seconds,
+        }
+    return entry
 
 
 def _write_meta(

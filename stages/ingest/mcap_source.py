@@ -180,6 +180,10 @@ def _transform_matrix(tf: Any) -> np.ndarray:
     return make_se3(matrix_from_quat(quat), np.array([t.x, t.y, t.z]))
 
 
+Messages = list[tuple[int, str, Any]]  # (time ns, schema name, decoded message) per image
+Edges = dict[tuple[str, str], list[tuple[int, np.ndarray]]]  # (parent, child) -> (ns, matrix)
+
+
 def read_mcap_clip(
     path: Path,
     clip_id: str | None = None,
@@ -202,9 +206,48 @@ def read_mcap_clip(
         raise ClipRejected(f"{path}: camera_axes must be one of {sorted(CAM_FROM_OURS)}")
     if not path.is_file():
         raise ClipRejected(f"{path}: MCAP file does not exist")
-    images: dict[str, list[tuple[int, str, Any]]] = defaultdict(list)  # (ns, schema, message)
+    images, calibrations, edges = _read_messages(path, time_source)
+    image_topic, messages = _image_messages(path, images, image_topic)
+    frame_id = messages[0][2].frame_id
+    if not calibrations:
+        raise ClipRejected(
+            f"{path}: no foxglove.CameraCalibration message: intrinsics are needed for "
+            f"image topic {image_topic!r}"
+        )
+    calib = next((c for c in calibrations if c.frame_id == frame_id), calibrations[0])
+    frames, intrinsics = _calibrated_frames(path, messages, calib, image_topic)
+    timestamps, fps = _timestamps(path, messages, time_source, image_topic)
+    camera = camera_frame or frame_id or "camera"
+    world_from_cam = None
+    if edges:
+        chain = _camera_chain(messages, edges, world_frame, camera, time_source)
+        if chain is not None:
+            world_from_cam = chain @ CAM_FROM_OURS[camera_axes]  # (T, 4, 4)
+    if world_from_cam is None and require_pose:
+        found = sorted({f"{p}->{c}" for p, c in edges})
+        raise ClipRejected(
+            f"{path}: no FrameTransform chain from {world_frame!r} to {camera!r} (found {found})"
+        )
+    return Clip(
+        clip_id=clip_id or path.stem,
+        source="mcap",
+        source_uri=str(path),
+        fps=fps,
+        timestamps=timestamps,
+        intrinsics=intrinsics,
+        frames=np.stack(frames),
+        world_from_cam=world_from_cam,
+    ).check()
+
+
+def _read_messages(path: Path, time_source: TimeSource) -> tuple[dict[str, Messages], list, Edges]:
+    """Every image (by topic, stamped by ``time_source``), calibration and transform sample.
+
+    Raises :class:`ClipRejected` for a file the MCAP reader or a decoder cannot read.
+    """
+    images: dict[str, Messages] = defaultdict(list)  # topic -> (ns, schema, message)
     calibrations: list[Any] = []
-    edges: dict[tuple[str, str], list[tuple[int, np.ndarray]]] = defaultdict(list)  # ns
+    edges: Edges = defaultdict(list)  # ns
     try:
         with open(path, "rb") as f:
             reader = make_reader(f, decoder_factories=[DecoderFactory()])
@@ -232,22 +275,28 @@ def read_mcap_clip(
         raise ClipRejected(
             f"{path}: corrupt or unreadable MCAP: {type(exc).__name__}: {exc}"
         ) from exc
+    return images, calibrations, edges
 
+
+def _image_messages(
+    path: Path, images: dict[str, Messages], image_topic: str | None
+) -> tuple[str, Messages]:
+    """The image topic (``image_topic``, else the one with most messages) and its messages in
+    time order."""
     if not images:
         raise ClipRejected(f"{path}: no foxglove.CompressedImage or foxglove.RawImage messages")
     if image_topic is None:
         image_topic = Counter({k: len(v) for k, v in images.items()}).most_common(1)[0][0]
     elif image_topic not in images:
         raise ClipRejected(f"{path}: no image topic {image_topic!r} (found {sorted(images)})")
-    messages = sorted(images[image_topic], key=lambda m: m[0])
-    frame_id = messages[0][2].frame_id
-    if not calibrations:
-        raise ClipRejected(
-            f"{path}: no foxglove.CameraCalibration message: intrinsics are needed for "
-            f"image topic {image_topic!r}"
-        )
-    calib = next((c for c in calibrations if c.frame_id == frame_id), calibrations[0])
+    return image_topic, sorted(images[image_topic], key=lambda m: m[0])
 
+
+def _calibrated_frames(
+    path: Path, messages: Messages, calib: Any, image_topic: str
+) -> tuple[list[np.ndarray], np.ndarray]:
+    """Decoded ``(H, W, 3)`` frames (undistorted when ``calib`` has distortion) and their
+    ``(4,)`` intrinsics in egosim's pixel convention, rescaled to the images' size."""
     try:
         frames = [_decode_image(schema, msg) for _, schema, msg in messages]
     except ValueError as exc:
@@ -256,7 +305,6 @@ def read_mcap_clip(
     if len(shapes) > 1:
         raise ClipRejected(f"{path}: images on {image_topic!r} differ in size: {dict(shapes)}")
     height, width = frames[0].shape[:2]
-
     kmat = np.asarray(calib.K, dtype=np.float64)
     if kmat.size != 9 or not np.all(np.isfinite(kmat)) or kmat[0] <= 0 or kmat[4] <= 0:
         raise ClipRejected(f"{path}: CameraCalibration K is not a valid 3x3 matrix: {list(kmat)}")
@@ -266,43 +314,36 @@ def read_mcap_clip(
     undistort = _undistorter(calib, intrinsics, width, height, str(path))
     if undistort is not None:
         frames = [undistort(f) for f in frames]
+    return frames, intrinsics
 
+
+def _timestamps(
+    path: Path, messages: Messages, time_source: TimeSource, image_topic: str
+) -> tuple[np.ndarray, float]:
+    """``(T,)`` seconds from the first image and the median frame rate (1 for one frame)."""
     # Integer nanoseconds until made relative: epoch seconds in float64 lose ~0.2 us.
     origin_ns = messages[0][0]
     timestamps = np.array([m[0] - origin_ns for m in messages], dtype=np.int64) * 1e-9  # (T,)
     if len(timestamps) > 1 and not np.all(np.diff(timestamps) > 0):
         raise ClipRejected(f"{path}: {time_source} times of {image_topic!r} are not increasing")
     fps = 1.0 / float(np.median(np.diff(timestamps))) if len(timestamps) > 1 else 1.0
+    return timestamps, fps
 
-    camera = camera_frame or frame_id or "camera"
-    world_from_cam = None
-    if edges:
-        # Transforms are matched by their header stamps: use the images' header stamps when set.
-        query_ns = [m[0] for m in messages]
-        header_ns = [_ns(m[2].timestamp) for m in messages]
-        if time_source != "header" and any(h > 0 for h in header_ns):
-            query_ns = header_ns
-        rel = {
-            key: [((ns - origin_ns) * 1e-9, mat) for ns, mat in samples]
-            for key, samples in edges.items()
-        }
-        query = np.array([ns - origin_ns for ns in query_ns], dtype=np.int64) * 1e-9  # (T,)
-        chain = _chain(rel, world_frame, camera, query)
-        if chain is not None:
-            world_from_cam = chain @ CAM_FROM_OURS[camera_axes]  # (T, 4, 4)
-    if world_from_cam is None and require_pose:
-        found = sorted({f"{p}->{c}" for p, c in edges})
-        raise ClipRejected(
-            f"{path}: no FrameTransform chain from {world_frame!r} to {camera!r} (found {found})"
-        )
 
-    return Clip(
-        clip_id=clip_id or path.stem,
-        source="mcap",
-        source_uri=str(path),
-        fps=fps,
-        timestamps=timestamps,
-        intrinsics=intrinsics,
-        frames=np.stack(frames),
-        world_from_cam=world_from_cam,
-    ).check()
+def _camera_chain(
+    messages: Messages, edges: Edges, world_frame: str, camera: str, time_source: TimeSource
+) -> np.ndarray | None:
+    """``(T, 4, 4)`` ``world_frame``-from-``camera`` at each image, in the recording's camera
+    axes; None without a chain of transforms between the two frames."""
+    origin_ns = messages[0][0]
+    # Transforms are matched by their header stamps: use the images' header stamps when set.
+    query_ns = [m[0] for m in messages]
+    header_ns = [_ns(m[2].timestamp) for m in messages]
+    if time_source != "header" and any(h > 0 for h in header_ns):
+        query_ns = header_ns
+    rel = {
+        key: [((ns - origin_ns) * 1e-9, mat) for ns, mat in samples]
+        for key, samples in edges.items()
+    }
+    query = np.array([ns - origin_ns for ns in query_ns], dtype=np.int64) * 1e-9  # (T,)
+    return _chain(rel, world_frame, camera, query)
