@@ -182,33 +182,13 @@ class PackStage(ClipStage):
         """Pack one clip (or reject it with the reason)."""
         cfg = self.config
         clip = ClipsRecord.of(rows["clips"])
-        cid = clip.clip_id
         t, h, w = clip.size
         check_inputs_agree(rows)
         render = SceneRenderRecord.of(rows["scene_render"])
         keypoints = KeypointsRecord.of(rows["keypoints"])
-
-        # Quality figures over the whole clip, then the gate (every failing figure at once).
-        vis_frac = render.visible_fraction
-        visible_fraction = float(vis_frac[1:].mean()) if t > 1 else float(vis_frac.mean())
         cameras = resolve_cameras(rows)
-        if cameras.source == "cameras":
-            registered_fraction = float(np.mean(DepthCameraRecord.of(rows["cameras"]).registered))
-        else:
-            registered_fraction = 0.0 if cameras.world_from_cam is None else 1.0
         index = sample_frame_indices(t, cfg.num_frames, cfg.frame_stride)
-        hand_valid_fraction = float(keypoints.keypoint_visible[index].any(axis=1).mean())
-        failed = [
-            f"{name} {value:.3f} < {minimum}"
-            for name, value, minimum in (
-                ("registered_fraction", registered_fraction, cfg.min_registered_fraction),
-                ("visible_fraction", visible_fraction, cfg.min_visible_fraction),
-                ("hand_valid_fraction", hand_valid_fraction, cfg.min_hand_valid_fraction),
-            )
-            if value < minimum
-        ]
-        if failed:
-            raise ClipRejected(f"quality gate: clip {cid!r}: " + "; ".join(failed))
+        gate = self._quality_gate(rows, cameras.source, cameras.world_from_cam is None, index)
 
         # Decode (each role's media checked against its size, which agrees with the clip's),
         # select frames, resize.
@@ -221,8 +201,15 @@ class PackStage(ClipStage):
         hand = _hand_mask(rows)
         depth0 = first_frame_depth(rows)
         fps = clip.fps / cfg.frame_stride
+
+        def video(frames: np.ndarray) -> bytes:
+            return media.encode_rgb_video(resize_video(frames[index], oh, ow), fps, cfg.crf)
+
+        def mask(values: np.ndarray) -> bytes:
+            return media.encode_mask_video(resize_mask(values[index], oh, ow))
+
         row = {
-            "clip_id": cid,
+            "clip_id": clip.clip_id,
             "num_frames": len(index),
             "width": ow,
             "height": oh,
@@ -232,31 +219,65 @@ class PackStage(ClipStage):
             "world_from_cam": None
             if cameras.world_from_cam is None
             else cameras.world_from_cam[index].reshape(len(index), 16).tolist(),
-            "target_video": media.encode_rgb_video(
-                resize_video(target[index], oh, ow), fps, cfg.crf
-            ),
-            "scene_video": media.encode_rgb_video(resize_video(scene[index], oh, ow), fps, cfg.crf),
-            "visible": media.encode_mask_video(resize_mask(visible[index], oh, ow)),
-            "skeleton_video": media.encode_rgb_video(
-                resize_video(skeleton[index], oh, ow), fps, cfg.crf
-            ),
+            "target_video": video(target),
+            "scene_video": video(scene),
+            "visible": mask(visible),
+            "skeleton_video": video(skeleton),
             "first_frame": media.encode_png(resize_video(first[None], oh, ow)[0]),
             "first_frame_source": first_source,
-            "hand_mask": None
-            if hand is None
-            else media.encode_mask_video(resize_mask(hand[index], oh, ow)),
+            "hand_mask": None if hand is None else mask(hand),
             "depth0": None,
             "depth_unit_m": None,
             "prompt": CaptionsRecord.of(rows["captions"]).text,
-            "visible_fraction": visible_fraction,
-            "registered_fraction": registered_fraction,
-            "hand_valid_fraction": hand_valid_fraction,
+            **gate,
         }
         if depth0 is not None:
             d = resize_depth(depth0.astype(np.float32), oh, ow)[None]  # (1, oh, ow)
             unit = media.depth_unit_for(d)
             row["depth0"], row["depth_unit_m"] = media.encode_depth_video(d, unit), unit
         return row
+
+    def _quality_gate(
+        self,
+        rows: Mapping[str, Mapping[str, Any]],
+        camera_source: str,
+        unposed: bool,
+        index: np.ndarray,
+    ) -> dict[str, float]:
+        """The clip's quality figures (pack columns), or :class:`ClipRejected` naming every one
+        below its threshold.
+
+        ``camera_source`` is the role the poses came from (``resolve_cameras``), ``unposed``
+        True when no role has poses, ``index`` the sample's frames in the clip.
+        """
+        cfg = self.config
+        t = ClipsRecord.of(rows["clips"]).num_frames
+        vis_frac = SceneRenderRecord.of(rows["scene_render"]).visible_fraction
+        visible_fraction = float(vis_frac[1:].mean()) if t > 1 else float(vis_frac.mean())
+        if camera_source == "cameras":
+            registered_fraction = float(np.mean(DepthCameraRecord.of(rows["cameras"]).registered))
+        else:
+            registered_fraction = 0.0 if unposed else 1.0
+        keypoint_visible = KeypointsRecord.of(rows["keypoints"]).keypoint_visible
+        hand_valid_fraction = float(keypoint_visible[index].any(axis=1).mean())
+        figures = {
+            "visible_fraction": visible_fraction,
+            "registered_fraction": registered_fraction,
+            "hand_valid_fraction": hand_valid_fraction,
+        }
+        failed = [
+            f"{name} {figures[name]:.3f} < {minimum}"
+            for name, minimum in (
+                ("registered_fraction", cfg.min_registered_fraction),
+                ("visible_fraction", cfg.min_visible_fraction),
+                ("hand_valid_fraction", cfg.min_hand_valid_fraction),
+            )
+            if figures[name] < minimum
+        ]
+        if failed:
+            cid = ClipsRecord.of(rows["clips"]).clip_id
+            raise ClipRejected(f"quality gate: clip {cid!r}: " + "; ".join(failed))
+        return figures
 
     def _first_frame(
         self, rows: Mapping[str, Mapping[str, Any]], frame0: np.ndarray, h: int, w: int
