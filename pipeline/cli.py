@@ -946,6 +946,48 @@ def presets(
         raise _fail(exc) from exc
 
 
+# --- egosim hands (issue 10): licensed MANO and HaMeR files to safetensors, never unpickled ------
+
+hands_app = typer.Typer(
+    help="Convert MANO and HaMeR files for the hands stage's regressor backend.",
+    no_args_is_help=True,
+)
+app.add_typer(hands_app, name="hands")
+
+
+@hands_app.command("convert-mano")
+def hands_convert_mano(
+    pkl: Annotated[Path, typer.Argument(help="The licensed MANO_RIGHT.pkl.")],
+    out: Annotated[Path, typer.Option("--out", help="Weights folder to write mano.safetensors.")],
+) -> None:
+    """Write OUT/mano.safetensors from MANO's .pkl, read as data (it is never unpickled)."""
+    from egosim.stages.hands.convert_mano import convert_mano_pickle
+
+    try:
+        written = convert_mano_pickle(pkl, out)
+    except USER_ERRORS as exc:
+        raise _fail(exc) from exc
+    typer.echo(f"wrote {written}")
+
+
+@hands_app.command("convert-hamer")
+def hands_convert_hamer(
+    checkpoint: Annotated[Path, typer.Argument(help="HaMeR checkpoint (hamer.ckpt).")],
+    out: Annotated[Path, typer.Option("--out", help="Weights folder to write.")],
+    num_heads: Annotated[int, typer.Option(help="ViT attention heads (ViT-H: 16).")] = 16,
+    decoder_heads: Annotated[int, typer.Option(help="MANO head decoder heads.")] = 8,
+) -> None:
+    """Write OUT/config.json and OUT/model.safetensors from a HaMeR checkpoint, read as data."""
+    from egosim.stages.hands.convert_checkpoint import HamerLayout, convert_hamer_checkpoint
+
+    layout = HamerLayout(num_heads=num_heads, decoder_heads=decoder_heads)
+    try:
+        dropped = convert_hamer_checkpoint(checkpoint, out, layout)
+    except USER_ERRORS as exc:
+        raise _fail(exc) from exc
+    typer.echo(f"wrote {out} (dropped {', '.join(dropped) or 'nothing'}); add mano.safetensors")
+
+
 def main() -> None:  # pragma: no cover - console entry point
     """Console entry point."""
     app()
