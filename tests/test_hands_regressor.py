@@ -2,12 +2,16 @@
 
 from __future__ import annotations
 
+import dataclasses
+import json
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 torch = pytest.importorskip("torch")
+
+from safetensors.torch import load_file  # noqa: E402
 
 from egosim.model.checkpoint import UnsafeCheckpointError  # noqa: E402
 from egosim.pipeline.clip_io import clip_from_row, write_clips  # noqa: E402
@@ -16,6 +20,12 @@ from egosim.pipeline.geometry import invert_se3, project_points, transform_point
 from egosim.pipeline.shards import open_shard  # noqa: E402
 from egosim.pipeline.stage import ConfigError  # noqa: E402
 from egosim.schemas.hands import HANDS  # noqa: E402
+from egosim.stages.hands.convert_checkpoint import (  # noqa: E402
+    HamerLayout,
+    convert_hamer_checkpoint,
+    hamer_to_regressor,
+)
+from egosim.stages.hands.mano import MANO_FILE, ManoLayer, save_mano_arrays  # noqa: E402
 from egosim.stages.hands.regressor_backend import (  # noqa: E402
     CONFIG_FILE,
     WEIGHTS_FILE,
@@ -28,10 +38,12 @@ from egosim.stages.hands.regressor_backend import (  # noqa: E402
     load_regressor,
     regressor_detections,
     save_regressor,
+    square_box,
 )
 from egosim.stages.hands.stage import HandsConfig  # noqa: E402
 from egosim.world.clip import render_clip  # noqa: E402
 from egosim.world.config import WorldConfig  # noqa: E402
+from tests.test_mano import tiny_mano  # noqa: E402
 
 TINY = RegressorSpec(
     image_size=64, patch_size=16, hidden_size=32, num_layers=2, num_heads=2, head_size=32
@@ -234,3 +246,323 @@ def test_cuda_matches_cpu(weights: Path, clip) -> None:
     gpu = regressor_detections(clip, RegressorParams(str(weights), "cuda", boxes="given"))
     np.testing.assert_array_equal(cpu.present, gpu.present)
     np.testing.assert_allclose(gpu.joints, cpu.joints, atol=1e-3)
+
+
+# ---------------------------------------------------------------------------------------------
+# Head "mano": HaMeR's MANO decoder and the MANO layer; HaMeR checkpoints converted.
+
+MANO_SPEC = RegressorSpec(
+    image_size=64,
+    patch_size=16,
+    hidden_size=32,
+    num_layers=2,
+    num_heads=2,
+    crop_columns=8,  # the ViT sees 64 x 48, as HaMeR's 256 x 192
+    patch_padding=2,
+    head="mano",
+    decoder_dim=16,
+    decoder_depth=2,
+    decoder_heads=2,
+    decoder_dim_head=8,
+    decoder_mlp=24,
+    num_betas=4,
+)
+TINY_LAYOUT = HamerLayout(num_heads=2, decoder_heads=2, image_size=64, crop_columns=8)
+
+
+def mano_folder(path: Path, seed: int, constant: bool = False) -> Path:
+    """A weights folder with a tiny random MANO-head regressor and tiny MANO model; with
+    ``constant`` the head's output layers are zero, so every crop gives the mean pose, shape and
+    camera (s = 0.9, t = 0)."""
+    arrays = tiny_mano(seed)
+    torch.manual_seed(seed)
+    model = HandRegressor(MANO_SPEC, ManoLayer(arrays))
+    if constant:
+        for layer in (model.mano_head.decpose, model.mano_head.decshape, model.mano_head.deccam):
+            torch.nn.init.zeros_(layer.weight)
+    save_regressor(model, path)
+    save_mano_arrays(arrays, path / MANO_FILE)
+    return path
+
+
+def test_mano_head_saves_loads_and_needs_its_mano_file(tmp_path: Path) -> None:
+    folder = mano_folder(tmp_path / "w", seed=1)
+    model = load_regressor(folder)
+    assert not any(k.startswith("mano.") for k in model.state_dict())  # MANO: its own file
+    x = torch.randn(2, 3, 64, 64)
+    with torch.inference_mode():
+        joints, cam = model(x)
+        rotations, betas, cam2 = model.forward_mano(x)
+    assert joints.shape == (2, 21, 3) and cam.shape == (2, 3) and betas.shape == (2, 4)
+    torch.testing.assert_close(cam, cam2)
+    eye = torch.eye(3).expand(2, 16, 3, 3)
+    torch.testing.assert_close(rotations @ rotations.transpose(-1, -2), eye, atol=1e-5, rtol=0)
+    # The joints are the MANO layer's for the predicted parameters.
+    with torch.inference_mode():
+        _, expected = ManoLayer(tiny_mano(1))(rotations, betas)
+    torch.testing.assert_close(joints, expected)
+    (folder / MANO_FILE).unlink()
+    with pytest.raises(ConfigError, match="convert-mano"):
+        load_regressor(folder)
+
+
+def test_mano_head_through_the_stage_puts_the_hands_in_their_boxes(tmp_path: Path, clip) -> None:
+    # A constant head: each hand is the tiny MANO template (rest pose, mean shape), with the
+    # camera (0.9, 0, 0): MANO's origin at the box centre, joint X at box pixel
+    # c + 0.9 X_xy b / 2 under weak perspective (x mirrored for a left hand).
+    folder = mano_folder(tmp_path / "w", seed=2, constant=True)
+    clips = tmp_path / "clips.parquet"
+    write_clips(clips, [clip])
+    out = tmp_path / "hands.parquet"
+    params = {"backend": "regressor", "regressor_weights": str(folder), "despike": False}
+    result = run_shard_task(
+        ShardTask(
+            step="hands",
+            stage="hands",
+            params={**params, "regressor_boxes": "given"},
+            shard_index=0,
+            shard_count=1,
+            output=out,
+            rejects=tmp_path / "hands.rejects.parquet",
+            inputs={"clips": clips},
+        )
+    )
+    assert result.rows == 1 and result.rejected == 0
+    with open_shard(out, HANDS) as reader:
+        row = next(reader.iter_rows())
+    valid = np.asarray(row["hand_valid"])  # (T, 2)
+    joints = np.asarray(row["hand_joints"], dtype=np.float64).reshape(5, 2, 21, 3)
+    np.testing.assert_array_equal(valid, clip.hand_valid)  # every labelled hand, every frame
+    assert np.isfinite(joints[valid]).all() and np.isnan(joints[~valid]).all()
+
+    template = ManoLayer(tiny_mano(2), dtype=torch.float64)
+    rest = torch.eye(3, dtype=torch.float64).expand(1, 16, 3, 3)
+    _, x_mano = template(rest, torch.zeros(1, 4, dtype=torch.float64))
+    x_mano = x_mano[0].numpy()  # (21, 3) right hand, MANO frame
+    k = clip.intrinsics
+    for f, s in zip(*np.nonzero(valid), strict=True):
+        labels_uv, _ = project_points(
+            transform_points(invert_se3(clip.world_from_cam[f]), clip.hand_joints[f, s]), k
+        )
+        centre, side = square_box(labels_uv, MANO_SPEC.box_scale, MANO_SPEC.visible_aspect)
+        hand = x_mano * (np.array([-1.0, 1.0, 1.0]) if s == 0 else 1.0)  # a left hand: mirrored
+        cam_pts = transform_points(invert_se3(clip.world_from_cam[f]), joints[f, s])
+        origin = cam_pts - hand  # (21, 3): MANO's origin, the same for every joint
+        np.testing.assert_allclose(origin, np.broadcast_to(origin[0], origin.shape), atol=1e-5)
+        origin_uv, _ = project_points(origin[:1], k)
+        np.testing.assert_allclose(origin_uv[0], centre, atol=1e-3)  # px: t = 0
+        uv, z = project_points(cam_pts, k)
+        weak = centre + 0.9 * hand[:, :2] * side / 2.0  # (21, 2)
+        # Full perspective is weak perspective scaled about the principal point by T_z / (T_z +
+        # X_z) (T_z = 2 f / (s b), the origin's depth): exact; and within 1 px of it for this
+        # ~0.15 m hand at the depth its box gives (up to 0.83 px here).
+        tz = 2.0 * k[0] / (0.9 * side)
+        np.testing.assert_allclose(origin[0, 2], tz, rtol=1e-6)
+        exact = k[2:] + (weak - k[2:]) * (tz / (tz + hand[:, 2]))[:, None]
+        np.testing.assert_allclose(uv, exact, atol=1e-4)
+        np.testing.assert_allclose(uv, weak, atol=1.0)
+        assert (np.abs(uv - centre) <= side / 2).all() and (z > 0).all()  # inside its box
+
+
+def test_mano_head_left_hands_mirror_right_hands(tmp_path: Path, clip) -> None:
+    from dataclasses import replace
+
+    folder = mano_folder(tmp_path / "w", seed=3)
+    t, w = clip.num_frames, clip.width
+    cam_joints = np.stack(
+        [
+            transform_points(invert_se3(clip.world_from_cam[f]), clip.hand_joints[f])
+            for f in range(t)
+        ]
+    )
+    eye = np.tile(np.eye(4), (t, 1, 1))
+    fx, fy, cx, cy = clip.intrinsics
+    flip = np.array([-1.0, 1.0, 1.0])
+    straight = replace(clip, world_from_cam=eye, hand_joints=cam_joints)
+    mirrored = replace(
+        straight,
+        frames=np.ascontiguousarray(clip.frames[:, :, ::-1]),
+        intrinsics=np.array([fx, fy, w - cx, cy]),
+        hand_joints=cam_joints[:, ::-1] * flip,
+        hand_valid=clip.hand_valid[:, ::-1],
+        hand_confidence=None if clip.hand_confidence is None else clip.hand_confidence[:, ::-1],
+    )
+    params = RegressorParams(str(folder), boxes="given")
+    a = regressor_detections(straight, params)
+    b = regressor_detections(mirrored, params)
+    assert a.present.all()
+    np.testing.assert_array_equal(a.present, b.present[:, ::-1])
+    np.testing.assert_allclose(a.joints, b.joints[:, ::-1] * flip, atol=1e-4)
+
+
+def hamer_state(rng: np.random.Generator, patches: int = 4 * 3) -> dict[str, np.ndarray]:
+    """A random state dict under HaMeR's parameter names (hamer/models/backbones/vit.py,
+    heads/mano_head.py, components/pose_transformer.py) at MANO_SPEC's sizes (``patches``:
+    4 x 3 for its 64 x 48 view, 16 x 12 for HaMeR's 256 x 192)."""
+    c, d, inner, mlp = 32, 16, 16, 24
+    shapes = {
+        "backbone.patch_embed.proj.weight": (c, 3, 16, 16),
+        "backbone.patch_embed.proj.bias": (c,),
+        "backbone.pos_embed": (1, 1 + patches, c),  # class slot + the patches
+        "backbone.last_norm.weight": (c,),
+        "backbone.last_norm.bias": (c,),
+        "mano_head.transformer.to_token_embedding.weight": (d, 1),
+        "mano_head.transformer.to_token_embedding.bias": (d,),
+        "mano_head.transformer.pos_embedding": (1, 1, d),
+        "mano_head.decpose.weight": (96, d),
+        "mano_head.decpose.bias": (96,),
+        "mano_head.decshape.weight": (4, d),
+        "mano_head.decshape.bias": (4,),
+        "mano_head.deccam.weight": (3, d),
+        "mano_head.deccam.bias": (3,),
+        "mano_head.init_hand_pose": (1, 96),
+        "mano_head.init_betas": (1, 4),
+        "mano_head.init_cam": (1, 3),
+    }
+    for i in range(2):
+        b = f"backbone.blocks.{i}."
+        shapes |= {
+            b + "norm1.weight": (c,),
+            b + "norm1.bias": (c,),
+            b + "attn.qkv.weight": (3 * c, c),
+            b + "attn.qkv.bias": (3 * c,),
+            b + "attn.proj.weight": (c, c),
+            b + "attn.proj.bias": (c,),
+            b + "norm2.weight": (c,),
+            b + "norm2.bias": (c,),
+            b + "mlp.fc1.weight": (4 * c, c),
+            b + "mlp.fc1.bias": (4 * c,),
+            b + "mlp.fc2.weight": (c, 4 * c),
+            b + "mlp.fc2.bias": (c,),
+        }
+        t = f"mano_head.transformer.transformer.layers.{i}."
+        shapes |= {
+            t + "0.norm.weight": (d,),
+            t + "0.norm.bias": (d,),
+            t + "0.fn.to_qkv.weight": (3 * inner, d),
+            t + "0.fn.to_out.0.weight": (d, inner),
+            t + "0.fn.to_out.0.bias": (d,),
+            t + "1.norm.weight": (d,),
+            t + "1.norm.bias": (d,),
+            t + "1.fn.to_q.weight": (inner, d),
+            t + "1.fn.to_kv.weight": (2 * inner, c),
+            t + "1.fn.to_out.0.weight": (d, inner),
+            t + "1.fn.to_out.0.bias": (d,),
+            t + "2.norm.weight": (d,),
+            t + "2.norm.bias": (d,),
+            t + "2.fn.net.0.weight": (mlp, d),
+            t + "2.fn.net.0.bias": (mlp,),
+            t + "2.fn.net.3.weight": (d, mlp),
+            t + "2.fn.net.3.bias": (d,),
+        }
+    return {k: rng.normal(0.0, 0.1, s).astype(np.float32) for k, s in shapes.items()}
+
+
+class HyperParameters:
+    """Stands in for a config object (HaMeR's yacs CfgNode) in a Lightning checkpoint."""
+
+
+def write_hamer_checkpoint(path: Path, state: dict[str, np.ndarray], monkeypatch) -> None:
+    """``torch.save`` of a Lightning-style checkpoint holding ``state`` (one tensor stored as a
+    transposed view, one in bfloat16), MANO buffers, a discriminator and a config object whose
+    module afterwards refuses to be imported."""
+    import collections
+    import sys
+    import types
+
+    module = types.ModuleType("fake_yacs")
+    HyperParameters.__module__ = "fake_yacs"
+    module.HyperParameters = HyperParameters
+    monkeypatch.setitem(sys.modules, "fake_yacs", module)
+    tensors = collections.OrderedDict((k, torch.from_numpy(v)) for k, v in state.items())
+    proj = "backbone.blocks.0.attn.proj.weight"
+    tensors[proj] = torch.from_numpy(np.ascontiguousarray(state[proj].T)).t()  # strided view
+    tensors["mano_head.decshape.bias"] = tensors["mano_head.decshape.bias"].bfloat16()
+    tensors["mano.v_template"] = torch.zeros(5, 3)
+    tensors["discriminator.fc.weight"] = torch.zeros(2, 2)
+    config = HyperParameters()
+    config.__dict__["MODEL"] = {"IMAGE_SIZE": 256}
+    torch.save({"state_dict": tensors, "epoch": 7, "hyper_parameters": {"cfg": config}}, path)
+    monkeypatch.delitem(sys.modules, "fake_yacs")  # unpickling would now fail to import it
+    monkeypatch.setattr(HyperParameters, "__module__", "fake_yacs_gone")
+
+
+def test_hamer_checkpoint_converts_by_name_without_unpickling(tmp_path: Path, monkeypatch) -> None:
+    rng = np.random.default_rng(0)
+    state = hamer_state(rng)
+    ckpt = tmp_path / "hamer.ckpt"
+    write_hamer_checkpoint(ckpt, state, monkeypatch)
+    with pytest.raises(Exception, match="fake_yacs"):  # torch.load would need the class
+        torch.load(ckpt, weights_only=False)
+    dropped = convert_hamer_checkpoint(ckpt, tmp_path / "weights", TINY_LAYOUT)
+    assert dropped == ["discriminator.", "mano."]
+    config = json.loads((tmp_path / "weights" / CONFIG_FILE).read_text())
+    spec = RegressorSpec(
+        **{
+            k: tuple(v) if isinstance(v, list) else v
+            for k, v in config.items()
+            if k != "architecture"
+        }
+    )
+    assert spec == dataclasses.replace(MANO_SPEC, box_scale=2.0)
+    converted = load_file(tmp_path / "weights" / WEIGHTS_FILE)
+    for key, value in state.items():
+        if key == "backbone.pos_embed":
+            expected = value[:, 1:] + value[:, :1]  # ViTPose adds its class slot to every patch
+            np.testing.assert_allclose(converted["pos_embed"].numpy(), expected, atol=1e-7)
+        elif key == "mano_head.decshape.bias":  # stored as bfloat16
+            np.testing.assert_allclose(converted[key].numpy(), value, rtol=1e-2, atol=1e-3)
+        else:
+            new = key.removeprefix("backbone.")
+            np.testing.assert_array_equal(converted[new].numpy(), value, err_msg=key)
+    assert len(converted) == len(state)
+    # With the MANO file beside it, the folder runs.
+    save_mano_arrays(tiny_mano(0), tmp_path / "weights" / MANO_FILE)
+    model = load_regressor(tmp_path / "weights")
+    with torch.inference_mode():
+        joints, cam = model(torch.randn(2, 3, 64, 64))
+    assert torch.isfinite(joints).all() and torch.isfinite(cam).all()
+
+
+def test_bad_checkpoints_are_named(tmp_path: Path, monkeypatch) -> None:
+    rng = np.random.default_rng(1)
+    state = hamer_state(rng)
+    with pytest.raises(ConfigError, match=r"4 x 4 grid"):  # no column crop: a 4 x 4 grid
+        hamer_to_regressor(state, dataclasses.replace(TINY_LAYOUT, crop_columns=0), "x.ckpt")
+    with pytest.raises(ConfigError, match="WiLoR"):
+        hamer_to_regressor({**state, "refine_net.w": np.zeros(1)}, TINY_LAYOUT, "x.ckpt")
+    with pytest.raises(ConfigError, match=r"x\.ckpt: not a HaMeR checkpoint"):
+        hamer_to_regressor(
+            {"backbone.patch_embed.proj.weight": np.zeros((4, 3, 2, 2))}, TINY_LAYOUT, "x.ckpt"
+        )
+    legacy = tmp_path / "legacy.pth"
+    legacy.write_bytes(b"\x80\x02}q\x00.")
+    with pytest.raises(ConfigError, match=r"legacy\.pth: not a torch\.save zip"):
+        convert_hamer_checkpoint(legacy, tmp_path / "out", TINY_LAYOUT)
+
+    class Payload:
+        def __reduce__(self):
+            return (print, ("payload ran",))
+
+    evil = tmp_path / "evil.ckpt"
+    torch.save({"state_dict": {"backbone.x": Payload()}}, evil)
+    with pytest.raises(ConfigError, match=r"evil\.ckpt: state_dict entries \['backbone\.x'\]"):
+        convert_hamer_checkpoint(evil, tmp_path / "out", TINY_LAYOUT)
+
+
+def test_cli_converts_hamer_checkpoints(tmp_path: Path, monkeypatch) -> None:
+    from typer.testing import CliRunner
+
+    from egosim.pipeline.cli import app
+
+    ckpt = tmp_path / "hamer.ckpt"
+    write_hamer_checkpoint(ckpt, hamer_state(np.random.default_rng(2), 16 * 12), monkeypatch)
+    out = tmp_path / "weights"
+    args = ["hands", "convert-hamer", str(ckpt), "--out", str(out)]
+    result = CliRunner().invoke(app, [*args, "--num-heads", "2", "--decoder-heads", "2"])
+    assert result.exit_code == 0, result.output
+    assert "dropped discriminator., mano." in result.output
+    config = json.loads((out / CONFIG_FILE).read_text())
+    assert (config["image_size"], config["crop_columns"], config["head"]) == (256, 32, "mano")
+    result = CliRunner().invoke(app, [*args, "--num-heads", "2", "--decoder-heads", "5"])
+    assert result.exit_code == 2 and "decoder_heads" in result.output

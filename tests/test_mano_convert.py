@@ -192,3 +192,18 @@ def test_bad_mano_files_name_the_file(tmp_path: Path) -> None:
         read_mano_pickle(pkl)
     with pytest.raises(ManoFileError, match="cannot read"):
         read_mano_pickle(tmp_path / "absent.pkl")
+
+
+def test_cli_converts_mano(tmp_path: Path, monkeypatch) -> None:
+    from typer.testing import CliRunner
+
+    from egosim.pipeline.cli import app
+
+    pkl = tmp_path / "MANO_RIGHT.pkl"
+    pkl.write_bytes(official_like(tiny_mano(), monkeypatch))
+    result = CliRunner().invoke(app, ["hands", "convert-mano", str(pkl), "--out", str(tmp_path)])
+    assert result.exit_code == 0, result.output
+    assert (tmp_path / "mano.safetensors").is_file()
+    pkl.write_bytes(pickle.dumps({"v_template": np.zeros((3, 3))}))
+    result = CliRunner().invoke(app, ["hands", "convert-mano", str(pkl), "--out", str(tmp_path)])
+    assert result.exit_code == 2 and "missing arrays" in result.output

@@ -62,6 +62,13 @@ from egosim.pipeline.records import LEFT, NUM_HAND_JOINTS, RIGHT, Clip
 from egosim.pipeline.stage import ConfigError
 from egosim.stages.hands.filters import Detections
 from egosim.stages.hands.given import NoHandLabelsError
+from egosim.stages.hands.mano import (
+    MANO_FILE,
+    NUM_MANO_JOINTS,
+    ManoLayer,
+    load_mano_layer,
+    rotation_6d_to_matrix,
+)
 from egosim.stages.hands.mediapipe_backend import (
     MediaPipeParams,
     detect_landmarks,
@@ -92,6 +99,18 @@ class RegressorSpec:
     mlp_ratio: float = 4.0  # MLP width over hidden_size in each block
     head_size: int = 1024  # hidden width of the joint/camera head
     box_scale: float = 2.0  # crop side over the larger side of the landmarks' box
+    # columns cut from each side of the crop before the backbone (HaMeR: 32 of 256, 192 wide)
+    crop_columns: int = 0
+    patch_padding: int = 0  # zero padding of the patch convolution (ViTPose/HaMeR: 2)
+    # the head: "joints" (21 wrist-relative joints) or "mano" (HaMeR's MANO parameter decoder
+    # with the MANO layer of the folder's mano.safetensors)
+    head: Literal["joints", "mano"] = "joints"
+    decoder_dim: int = 1024  # head "mano": token width of the transformer decoder
+    decoder_depth: int = 6  # head "mano": decoder layers (self-, cross-attention, MLP)
+    decoder_heads: int = 8  # head "mano": attention heads
+    decoder_dim_head: int = 64  # head "mano": width of one head
+    decoder_mlp: int = 1024  # head "mano": hidden width of each MLP
+    num_betas: int = 10  # head "mano": MANO shape coefficients predicted
     image_mean: tuple[float, float, float] = (0.485, 0.456, 0.406)  # RGB in [0, 1] (ImageNet)
     image_std: tuple[float, float, float] = (0.229, 0.224, 0.225)  # RGB in [0, 1] (ImageNet)
 
@@ -110,12 +129,36 @@ class RegressorSpec:
                 f"num_layers, head_size, mlp_ratio must be positive, got {self.num_layers}, "
                 f"{self.head_size}, {self.mlp_ratio}"
             )
+        width = self.image_size - 2 * self.crop_columns
+        if self.crop_columns < 0 or width < self.patch_size:
+            problems.append(f"crop_columns {self.crop_columns} leaves too narrow a crop")
+        if self.patch_padding < 0:
+            problems.append(f"patch_padding must be >= 0, got {self.patch_padding}")
+        if self.head not in ("joints", "mano"):
+            problems.append(f"head must be 'joints' or 'mano', got {self.head!r}")
+        decoder = (self.decoder_dim, self.decoder_depth, self.decoder_heads, self.decoder_dim_head)
+        if min(*decoder, self.decoder_mlp, self.num_betas) < 1:
+            problems.append("decoder sizes and num_betas must be positive")
         if not self.box_scale >= 1.0:
             problems.append(f"box_scale must be >= 1, got {self.box_scale}")
         if len(self.image_mean) != 3 or len(self.image_std) != 3 or min(self.image_std) <= 0:
             problems.append(f"image_mean/std must be 3 values (std > 0), got {self.image_std}")
         if problems:
             raise RegressorWeightsError("; ".join(problems))
+
+    @property
+    def grid(self) -> tuple[int, int]:
+        """Patch rows and columns the backbone sees."""
+
+        def cells(n: int) -> int:
+            return (n + 2 * self.patch_padding - self.patch_size) // self.patch_size + 1
+
+        return cells(self.image_size), cells(self.image_size - 2 * self.crop_columns)
+
+    @property
+    def visible_aspect(self) -> float:
+        """Width over height of the part of the square crop the backbone sees."""
+        return (self.image_size - 2 * self.crop_columns) / self.image_size
 
 
 class Attention(nn.Module):
@@ -165,21 +208,164 @@ class Block(nn.Module):
         return x + self.mlp(self.norm2(x))
 
 
-class HandRegressor(nn.Module):
-    """ViT backbone plus a head: wrist-relative joints and a weak-perspective camera per crop."""
+class DecoderAttention(nn.Module):
+    """Multi-head attention of HaMeR's pose transformer: self-attention (``to_qkv``) or
+    cross-attention to a context (``to_q``, ``to_kv``); projections without bias."""
+
+    def __init__(self, dim: int, heads: int, dim_head: int, context_dim: int | None) -> None:
+        super().__init__()
+        inner = heads * dim_head
+        self.heads = heads
+        if context_dim is None:
+            self.to_qkv = nn.Linear(dim, 3 * inner, bias=False)
+        else:
+            self.to_q = nn.Linear(dim, inner, bias=False)
+            self.to_kv = nn.Linear(context_dim, 2 * inner, bias=False)
+        self.to_out = nn.Sequential(nn.Linear(inner, dim))
+
+    def forward(self, x: torch.Tensor, context: torch.Tensor | None = None) -> torch.Tensor:
+        """``x (B, N, dim)``, ``context (B, M, context_dim)`` -> ``(B, N, dim)``."""
+        if context is None:
+            q, k, v = self.to_qkv(x).chunk(3, dim=-1)  # each (B, N, inner)
+        else:
+            q = self.to_q(x)  # (B, N, inner)
+            k, v = self.to_kv(context).chunk(2, dim=-1)  # each (B, M, inner)
+
+        def split(t: torch.Tensor) -> torch.Tensor:  # (B, L, inner) -> (B, H, L, D)
+            return t.reshape(t.shape[0], t.shape[1], self.heads, -1).transpose(1, 2)
+
+        out = nn.functional.scaled_dot_product_attention(split(q), split(k), split(v))
+        return self.to_out(out.transpose(1, 2).reshape(x.shape[0], x.shape[1], -1))
+
+
+class PreNorm(nn.Module):
+    """LayerNorm, then ``fn`` (HaMeR's ``PreNorm``)."""
+
+    def __init__(self, dim: int, fn: nn.Module) -> None:
+        super().__init__()
+        self.norm = nn.LayerNorm(dim)
+        self.fn = fn
+
+    def forward(self, x: torch.Tensor, **kwargs: torch.Tensor) -> torch.Tensor:
+        """``fn(norm(x), **kwargs)``."""
+        return self.fn(self.norm(x), **kwargs)
+
+
+class FeedForward(nn.Module):
+    """Linear, GELU, (dropout slot), linear: HaMeR's ``FeedForward`` (``net.0``, ``net.3``)."""
+
+    def __init__(self, dim: int, hidden: int) -> None:
+        super().__init__()
+        self.net = nn.Sequential(
+            nn.Linear(dim, hidden), nn.GELU(), nn.Identity(), nn.Linear(hidden, dim)
+        )
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """``x (B, N, dim)`` -> ``(B, N, dim)``."""
+        return self.net(x)
+
+
+class TokenDecoder(nn.Module):
+    """HaMeR's ``TransformerDecoder``: one token, embedded, through ``depth`` layers of
+    self-attention, cross-attention to the image tokens and an MLP (pre-norm, residual)."""
 
     def __init__(self, spec: RegressorSpec) -> None:
         super().__init__()
+        dim = spec.decoder_dim
+        self.to_token_embedding = nn.Linear(1, dim)
+        self.pos_embedding = nn.Parameter(torch.zeros(1, 1, dim))
+        self.transformer = nn.Module()
+        self.transformer.layers = nn.ModuleList(
+            nn.ModuleList(
+                [
+                    PreNorm(
+                        dim, DecoderAttention(dim, spec.decoder_heads, spec.decoder_dim_head, None)
+                    ),
+                    PreNorm(
+                        dim,
+                        DecoderAttention(
+                            dim, spec.decoder_heads, spec.decoder_dim_head, spec.hidden_size
+                        ),
+                    ),
+                    PreNorm(dim, FeedForward(dim, spec.decoder_mlp)),
+                ]
+            )
+            for _ in range(spec.decoder_depth)
+        )
+
+    def forward(self, context: torch.Tensor) -> torch.Tensor:
+        """Image tokens ``context (B, N, C)`` -> the decoded token ``(B, dim)``."""
+        token = torch.zeros(context.shape[0], 1, 1, dtype=context.dtype, device=context.device)
+        x = self.to_token_embedding(token) + self.pos_embedding  # (B, 1, dim)
+        for self_attn, cross_attn, mlp in self.transformer.layers:
+            x = self_attn(x) + x
+            x = cross_attn(x, context=context) + x
+            x = mlp(x) + x
+        return x[:, 0]  # (B, dim)
+
+
+class ManoHead(nn.Module):
+    """HaMeR's ``MANOTransformerDecoderHead`` (one refinement step, zero input token): MANO
+    pose as 6D rotations, shape and a weak-perspective camera, each an offset from its mean."""
+
+    def __init__(self, spec: RegressorSpec) -> None:
+        super().__init__()
+        npose = 6 * NUM_MANO_JOINTS
+        self.transformer = TokenDecoder(spec)
+        self.decpose = nn.Linear(spec.decoder_dim, npose)
+        self.decshape = nn.Linear(spec.decoder_dim, spec.num_betas)
+        self.deccam = nn.Linear(spec.decoder_dim, 3)
+        identity_6d = torch.tensor([1.0, 0.0, 0.0, 0.0, 1.0, 0.0])  # columns e_x, e_y
+        self.register_buffer("init_hand_pose", identity_6d.repeat(NUM_MANO_JOINTS)[None])
+        self.register_buffer("init_betas", torch.zeros(1, spec.num_betas))
+        self.register_buffer("init_cam", torch.tensor([[0.9, 0.0, 0.0]]))  # HaMeR's mean camera
+        for layer in (self.decpose, self.decshape, self.deccam):  # untrained: near the means
+            nn.init.normal_(layer.weight, std=0.01)
+            nn.init.zeros_(layer.bias)
+
+    def forward(self, context: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Image tokens ``(B, N, C)`` -> ``(rotations (B, 16, 3, 3), betas (B, num_betas),
+        cam (B, 3) = (s, tx, ty))``."""
+        token = self.transformer(context)  # (B, dim)
+        pose = self.decpose(token) + self.init_hand_pose  # (B, 96)
+        betas = self.decshape(token) + self.init_betas  # (B, num_betas)
+        cam = self.deccam(token) + self.init_cam  # (B, 3)
+        rotations = rotation_6d_to_matrix(pose.reshape(-1, NUM_MANO_JOINTS, 6))  # (B, 16, 3, 3)
+        return rotations, betas, cam
+
+
+class HandRegressor(nn.Module):
+    """ViT backbone plus a head: hand joints and a weak-perspective camera per crop.
+
+    Head ``joints``: 21 wrist-relative joints. Head ``mano`` (needs ``mano``, the MANO layer):
+    MANO pose and shape, whose joints (MANO's frame, placed by the camera at MANO's origin) the
+    layer computes.
+    """
+
+    def __init__(self, spec: RegressorSpec, mano: ManoLayer | None = None) -> None:
+        super().__init__()
         self.spec = spec
         c = spec.hidden_size
-        grid = spec.image_size // spec.patch_size
+        rows, cols = spec.grid
         self.patch_embed = nn.Module()
-        self.patch_embed.proj = nn.Conv2d(3, c, spec.patch_size, stride=spec.patch_size)
-        self.pos_embed = nn.Parameter(torch.zeros(1, grid * grid, c))
+        self.patch_embed.proj = nn.Conv2d(
+            3, c, spec.patch_size, stride=spec.patch_size, padding=spec.patch_padding
+        )
+        self.pos_embed = nn.Parameter(torch.zeros(1, rows * cols, c))
         self.blocks = nn.ModuleList(
             Block(c, spec.num_heads, spec.mlp_ratio) for _ in range(spec.num_layers)
         )
         self.last_norm = nn.LayerNorm(c, eps=1e-6)
+        nn.init.trunc_normal_(self.pos_embed, std=0.02)  # ViT's choice
+        if spec.head == "mano":
+            if mano is not None and mano.num_betas != spec.num_betas:
+                raise RegressorWeightsError(
+                    f"the MANO file has {mano.num_betas} shape coefficients, the head predicts "
+                    f"{spec.num_betas}"
+                )
+            self.mano_head = ManoHead(spec)
+            self.mano = mano  # its arrays are not in the state dict (their own file); None: no
+            return  # forward (a converter only checks and saves the weights)
         self.head = nn.Sequential(nn.Linear(c, spec.head_size), nn.GELU())
         self.joints_out = nn.Linear(spec.head_size, NUM_HAND_JOINTS * 3)
         self.cam_out = nn.Linear(spec.head_size, 3)
@@ -188,20 +374,35 @@ class HandRegressor(nn.Module):
         # hand (zeros here); the camera's scale starts at 0.9 of the box.
         self.register_buffer("mean_joints", torch.zeros(NUM_HAND_JOINTS, 3))
         self.register_buffer("mean_cam", torch.tensor([_softplus_inverse(0.9), 0.0, 0.0]))
-        nn.init.trunc_normal_(self.pos_embed, std=0.02)  # ViT's choice
         # Small output layers: an untrained model predicts near the means, not wild cameras.
         for layer in (self.joints_out, self.cam_out):
             nn.init.normal_(layer.weight, std=0.01)
             nn.init.zeros_(layer.bias)
 
-    def forward(self, crops: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """``crops (B, 3, S, S)`` normalised -> ``(joints (B, 21, 3) metres, wrist at 0;
-        cam (B, 3) = (s > 0, tx, ty))``."""
-        x = self.patch_embed.proj(crops)  # (B, C, S/p, S/p)
+    def features(self, crops: torch.Tensor) -> torch.Tensor:
+        """``crops (B, 3, S, S)`` normalised -> image tokens ``(B, N, C)`` after the last norm."""
+        if self.spec.crop_columns:
+            crops = crops[..., self.spec.crop_columns : -self.spec.crop_columns]
+        x = self.patch_embed.proj(crops)  # (B, C, rows, cols)
         x = x.flatten(2).transpose(1, 2) + self.pos_embed  # (B, N, C)
         for block in self.blocks:
             x = block(x)  # (B, N, C)
-        h = self.head(self.last_norm(x).mean(dim=1))  # (B, head_size)
+        return self.last_norm(x)
+
+    def forward_mano(self, crops: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Head ``mano``: ``crops`` -> ``(rotations (B, 16, 3, 3), betas (B, K), cam (B, 3))``."""
+        return self.mano_head(self.features(crops))
+
+    def forward(self, crops: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """``crops (B, 3, S, S)`` normalised -> ``(joints (B, 21, 3) metres, cam (B, 3) = (s,
+        tx, ty))``; head ``joints``: wrist at 0 and ``s > 0``; head ``mano``: MANO's frame."""
+        if self.spec.head == "mano":
+            if self.mano is None:
+                raise RegressorWeightsError("head 'mano' needs the MANO layer (mano.safetensors)")
+            rotations, betas, cam = self.forward_mano(crops)
+            _, joints = self.mano(rotations, betas)  # (B, 21, 3)
+            return joints.to(cam.dtype), cam
+        h = self.head(self.features(crops).mean(dim=1))  # (B, head_size)
         joints = self.joints_out(h).reshape(-1, NUM_HAND_JOINTS, 3) + self.mean_joints  # (B, 21, 3)
         joints = joints - joints[:, :1]  # (B, 21, 3) wrist at the origin
         raw = self.cam_out(h) + self.mean_cam  # (B, 3)
@@ -271,7 +472,8 @@ def load_regressor(folder: str | Path, device: str = "cpu") -> HandRegressor:
         state = load_file(folder / WEIGHTS_FILE)
     except (SafetensorError, OSError) as exc:
         raise RegressorWeightsError(f"{folder / WEIGHTS_FILE}: not safetensors ({exc})") from exc
-    model = HandRegressor(spec)
+    mano = load_mano_layer(folder / MANO_FILE) if spec.head == "mano" else None
+    model = HandRegressor(spec, mano)
     try:
         model.load_state_dict(state, strict=True)
     except RuntimeError as exc:
@@ -303,14 +505,20 @@ def full_perspective_translation(
     return np.stack([tz * (u_root - cx) / fx, tz * (v_root - cy) / fy, tz], axis=-1)  # (N, 3)
 
 
-def square_box(uv: np.ndarray, box_scale: float) -> tuple[np.ndarray, float] | None:
+def square_box(
+    uv: np.ndarray, box_scale: float, aspect: float = 1.0
+) -> tuple[np.ndarray, float] | None:
     """Centre ``(2,)`` and side (pixels) of the square box around ``uv (21, 2)`` landmarks;
-    None when fewer than two are finite or they span no area."""
+    None when fewer than two are finite or they span no area. The landmarks' box is first
+    widened to ``aspect`` (width / height of the part of the crop the network sees, as HaMeR's
+    ``expand_to_aspect_ratio``), so its width fits the seen part: side = ``box_scale * max(w /
+    aspect, h)``."""
     ok = np.all(np.isfinite(uv), axis=1)
     if ok.sum() < 2:
         return None
     lo, hi = uv[ok].min(axis=0), uv[ok].max(axis=0)  # (2,), (2,)
-    side = float((hi - lo).max()) * box_scale
+    width, height = hi - lo
+    side = float(max(width / aspect, height)) * box_scale
     if not side > 0:
         return None
     return (lo + hi) / 2.0, side
@@ -413,7 +621,7 @@ def regressor_detections(clip: Clip, params: RegressorParams) -> Detections:
     uv, found, det_conf = hand_boxes(clip, params.boxes, params.mediapipe)
     items, crops = [], []
     for f, s in zip(*np.nonzero(found), strict=True):
-        box = square_box(uv[f, s], model.spec.box_scale)
+        box = square_box(uv[f, s], model.spec.box_scale, model.spec.visible_aspect)
         if box is None:
             continue
         centre, side = box
@@ -426,7 +634,8 @@ def regressor_detections(clip: Clip, params: RegressorParams) -> Detections:
     cams[left, 1] *= -1.0  # and its horizontal offset
     centres = np.array([c for _, _, c, _ in items]).reshape(-1, 2)  # (N, 2)
     box_sides = np.array([b for _, _, _, b in items], dtype=np.float64)  # (N,) pixels
-    roots = full_perspective_translation(cams, centres, box_sides, clip.intrinsics)  # (N, 3)
+    with np.errstate(divide="ignore", invalid="ignore"):  # s <= 0 (head mano): not in front
+        roots = full_perspective_translation(cams, centres, box_sides, clip.intrinsics)  # (N, 3)
 
     joints = np.zeros((t, 2, NUM_HAND_JOINTS, 3))
     conf = np.zeros((t, 2, NUM_HAND_JOINTS))
