@@ -566,3 +566,12 @@ def test_cli_converts_hamer_checkpoints(tmp_path: Path, monkeypatch) -> None:
     assert (config["image_size"], config["crop_columns"], config["head"]) == (256, 32, "mano")
     result = CliRunner().invoke(app, [*args, "--num-heads", "2", "--decoder-heads", "5"])
     assert result.exit_code == 2 and "decoder_heads" in result.output
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_mano_head_cuda_matches_cpu(tmp_path: Path, clip) -> None:
+    folder = mano_folder(tmp_path / "w", seed=4)
+    cpu = regressor_detections(clip, RegressorParams(str(folder), boxes="given"))
+    gpu = regressor_detections(clip, RegressorParams(str(folder), "cuda", boxes="given"))
+    np.testing.assert_array_equal(cpu.present, gpu.present)
+    np.testing.assert_allclose(gpu.joints, cpu.joints, atol=1e-3)

@@ -6,14 +6,21 @@ For one clip:
    backend's tracked and side-assigned 2D landmarks (``boxes="mediapipe"``), or from the clip's
    own joint labels projected with its camera (``boxes="given"``: the regressor alone, evaluated
    on true boxes). A box is centred on the landmarks' bounding box, its side ``box_scale`` times
-   the larger of its width and height (HaMeR's rescale of keypoint boxes).
+   the larger of its width (over the seen aspect, below) and height (HaMeR's rescale of
+   keypoint boxes and ``expand_to_aspect_ratio``).
 2. **Crop**: each box is resampled to an ``image_size`` square; left hands are mirrored first,
-   since the network (like HaMeR's MANO head) models right hands only.
-3. **Regress** (:class:`HandRegressor`): a ViT backbone over the crop's patches, mean-pooled,
-   then an MLP head that predicts 21 joints in metres relative to the wrist (joint order of the
-   clip labels, MediaPipe / OpenPose), in the camera's axes (OpenCV: x right, y down, z
-   forward), and a weak-perspective camera ``(s, tx, ty)``. As in HaMeR, the crop is not
-   rotated to face the hand, so the joints' axes are the full camera's.
+   since the network (like HaMeR's MANO head) models right hands only. ``crop_columns`` are
+   then cut from each side (HaMeR's ViT sees the middle 192 of 256 columns: the seen aspect).
+3. **Regress** (:class:`HandRegressor`): a ViT backbone over the crop's patches, then one of
+   two heads. Head ``joints``: mean-pooled tokens, an MLP that predicts 21 joints in metres
+   relative to the wrist (joint order of the clip labels, MediaPipe / OpenPose) and a
+   weak-perspective camera ``(s, tx, ty)``. Head ``mano`` (:class:`ManoHead`, HaMeR's): a
+   transformer decoder whose one token cross-attends to the image tokens and reads out MANO's
+   16 rotations (6D), shape and the camera; the MANO layer
+   (:class:`~egosim.stages.hands.mano.ManoLayer`, from the folder's ``mano.safetensors``)
+   turns them into the 21 joints in MANO's frame, placed by the camera at MANO's origin
+   instead of the wrist. Either way the joints are in the camera's axes (OpenCV: x right, y
+   down, z forward): as in HaMeR, the crop is not rotated to face the hand.
 4. **Place** (:func:`full_perspective_translation`): the weak-perspective camera says that a
    wrist-relative point ``X`` appears at the crop-normalised coordinate
    ``n = s * (X_xy + (tx, ty))``, where ``n`` runs over ``[-1, 1]`` across the box; in full-image
@@ -28,16 +35,17 @@ For one clip:
    Mirroring a left hand's crop negates ``n_x``, so its joints' x and its ``tx`` are negated.
    Then to world with ``world_from_cam``.
 
-Weights are a local folder with ``config.json`` (:class:`RegressorSpec` fields) and
-``model.safetensors`` (the state dict of :class:`HandRegressor`); pickled checkpoints are
-refused before anything is unpickled. :func:`save_regressor` writes such a folder. Released
-HaMeR and WiLoR checkpoints are pickles of a different network (a ViT-H backbone on 256x192
-crops, a transformer-decoder head that predicts MANO pose and shape, and the MANO layer, whose
-model files are licence-gated) and need a converter to this layout, which is not written: there
-are no MANO files here to test one against. The backbone's parameter names follow timm/ViTPose
-(``patch_embed.proj``, ``blocks.N.attn.qkv``, ``blocks.N.mlp.fc1``) so that such a converter
-can copy a ViT backbone by name. torch is imported by this module; the stage imports it only
-when this backend is chosen.
+Weights are a local folder with ``config.json`` (:class:`RegressorSpec` fields),
+``model.safetensors`` (the state dict of :class:`HandRegressor`) and, for head ``mano``,
+``mano.safetensors`` (MANO's arrays); pickled checkpoints are refused before anything is
+unpickled. :func:`save_regressor` writes the first two. A released HaMeR checkpoint (ViTPose
+ViT-H on 256 x 192 crops, the MANO head) becomes such a folder with ``egosim hands
+convert-hamer`` (:mod:`egosim.stages.hands.convert_checkpoint`) and the licensed
+``MANO_RIGHT.pkl`` its ``mano.safetensors`` with ``egosim hands convert-mano``
+(:mod:`egosim.stages.hands.convert_mano`); neither is unpickled. WiLoR's refinement network is
+not implemented. The backbone's parameter names follow timm/ViTPose (``patch_embed.proj``,
+``blocks.N.attn.qkv``, ``blocks.N.mlp.fc1``) and the MANO head's HaMeR's. torch is imported by
+this module; the stage imports it only when this backend is chosen.
 """
 
 from __future__ import annotations
