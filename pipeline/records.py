@@ -187,11 +187,13 @@ class Record(DeclaredRow):
     def of(cls, row: Mapping[str, Any]) -> Self:
         """``row`` typed as this record: itself when it already is one, else wrapped.
 
-        A wrapped plain mapping refuses no column (it has no declaration): a missing column
-        reads as it would from the mapping.
+        A declared row keeps its declaration; a wrapped plain mapping refuses no column (it has
+        none): a missing column reads as it would from the mapping.
         """
         if isinstance(row, cls):
             return row
+        if isinstance(row, DeclaredRow):
+            return cls(dict.copy(row), row.stage, row.role, row.schema_columns)
         return cls(row)
 
     def _once(self, key: str, parse: Callable[[], Any]) -> Any:

@@ -126,6 +126,10 @@ def test_a_record_answers_mapping_access_like_the_row() -> None:
         record.world_from_cam  # noqa: B018 (the typed accessor obeys the declaration too)
     assert (record.num_frames, record.fps, record.text) == (3, row["fps"], row["text"])
     assert ClipsRecord.of(record) is record  # a record passes through
+    retyped = ClipsRecord.of(Record(part, "s", "clips", CLIPS.column_names))
+    assert type(retyped) is ClipsRecord and retyped.num_frames == 3
+    with pytest.raises(UndeclaredColumnError):  # ... and a generic one keeps its declaration
+        retyped.frames  # noqa: B018
     assert record_class(CLIPS) is ClipsRecord and record_class(REJECTS) is Record
 
 
