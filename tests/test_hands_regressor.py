@@ -575,3 +575,29 @@ def test_mano_head_cuda_matches_cpu(tmp_path: Path, clip) -> None:
     gpu = regressor_detections(clip, RegressorParams(str(folder), "cuda", boxes="given"))
     np.testing.assert_array_equal(cpu.present, gpu.present)
     np.testing.assert_allclose(gpu.joints, cpu.joints, atol=1e-3)
+
+
+def test_only_the_state_dicts_storages_are_read(tmp_path: Path) -> None:
+    import zipfile
+
+    state = hamer_state(np.random.default_rng(3))
+    moment = torch.zeros(12345)  # an optimizer state: its storage is never needed
+    ckpt = tmp_path / "full.ckpt"
+    tensors = {k: torch.from_numpy(v) for k, v in state.items()}
+    torch.save({"state_dict": tensors, "optimizer_states": [{"exp_avg": moment}]}, ckpt)
+    slim = tmp_path / "slim.ckpt"
+    with zipfile.ZipFile(ckpt) as src, zipfile.ZipFile(slim, "w") as dst:
+        dropped = [i.filename for i in src.infolist() if i.file_size == 4 * 12345]
+        assert len(dropped) == 1
+        for info in src.infolist():
+            if info.filename not in dropped:
+                dst.writestr(info, src.read(info.filename))
+    assert convert_hamer_checkpoint(slim, tmp_path / "w", TINY_LAYOUT) == []
+    assert len(load_file(tmp_path / "w" / WEIGHTS_FILE)) == len(state)
+    missing_weight = tmp_path / "missing.ckpt"  # a state_dict storage gone: named, not a crash
+    with zipfile.ZipFile(ckpt) as src, zipfile.ZipFile(missing_weight, "w") as dst:
+        for info in src.infolist():
+            if not info.filename.endswith("/data/0"):
+                dst.writestr(info, src.read(info.filename))
+    with pytest.raises(ConfigError, match=r"missing\.ckpt: .*data/0"):
+        convert_hamer_checkpoint(missing_weight, tmp_path / "w2", TINY_LAYOUT)

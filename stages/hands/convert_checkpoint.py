@@ -2,10 +2,12 @@
 
 A ``torch.save`` file is a zip holding ``<name>/data.pkl`` (a pickle of the saved tree, where
 each tensor is a call of ``torch._utils._rebuild_tensor_v2`` on a storage named by a persistent
-id) and ``<name>/data/<key>`` (each storage's raw little-endian bytes). :func:`read_torch_zip`
-walks ``data.pkl`` with :func:`~egosim.stages.hands.convert_pickle.read_pickle`: tensors become
-numpy arrays built from the storage bytes, offset, size and stride; nothing named in the file is
-imported or called. ``torch.load(weights_only=True)`` would also refuse arbitrary code, but it
+id) and ``<name>/data/<key>`` (each storage's raw little-endian bytes).
+:func:`read_checkpoint_state_dict` walks ``data.pkl`` with
+:func:`~egosim.stages.hands.convert_pickle.read_pickle`: the ``state_dict``'s tensors become
+numpy arrays built from the storage bytes, offset, size and stride (other storages, e.g.
+optimizer states, are not read); nothing named in the file is imported or called.
+``torch.load(weights_only=True)`` would also refuse arbitrary code, but it
 refuses a Lightning checkpoint whole when its ``hyper_parameters`` hold a config object (HaMeR's
 hold a ``yacs`` ``CfgNode``) unless that class is imported and allow-listed; here such objects
 become inert markers outside the ``state_dict``, and the ``state_dict`` must be tensors only.
@@ -79,21 +81,38 @@ class HamerLayout:
     box_scale: float = 2.0  # HaMeR demo's rescale of keypoint boxes
 
 
-def _rebuild_tensor(args: tuple) -> np.ndarray:
-    """``torch._utils._rebuild_tensor_v2(storage, offset, size, stride, ...)`` as numpy."""
-    if len(args) < 4 or not isinstance(args[0], np.ndarray):
+@dataclasses.dataclass(frozen=True)
+class StorageRef:
+    """A torch storage named by a persistent id: its file key, dtype and element count."""
+
+    key: str
+    dtype: str  # numpy dtype of its bytes, or "bf16"
+    numel: int
+
+
+@dataclasses.dataclass(frozen=True)
+class TensorRef:
+    """A tensor of a checkpoint, not yet read: a strided view of a storage."""
+
+    storage: StorageRef
+    offset: int
+    size: tuple[int, ...]
+    stride: tuple[int, ...]
+
+
+def _rebuild_tensor(args: tuple) -> TensorRef:
+    """``torch._utils._rebuild_tensor_v2(storage, offset, size, stride, ...)``, checked against
+    the storage's length; read later, only if it is kept."""
+    if len(args) < 4 or not isinstance(args[0], StorageRef):
         raise UnsafePickleError("_rebuild_tensor_v2 without a storage")
-    storage, offset, size, stride = args[0], int(args[1]), tuple(args[2]), tuple(args[3])
+    storage, offset = args[0], int(args[1])
+    size, stride = tuple(int(n) for n in args[2]), tuple(int(n) for n in args[3])
     if len(size) != len(stride) or offset < 0 or min(size, default=1) < 0:
         raise UnsafePickleError(f"tensor size {size} / stride {stride} / offset {offset}")
-    if 0 in size:
-        return np.zeros(size, dtype=storage.dtype)
     last = offset + sum((n - 1) * st for n, st in zip(size, stride, strict=True))
-    if min(stride, default=0) < 0 or last >= len(storage):
+    if 0 not in size and (min(stride, default=0) < 0 or last >= storage.numel):
         raise UnsafePickleError(f"tensor {size} at {offset} runs past its storage")
-    strides = tuple(st * storage.itemsize for st in stride)
-    view = np.lib.stride_tricks.as_strided(storage[offset:], shape=size, strides=strides)
-    return np.array(view)  # a copy
+    return TensorRef(storage, offset, size, stride)
 
 
 def _rebuild_parameter(args: tuple) -> Any:
@@ -106,9 +125,59 @@ TORCH_REDUCERS = {
 }
 
 
-def read_torch_zip(path: str | Path) -> Any:
-    """The tree a ``torch.save`` zip holds, tensors as numpy arrays, rebuilt without unpickling
-    (unknown objects become :class:`~egosim.stages.hands.convert_pickle.Opaque` markers)."""
+def _storage_ref(pid: Any) -> StorageRef:
+    """The persistent id ``('storage', torch.XStorage, key, location, numel)`` of a storage."""
+    if not (isinstance(pid, tuple) and len(pid) == 5 and pid[0] == "storage"):
+        raise UnsafePickleError(f"persistent id {pid!r} is not a torch storage")
+    kind = pid[1]
+    if not isinstance(kind, GlobalRef) or kind.name not in STORAGE_DTYPES:
+        raise UnsafePickleError(f"storage type {kind} is not read")
+    return StorageRef(str(pid[2]), STORAGE_DTYPES[kind.name], int(pid[4]))
+
+
+def _storage_array(raw: bytes, dtype: str) -> np.ndarray:
+    if dtype == "bf16":  # bfloat16 is the top half of a float32
+        bits = np.frombuffer(raw, dtype="<u2").astype(np.uint32) << 16
+        return bits.view(np.float32)
+    return np.frombuffer(raw, dtype=dtype)
+
+
+def _tensor_array(ref: TensorRef, storage: np.ndarray) -> np.ndarray:
+    """The array of ``ref`` from its storage's elements (a copy)."""
+    if len(storage) < ref.storage.numel:
+        raise UnsafePickleError(f"storage {ref.storage.key} holds {len(storage)} elements")
+    if 0 in ref.size:
+        return np.zeros(ref.size, dtype=storage.dtype)
+    strides = tuple(st * storage.itemsize for st in ref.stride)
+    view = np.lib.stride_tricks.as_strided(storage[ref.offset :], shape=ref.size, strides=strides)
+    return np.array(view)
+
+
+def _state_dict_refs(tree: Any, source: str) -> dict[str, TensorRef]:
+    """The tensors of a checkpoint tree's ``state_dict`` (Lightning), ``model``, or the tree
+    itself; every value must be a tensor."""
+    state = tree
+    if isinstance(tree, dict):
+        for key in ("state_dict", "model"):
+            if isinstance(tree.get(key), dict):
+                state = tree[key]
+                break
+    if not isinstance(state, dict):
+        raise CheckpointConvertError(f"{source}: no state_dict in the checkpoint")
+    bad = sorted(str(k) for k, v in state.items() if not isinstance(v, TensorRef))
+    if bad:
+        kinds = {type(state[k]).__name__ for k in bad}
+        origins = {state[k].origin for k in bad if isinstance(state[k], Opaque)}
+        raise CheckpointConvertError(
+            f"{source}: state_dict entries {bad[:5]} are not tensors ({kinds} {origins or ''})"
+        )
+    return {str(k): v for k, v in state.items()}
+
+
+def read_checkpoint_state_dict(path: str | Path) -> dict[str, np.ndarray]:
+    """The ``state_dict`` arrays of a ``torch.save`` zip, rebuilt without unpickling; only the
+    storages its tensors use are read (not, say, optimizer states). Objects other than tensors
+    outside the ``state_dict`` (a Lightning checkpoint's hyper-parameters) are never built."""
     path = Path(path)
     try:
         archive = zipfile.ZipFile(path)
@@ -125,58 +194,24 @@ def read_torch_zip(path: str | Path) -> Any:
             order = archive.read(f"{prefix}byteorder").decode().strip()
             if order != "little":
                 raise CheckpointConvertError(f"{path}: {order}-endian storages are not read")
-        storages: dict[str, np.ndarray] = {}
-
-        def persistent_load(pid: Any) -> np.ndarray:
-            if not (isinstance(pid, tuple) and len(pid) == 5 and pid[0] == "storage"):
-                raise UnsafePickleError(f"persistent id {pid!r} is not a torch storage")
-            kind, key, numel = pid[1], str(pid[2]), int(pid[4])
-            if not isinstance(kind, GlobalRef) or kind.name not in STORAGE_DTYPES:
-                raise UnsafePickleError(f"storage type {kind} is not read")
-            if key not in storages:
-                raw = archive.read(f"{prefix}data/{key}")
-                storages[key] = _storage_array(raw, STORAGE_DTYPES[kind.name])
-            if len(storages[key]) < numel:
-                raise UnsafePickleError(f"storage {key} holds {len(storages[key])} < {numel}")
-            return storages[key]
-
         try:
-            return read_pickle(
+            tree = read_pickle(
                 archive.read(pkls[0]),
                 reducers=TORCH_REDUCERS,
-                persistent_load=persistent_load,
+                persistent_load=_storage_ref,
                 allow_unknown=True,
             )
+            refs = _state_dict_refs(tree, str(path))
+            storages: dict[str, np.ndarray] = {}
+            state = {}
+            for key, ref in refs.items():
+                if ref.storage.key not in storages:
+                    raw = archive.read(f"{prefix}data/{ref.storage.key}")
+                    storages[ref.storage.key] = _storage_array(raw, ref.storage.dtype)
+                state[key] = _tensor_array(ref, storages[ref.storage.key])
         except (UnsafePickleError, KeyError) as exc:
             raise CheckpointConvertError(f"{path}: {exc}") from exc
-
-
-def _storage_array(raw: bytes, dtype: str) -> np.ndarray:
-    if dtype == "bf16":  # bfloat16 is the top half of a float32
-        bits = np.frombuffer(raw, dtype="<u2").astype(np.uint32) << 16
-        return bits.view(np.float32)
-    return np.frombuffer(raw, dtype=dtype)
-
-
-def checkpoint_state_dict(tree: Any, source: str) -> dict[str, np.ndarray]:
-    """The parameter arrays of a checkpoint tree: its ``state_dict`` (Lightning), ``model``,
-    or the tree itself; every value must be an array."""
-    state = tree
-    if isinstance(tree, dict):
-        for key in ("state_dict", "model"):
-            if isinstance(tree.get(key), dict):
-                state = tree[key]
-                break
-    if not isinstance(state, dict):
-        raise CheckpointConvertError(f"{source}: no state_dict in the checkpoint")
-    bad = sorted(str(k) for k, v in state.items() if not isinstance(v, np.ndarray))
-    if bad:
-        kinds = {type(state[k]).__name__ for k in bad}
-        origins = {state[k].origin for k in bad if isinstance(state[k], Opaque)}
-        raise CheckpointConvertError(
-            f"{source}: state_dict entries {bad[:5]} are not tensors ({kinds} {origins or ''})"
-        )
-    return {str(k): v for k, v in state.items()}
+    return state
 
 
 def _count(state: Mapping[str, np.ndarray], pattern: str) -> int:
@@ -273,8 +308,7 @@ def convert_hamer_checkpoint(
 ) -> list[str]:
     """Convert the HaMeR checkpoint ``path`` to the weights folder ``out_dir`` (``config.json``
     + ``model.safetensors``; the MANO file is converted separately); the dropped prefixes."""
-    tree = read_torch_zip(path)
-    state = checkpoint_state_dict(tree, str(path))
+    state = read_checkpoint_state_dict(path)
     model, dropped = hamer_to_regressor(state, layout, str(path))
     save_regressor(model, out_dir)
     return dropped
