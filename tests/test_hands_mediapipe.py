@@ -29,9 +29,9 @@ from egosim.pipeline.geometry import (
     transform_points,
 )
 from egosim.pipeline.records import Clip
+from egosim.stages.common.hand_lift import PALM_TEMPLATE, lift_with_rotation, palm_pnp_pose
 from egosim.stages.hands.hamer_backend import HamerFileError, hamer_detections
 from egosim.stages.hands.mediapipe_backend import (
-    PALM_TEMPLATE,
     MediaPipeParams,
     RawLandmarks,
     assign_sides,
@@ -124,13 +124,34 @@ def test_palm_pnp_lift_recovers_orientation_mediapipe_axes_ignored(right: bool) 
     assert orientation_error_deg(own_axes, truth) < 2.0
 
 
+def test_palm_pnp_places_the_same_points_for_either_side() -> None:
+    """The metric scale calls the palm lift without knowing the side: a mirrored planar template
+    reaches the same camera points, so the placed joints (and their depth) must not depend on it;
+    only the returned rotation does."""
+    k = np.array([540.0, 540.0, 416.0, 240.0])
+    rng = np.random.default_rng(3)
+    placed = 0
+    for _ in range(20):
+        angles = rng.normal(0.0, 0.5, 3)
+        rot = cv2.Rodrigues(angles)[0]  # (3, 3) a random turn about the template's pose
+        base = np.stack([[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0]], axis=1)
+        hand = _template_hand(True) @ (rot @ base).T + np.array([0.0, 0.1, 0.45])
+        uv, _ = project_points(hand, k)
+        landmarks = hand - hand.mean(axis=0)
+        right, left = palm_pnp_pose(uv, landmarks, k, True), palm_pnp_pose(uv, landmarks, k, False)
+        assert (right is None) == (left is None)
+        if right is not None:
+            np.testing.assert_allclose(right[0], left[0], atol=1e-9)
+            placed += 1
+    assert placed >= 15  # the PnP found a pose for most of the random palms
+
+
 def test_lift_with_a_neighbours_rotation_is_exact_when_the_pose_is_the_same() -> None:
     """The fallback for a frame whose palm PnP fails: posed with the true landmark-to-camera
     rotation and median depth, every joint comes back to 1e-9 m and reprojects onto its pixel;
     with a rotation 10 degrees off (a neighbour's palm turned a little) the wrist-relative error
     is 19 mm, against 42 mm for the translation lift in MediaPipe's axes (75 degrees off) that
     such frames used to get."""
-    from egosim.stages.hands.mediapipe_backend import lift_with_rotation
 
     k = np.array([540.0, 540.0, 416.0, 240.0])
     truth = _template_hand(True) + np.array([0.04, 0.12, 0.42])  # (21, 3) camera metres

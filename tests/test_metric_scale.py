@@ -28,6 +28,7 @@ from egosim.pipeline.geometry import (
 )
 from egosim.pipeline.records import Clip
 from egosim.stages.common.hand_landmarks import HandLandmarks, place_in_camera
+from egosim.stages.common.hand_lift import PALM_JOINTS, PALM_TEMPLATE
 from egosim.stages.depth_camera.metric_scale import (
     MetricScaleInputError,
     MetricScaleParams,
@@ -113,14 +114,17 @@ def test_splat_depth_moves_a_plane_with_the_camera() -> None:
     np.testing.assert_allclose(surface_depth(nearer, uv, params), 1.5)
 
 
-def test_hand_resting_on_a_plane_gives_the_scale() -> None:
-    """Hand-built: a flat hand 1 cm above a table (joint centres), seen from three poses."""
+@pytest.mark.parametrize("lift", ["palm_pnp", "translation"])
+def test_hand_resting_on_a_plane_gives_the_scale(lift: str) -> None:
+    """Hand-built: a flat hand 1 cm above a table (joint centres), seen from eight poses; its
+    palm is the average palm the palm-PnP lift assumes."""
     h, w = 120, 160
     k = intrinsics_from_fov(w, h, 70.0)
     scale = 0.25  # metres per unit
     rng = np.random.default_rng(1)
     hand = np.zeros((21, 3))
     hand[:, :2] = rng.uniform(-0.05, 0.05, (21, 2))  # flat, 10 cm across, world metres
+    hand[list(PALM_JOINTS), :2] = PALM_TEMPLATE[:, :2] - [0.05, 0.0]  # the average palm
     hand[:, 2] = 0.01  # joint centres 1 cm above the table z = 0
     metric_poses = np.stack(
         [look_at([-0.35 + 0.02 * i, 0.01 * i, 0.4], [0.0, 0.0, 0.0]) for i in range(8)]
@@ -147,7 +151,13 @@ def test_hand_resting_on_a_plane_gives_the_scale() -> None:
     frames[1:] = 200  # every joint's pixel differs from frame 0: the hand is in front
     lm = HandLandmarks(uv, world, np.ones((t, 2)), present)
     est = scale_from_landmarks(
-        lm, frames, k, units, depth0_m / scale, None, MetricScaleParams(contact_offset_m=0.01)
+        lm,
+        frames,
+        k,
+        units,
+        depth0_m / scale,
+        None,
+        MetricScaleParams(contact_offset_m=0.01, lift=lift),
     )
     assert est.scale is not None, est.reason
     # Contact offset 1 cm = the joints' height: the estimate is exact up to the ray's obliquity.

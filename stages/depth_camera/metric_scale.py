@@ -81,10 +81,12 @@ from egosim.stages.common.hand_landmarks import (
     detect_hand_landmarks,
     place_in_camera,
 )
+from egosim.stages.common.hand_lift import MIN_POSE_DEPTH, palm_pnp_pose
 
 SOURCE_HAND_SIZE = "hand_size"  # ScaleEstimate.source: strict window (steps 1-5)
 SOURCE_HAND_SIZE_WIDE = "hand_size_wide"  # ScaleEstimate.source: wide-window fallback (step 6)
 ALL_JOINTS = tuple(range(21))  # MANO/MediaPipe joint indices
+LIFTS = ("palm_pnp", "translation")  # MetricScaleParams.lift
 
 
 class MetricScaleParamsError(ValueError):
@@ -101,6 +103,10 @@ class MetricScaleParams:
 
     detector: HandLandmarkParams = field(default_factory=HandLandmarkParams)  # MediaPipe
     joints: tuple[int, ...] = ALL_JOINTS  # joints that give samples (MediaPipe order)
+    lift: str = "palm_pnp"  # how a detection is placed in the camera: "palm_pnp", the hands
+    # stage's own lift (:mod:`egosim.stages.common.hand_lift`; a detection without a palm pose in
+    # front of the camera gives no sample), so the scale puts the scene where the hands stage puts
+    # the hands; "translation": MediaPipe's world landmarks translated only (depth_camera v6)
     contact_offset_m: float = 0.03  # depth from a resting hand's joint centres to the surface it
     # rests on, metres (half a hand's thickness, longer along oblique rays); tuned, tabletop 0-1
     window_px: int = 3  # z_s: median of known depths within this many pixels of the joint
@@ -143,6 +149,8 @@ class MetricScaleParams:
         for name in ("window_px", "colour_window_px", "wide_window_px"):
             if getattr(self, name) < 0:
                 problems.append(f"{name} must be >= 0, got {getattr(self, name)!r}")
+        if self.lift not in LIFTS:
+            problems.append(f"lift must be one of {LIFTS}, got {self.lift!r}")
         if not 0.0 <= self.min_colour_diff <= 255.0:
             problems.append(f"min_colour_diff must be in [0, 255], got {self.min_colour_diff!r}")
         for name in (
@@ -268,6 +276,20 @@ def scene_visible(
     return out
 
 
+def place_detection(
+    uv: np.ndarray, world: np.ndarray, intrinsics: np.ndarray, lift: str
+) -> np.ndarray | None:
+    """Metric camera joints ``(21, 3)`` of one detection (``uv (21, 2)`` pixels, MediaPipe's
+    ``world (21, 3)`` metres) by ``lift`` (:attr:`MetricScaleParams.lift`); None when the palm
+    PnP finds no pose with every joint :data:`MIN_POSE_DEPTH` or more in front of the camera."""
+    if lift == "translation":
+        return place_in_camera(uv, world, intrinsics)
+    pose = palm_pnp_pose(uv, world, intrinsics)  # the side does not change the placed points
+    if pose is None or float(pose[0][:, 2].min()) < MIN_POSE_DEPTH:
+        return None
+    return pose[0]
+
+
 def detection_samples(
     landmarks: HandLandmarks,
     frames: np.ndarray,
@@ -306,7 +328,9 @@ def detection_samples(
                 continue
             if np.linalg.norm(uv.max(axis=0) - uv.min(axis=0)) < params.min_hand_px:
                 continue
-            points_cam = place_in_camera(uv, world, intrinsics)  # (21, 3) metres
+            points_cam = place_detection(uv, world, intrinsics, params.lift)  # (21, 3) metres
+            if points_cam is None:
+                continue
             z_m = points_cam[joints, 2]  # (J,)
             z_s = surface_depth(depth_t, uv[joints], params, wide)  # (J,)
             ok = np.isfinite(z_s) & (z_m > 0)

@@ -649,13 +649,15 @@ class DepthCameraStage(ClipStage):
 
     name = "depth_camera"
     description = "intrinsics, poses, frame-0 depth, metric scale: static/SfM/rotation, or given"
+    # 7: the metric scale places hands with the hands stage's palm-PnP lift (was a
+    # translation-only fit: real hands sat 1.5x deeper than the surfaces they touch)
     # 6: metric scale falls back to a wide surface window (scale_source hand_size_wide) when
     # the strict one finds too few hand detections
     # 5: sfm poses and depth in metres from the hands' size prior (metric_scale); static test
     # takes still corners as the background, skips occluded frames, tolerates an end bump
     # 4: schema v2, background-motion static test, PnP tracking, rotation model, focal prior
     # 3: one SfM thread (reproducible); 2: visibility-aware depth confidence
-    version = 6
+    version = 7
     config_class = DepthCameraConfig
     inputs: ClassVar[Mapping[str, ShardSchema]] = {"clips": CLIPS}
     output = DEPTH_CAMERA

@@ -65,25 +65,17 @@ from egosim.stages.common.hand_landmarks import (  # shared with the metric scal
     import_mediapipe,
     place_in_camera,
 )
+from egosim.stages.common.hand_lift import (  # one lift for the hands and the metric scale
+    MIN_POSE_DEPTH,
+    lift_with_rotation,
+    palm_pnp_pose,
+    scale_to_depth,
+)
 from egosim.stages.common.roi_landmarks import LandmarkModel, TrackParams, track_through_misses
 from egosim.stages.hands.filters import Detections
 
 BRIDGED_CONFIDENCE_FACTOR = 0.5  # confidence of interpolated frames relative to detected ones
 MIDDLE_MCP = 9  # joint index of the middle finger's knuckle (hand size: wrist to it)
-PALM_JOINTS = (0, 5, 9, 13, 17)  # wrist and the index, middle, ring and pinky knuckles
-MIN_POSE_DEPTH = 0.05  # metres: a palm pose with a joint nearer the camera does not pose others
-# An average adult right palm (metres; x from the wrist towards the fingers, y towards the thumb,
-# z = 0: the palm is taken as flat): wrist to middle knuckle 9 cm, index to pinky knuckle 6.4 cm.
-# Rows follow PALM_JOINTS; a left hand mirrors y.
-PALM_TEMPLATE = np.array(
-    [
-        [0.0, 0.0, 0.0],
-        [0.085, 0.027, 0.0],
-        [0.090, 0.005, 0.0],
-        [0.084, -0.014, 0.0],
-        [0.074, -0.031, 0.0],
-    ]
-)  # (5, 3)
 
 
 @dataclass(frozen=True)
@@ -440,41 +432,6 @@ def depth_under(depth: np.ndarray, uv: np.ndarray) -> float:
 place_by_translation = place_in_camera  # the translation-only fit, shared with the metric scale
 
 
-def best_rotation(source: np.ndarray, target: np.ndarray) -> np.ndarray:
-    """Rotation ``(3, 3)`` (det +1) minimising ``|R (source - mean) - (target - mean)|`` (Kabsch);
-    ``source``, ``target`` ``(N, 3)``."""
-    a = source - source.mean(axis=0)  # (N, 3)
-    b = target - target.mean(axis=0)  # (N, 3)
-    u, _, vt = np.linalg.svd(b.T @ a)
-    d = np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))])
-    return u @ d @ vt
-
-
-def palm_candidates(uv: np.ndarray, intrinsics: np.ndarray, right: bool) -> list[np.ndarray]:
-    """Camera points ``(5, 3)`` of :data:`PALM_TEMPLATE` (mirrored for a left hand) that project
-    onto the palm landmarks ``uv[PALM_JOINTS]``: the two poses of a planar PnP (IPPE), best first.
-    Empty when the PnP fails (degenerate landmarks)."""
-    fx, fy, cx, cy = np.asarray(intrinsics, dtype=np.float64)
-    camera_matrix = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
-    template = PALM_TEMPLATE * np.array([1.0, 1.0 if right else -1.0, 1.0])  # (5, 3)
-    image = np.ascontiguousarray(uv[list(PALM_JOINTS)], dtype=np.float64)  # (5, 2)
-    if not np.all(np.isfinite(image)):
-        return []
-    try:
-        count, rvecs, tvecs, _ = cv2.solvePnPGeneric(
-            template, image, camera_matrix, None, flags=cv2.SOLVEPNP_IPPE
-        )
-    except cv2.error:
-        return []
-    out = []
-    for rvec, tvec in zip(rvecs[:count], tvecs[:count], strict=True):
-        rot = cv2.Rodrigues(rvec)[0]  # (3, 3) cam_from_template
-        points = template @ rot.T + tvec.ravel()  # (5, 3) camera metres
-        if np.all(points[:, 2] > 0):
-            out.append(points)
-    return out
-
-
 def lift_to_camera(
     uv: np.ndarray,
     world_landmarks: np.ndarray,
@@ -516,17 +473,6 @@ def lift_to_camera(
     return scale_to_depth(points, observed_depth)
 
 
-def scale_to_depth(points: np.ndarray, observed_depth: float | None) -> np.ndarray:
-    """``points (N, 3)`` camera metres scaled about the camera centre (every projection kept) so
-    that their median depth is ``observed_depth``; unchanged when it is None, not finite or not
-    positive, or the points' median depth is not positive."""
-    if observed_depth is not None and np.isfinite(observed_depth) and observed_depth > 0:
-        median_z = float(np.median(points[:, 2]))
-        if median_z > 0:
-            return points * (observed_depth / median_z)
-    return points
-
-
 def _palm_pnp_lift(
     uv: np.ndarray,
     world_landmarks: np.ndarray,
@@ -537,61 +483,6 @@ def _palm_pnp_lift(
     """The ``"palm_pnp"`` lift of :func:`lift_to_camera` (no depth scaling); None on failure."""
     pose = palm_pnp_pose(uv, world_landmarks, intrinsics, right, prefer_fingers_away)
     return None if pose is None else pose[0]
-
-
-def palm_pnp_pose(
-    uv: np.ndarray,
-    world_landmarks: np.ndarray,
-    intrinsics: np.ndarray,
-    right: bool = True,
-    prefer_fingers_away: bool = True,
-) -> tuple[np.ndarray, np.ndarray] | None:
-    """The palm-PnP lift (see :func:`lift_to_camera`) and its rotation: ``(points (21, 3) camera
-    metres, cam_from_landmarks (3, 3))`` taking MediaPipe's world-landmark axes to the camera's;
-    None when the PnP fails (a palm seen edge-on: its knuckles on one image line)."""
-    candidates = palm_candidates(uv, intrinsics, right)  # each (5, 3)
-    if not candidates:
-        return None
-    palm = list(PALM_JOINTS)
-    if prefer_fingers_away:
-        # PALM_JOINTS[2] is the middle knuckle, [0] the wrist: larger depth step = pointing away.
-        chosen = max(candidates, key=lambda p: p[2, 2] - p[0, 2])
-    else:
-        own = world_landmarks[palm]  # (5, 3) in MediaPipe's axes
-        chosen = min(candidates, key=lambda p: _angle_deg(best_rotation(own, p)))
-    rot = best_rotation(world_landmarks[palm], chosen)  # (3, 3) cam_from_landmarks
-    model = (world_landmarks - world_landmarks[palm].mean(axis=0)) @ rot.T + chosen.mean(axis=0)
-    z = np.maximum(model[:, 2], 1e-3)  # (21,) depth of each joint from the posed model
-    return _on_rays(uv, z, intrinsics), rot
-
-
-def _on_rays(uv: np.ndarray, z: np.ndarray, intrinsics: np.ndarray) -> np.ndarray:
-    """Camera points ``(21, 3)``: each pixel of ``uv (21, 2)`` on its ray at depth ``z (21,)``."""
-    fx, fy, cx, cy = np.asarray(intrinsics, dtype=np.float64)
-    x_n = (uv[:, 0] - cx) / fx  # (21,)
-    y_n = (uv[:, 1] - cy) / fy  # (21,)
-    return np.stack([x_n * z, y_n * z, z], axis=1)  # (21, 3) on each landmark's ray
-
-
-def lift_with_rotation(
-    uv: np.ndarray,
-    world_landmarks: np.ndarray,
-    intrinsics: np.ndarray,
-    cam_from_landmarks: np.ndarray,
-    median_depth: float,
-) -> np.ndarray:
-    """Camera joints ``(21, 3)`` of a hand whose palm PnP failed, posed like a neighbouring frame:
-    the world landmarks turned by that frame's ``cam_from_landmarks (3, 3)`` give each joint its
-    depth offset, the whole hand sits at ``median_depth`` (metres, the neighbour's), and each
-    joint is put on its own pixel's ray (so the result reprojects onto ``uv (21, 2)``)."""
-    turned = (world_landmarks - world_landmarks.mean(axis=0)) @ cam_from_landmarks.T  # (21, 3)
-    z = np.maximum(turned[:, 2] - np.median(turned[:, 2]) + median_depth, 1e-3)  # (21,)
-    return _on_rays(uv, z, intrinsics)
-
-
-def _angle_deg(rot: np.ndarray) -> float:
-    """Rotation angle of ``rot (3, 3)`` in degrees."""
-    return float(np.degrees(np.arccos(np.clip((np.trace(rot) - 1.0) / 2.0, -1.0, 1.0))))
 
 
 @dataclass

@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from egosim.pipeline.geometry import invert_se3, project_points, transform_points
-from egosim.stages.hands.mediapipe_backend import best_rotation
+from egosim.stages.common.hand_lift import best_rotation
 
 WRIST = 0  # joint index of the wrist
 
