@@ -601,3 +601,118 @@ def test_only_the_state_dicts_storages_are_read(tmp_path: Path) -> None:
                 dst.writestr(info, src.read(info.filename))
     with pytest.raises(ConfigError, match=r"missing\.ckpt: .*data/0"):
         convert_hamer_checkpoint(missing_weight, tmp_path / "w2", TINY_LAYOUT)
+
+
+def reference_hamer_head(state: dict[str, np.ndarray], context: np.ndarray, heads: int):
+    """HaMeR's MANOTransformerDecoderHead (zero token, one IEF step) in numpy, read from its
+    code (components/pose_transformer.py, heads/mano_head.py, utils/geometry.rot6d_to_rotmat):
+    ``(rotations (B, 16, 3, 3), betas, cam)``."""
+    from scipy.special import erf
+
+    def linear(x, name, bias=True):
+        y = x @ state[name + ".weight"].T
+        return y + state[name + ".bias"] if bias else y
+
+    def norm(x, name):
+        mu, var = x.mean(-1, keepdims=True), x.var(-1, keepdims=True)
+        return (x - mu) / np.sqrt(var + 1e-5) * state[name + ".weight"] + state[name + ".bias"]
+
+    def attend(q, k, v):  # "b n (h d) -> b h n d", softmax(q k^T / sqrt(d)) v, back
+        def split(t):
+            return t.reshape(t.shape[0], t.shape[1], heads, -1).transpose(0, 2, 1, 3)
+
+        q, k, v = split(q), split(k), split(v)
+        dots = q @ k.transpose(0, 1, 3, 2) / np.sqrt(q.shape[-1])
+        weights = np.exp(dots - dots.max(-1, keepdims=True))
+        out = weights / weights.sum(-1, keepdims=True) @ v
+        return out.transpose(0, 2, 1, 3).reshape(q.shape[0], q.shape[2], -1)
+
+    p = "mano_head.transformer."
+    b = context.shape[0]
+    x = linear(np.zeros((b, 1, 1)), p + "to_token_embedding") + state[p + "pos_embedding"]
+    for i in range(2):
+        layer = f"{p}transformer.layers.{i}."
+        h = norm(x, layer + "0.norm")
+        q, k, v = np.split(linear(h, layer + "0.fn.to_qkv", bias=False), 3, axis=-1)
+        x = linear(attend(q, k, v), layer + "0.fn.to_out.0") + x
+        h = norm(x, layer + "1.norm")
+        k, v = np.split(linear(context, layer + "1.fn.to_kv", bias=False), 2, axis=-1)
+        q = linear(h, layer + "1.fn.to_q", bias=False)
+        x = linear(attend(q, k, v), layer + "1.fn.to_out.0") + x
+        h = linear(norm(x, layer + "2.norm"), layer + "2.fn.net.0")
+        h = 0.5 * h * (1.0 + erf(h / np.sqrt(2.0)))  # exact GELU
+        x = linear(h, layer + "2.fn.net.3") + x
+    token = x[:, 0]
+    pose = linear(token, "mano_head.decpose") + state["mano_head.init_hand_pose"]
+    betas = linear(token, "mano_head.decshape") + state["mano_head.init_betas"]
+    cam = linear(token, "mano_head.deccam") + state["mano_head.init_cam"]
+    six = pose.reshape(-1, 2, 3).transpose(0, 2, 1)  # (B * 16, 3, 2)
+    a1, a2 = six[..., 0], six[..., 1]
+    b1 = a1 / np.linalg.norm(a1, axis=-1, keepdims=True)
+    b2 = a2 - (b1 * a2).sum(-1, keepdims=True) * b1
+    b2 /= np.linalg.norm(b2, axis=-1, keepdims=True)
+    rot = np.stack([b1, b2, np.cross(b1, b2)], axis=-1).reshape(b, 16, 3, 3)
+    return rot, betas, cam
+
+
+def test_converted_mano_head_computes_what_hamers_head_does() -> None:
+    state = {k: v.astype(np.float64) for k, v in hamer_state(np.random.default_rng(6)).items()}
+    model, _ = hamer_to_regressor(state, TINY_LAYOUT, "x.ckpt")
+    context = np.random.default_rng(7).normal(size=(3, 12, 32))  # (B, tokens, ViT width)
+    with torch.inference_mode():
+        got = model.double().mano_head(torch.from_numpy(context))
+    for ours, theirs in zip(got, reference_hamer_head(state, context, heads=2), strict=True):
+        np.testing.assert_allclose(ours.numpy(), theirs, atol=1e-10)
+
+
+def reference_vitpose(state: dict[str, np.ndarray], image: np.ndarray, heads: int) -> np.ndarray:
+    """HaMeR's backbone in numpy, read from its code (hamer.py: ``backbone(x[:, :, :,
+    32:-32])`` scaled to this 64-pixel crop; backbones/vit.py: patch conv padded by 2,
+    ``x + pos_embed[:, 1:] + pos_embed[:, :1]``, timm blocks, ``last_norm``): tokens (B, N, C)."""
+    from scipy.special import erf
+
+    def norm(x, name):
+        mu, var = x.mean(-1, keepdims=True), x.var(-1, keepdims=True)
+        return (x - mu) / np.sqrt(var + 1e-6) * state[name + ".weight"] + state[name + ".bias"]
+
+    def linear(x, name):
+        return x @ state[name + ".weight"].T + state[name + ".bias"]
+
+    x = image[:, :, :, 8:-8]  # (B, 3, 64, 48)
+    x = np.pad(x, ((0, 0), (0, 0), (2, 2), (2, 2)))  # (B, 3, 68, 52)
+    w = state["backbone.patch_embed.proj.weight"]  # (C, 3, 16, 16)
+    rows, cols = (x.shape[2] - 16) // 16 + 1, (x.shape[3] - 16) // 16 + 1
+    tokens = (
+        np.stack(
+            [
+                np.einsum("bkij,ckij->bc", x[:, :, 16 * r : 16 * r + 16, 16 * c : 16 * c + 16], w)
+                for r in range(rows)
+                for c in range(cols)
+            ],
+            axis=1,
+        )
+        + state["backbone.patch_embed.proj.bias"]
+    )  # (B, N, C) row-major patches
+    pos = state["backbone.pos_embed"]
+    x = tokens + pos[:, 1:] + pos[:, :1]
+    b, n, ch = x.shape
+    for i in range(2):
+        p = f"backbone.blocks.{i}."
+        qkv = linear(norm(x, p + "norm1"), p + "attn.qkv").reshape(b, n, 3, heads, ch // heads)
+        q, k, v = qkv.transpose(2, 0, 3, 1, 4)  # each (B, H, N, D)
+        dots = q @ k.transpose(0, 1, 3, 2) / np.sqrt(ch // heads)
+        att = np.exp(dots - dots.max(-1, keepdims=True))
+        out = (att / att.sum(-1, keepdims=True) @ v).transpose(0, 2, 1, 3).reshape(b, n, ch)
+        x = x + linear(out, p + "attn.proj")
+        h = linear(norm(x, p + "norm2"), p + "mlp.fc1")
+        x = x + linear(0.5 * h * (1.0 + erf(h / np.sqrt(2.0))), p + "mlp.fc2")
+    return norm(x, "backbone.last_norm")
+
+
+def test_converted_backbone_computes_what_hamers_vit_does() -> None:
+    state = {k: v.astype(np.float64) for k, v in hamer_state(np.random.default_rng(8)).items()}
+    model, _ = hamer_to_regressor(state, TINY_LAYOUT, "x.ckpt")
+    image = np.random.default_rng(9).normal(size=(2, 3, 64, 64))
+    with torch.inference_mode():
+        got = model.double().features(torch.from_numpy(image)).numpy()
+    np.testing.assert_allclose(got, reference_vitpose(state, image, heads=2), atol=1e-9)
