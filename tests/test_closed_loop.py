@@ -170,3 +170,60 @@ def test_loop_starts_from_a_scene_cloud(loop_inputs, tmp_path: Path) -> None:
     assert row["world_frame"] == row["previous_clip_id"] == clip.clip_id  # its own cloud before
     with open_shard(tmp_path / "out" / "initial" / "shard-00000.parquet", SCENE_CLOUD) as reader:
         assert len(list(reader.iter_rows())) == 1
+
+
+MODEL_SIZE = WorldConfig(seed=0, height=64, width=112, num_frames=9)  # tiny model at full pixels
+
+
+@pytest.fixture(scope="module")
+def model_inputs(tmp_path_factory) -> dict:
+    """State 0 and one segment at the tiny model's CPU size."""
+    d = tmp_path_factory.mktemp("model")
+    clip = render_clip(MODEL_SIZE)
+    row0 = StateFusionStage().process(clip_rows(clip, static=True))
+    with ShardWriter(d / "state0.parquet", STATE, stage="test") as writer:
+        writer.write_row(row0)
+    write_clips(d / "segment.parquet", [clip])
+    return {"dir": d, "clip": clip, "row0": row0}
+
+
+def test_model_generator_makes_the_segments_clip(model_inputs) -> None:
+    """An untrained tiny model: the clip has the segment's frames and size, its action, none of
+    the world's ground truth, and a hand mask from the generated frames and the joints."""
+    import numpy as np
+
+    from egosim.pipeline import media
+    from egosim.pipeline.stage import get_stage
+    from egosim.stages.state_fusion.closed_loop import GROUND_TRUTH_COLUMNS, build_generator
+
+    clip = model_inputs["clip"]
+    seg = row_from_clip(clip)
+    before = state_for_clip(model_inputs["row0"], clip.clip_id)
+    render = get_stage("scene_render")().process({"clips": seg, "state": before})
+    config = ClosedLoopConfig(generator="model", steps=2, device="cpu")
+    out = build_generator(config)(seg, render)
+    t, h, w = clip.num_frames, clip.height, clip.width
+    video = media.decode_rgb_video(out["video"], h, w)
+    assert video.shape == (t, h, w, 3)
+    assert not np.array_equal(video, clip.frames)  # generated, not the segment's own video
+    assert all(out[c] is None for c in GROUND_TRUTH_COLUMNS if c != "hand_mask")
+    assert out["world_from_cam"] == seg["world_from_cam"]  # the action is kept
+    mask = media.decode_lossless_video(out["hand_mask"])
+    assert mask.shape == (t, h, w) and mask.any()
+
+
+def test_model_generator_errors_are_clear(model_inputs, tmp_path: Path) -> None:
+    """A missing checkpoint names the path; an untrained model's noise gives no depth, so the
+    loop stops naming the segment and the reason, never with an unchanged state."""
+    from egosim.stages.state_fusion.closed_loop import ClosedLoopError
+
+    d = model_inputs["dir"]
+    paths = (d / "state0.parquet", [d / "segment.parquet"])
+    missing = tmp_path / "no-such-run"
+    config = ClosedLoopConfig(generator="model", checkpoint=str(missing), device="cpu")
+    with pytest.raises(ClosedLoopError, match=r"cannot load checkpoint .*no-such-run"):
+        run_closed_loop(*paths, tmp_path / "a", config)
+    config = ClosedLoopConfig(generator="model", steps=2, device="cpu")
+    with pytest.raises(ClosedLoopError, match=r"segment 1 of 1 rejected: .*empty observation"):
+        run_closed_loop(*paths, tmp_path / "b", config)
+    assert not (tmp_path / "b" / "state_01").exists()

@@ -274,8 +274,10 @@ def test_bad_input_is_rejected_with_the_reason(world):
     with pytest.raises(ClipRejected, match="disagrees with the clip's depth"):
         stage.process({**rows, "previous_state": row_from_state(other)})
     nodepth = {**rows, "clips": {**rows["clips"], "depth": None}}
-    with pytest.raises(ClipRejected, match="no per-frame depth"):
-        stage.process(nodepth)
+    with pytest.raises(ClipRejected, match="no per-frame depth"):  # else swept (test_..._depth)
+        StateFusionStage(StateFusionConfig(depth_source="clip")).process(nodepth)
+    with pytest.raises(ConfigError, match="depth_source must be one of"):
+        StateFusionConfig(depth_source="lidar")
     with pytest.raises(ConfigError, match=r"depth_gap_m must be finite and > 0, got -0\.1"):
         StateFusionConfig(depth_gap_m=-0.1)
     with pytest.raises(FusionError, match="need two"):

@@ -1,4 +1,7 @@
-"""Plane-sweep multi-view stereo for the first frame: OpenCV on the CPU, torch on a GPU.
+"""Plane-sweep multi-view stereo with known poses: OpenCV on the CPU, torch on a GPU.
+
+``depth_camera`` sweeps frame 0 (:func:`first_frame_depth`); ``state_fusion`` sweeps every
+``stride``-th frame of a clip whose cameras are known (:func:`clip_depth`).
 
 Fronto-parallel planes of the reference camera, spaced uniformly in inverse depth over the depth
 range of the SfM points, are warped into each source frame by their homography; the matching cost
@@ -671,27 +674,29 @@ def select_sources(
     target_angle_deg: float = 8.0,
     min_overlap: float = 0.5,
     usable: np.ndarray | None = None,
+    ref: int = 0,
 ) -> list[int]:
-    """Pick source frames for frame 0 by triangulation angle and view overlap.
+    """Pick source frames for frame ``ref`` (default 0) by triangulation angle and view overlap.
 
     ``cam_from_world (T, 4, 4)``, ``candidates (T,)`` bool (registered frames), ``points_world
-    (P, 3)`` the SfM points frame 0 sees (may be empty when ``median_depth`` is given: overlap is
-    then taken as 1). A point counts as seen by frame ``j`` when it projects inside the image and,
-    given ``usable (T, H, W)`` bool, onto a usable (non-hand) pixel: hands that later cover part of
-    the scene make a frame a worse source. A frame scores ``overlap * min(a / target, target / a)``
-    for its angle ``a`` (baseline over the median scene depth); frames seeing less than
+    (P, 3)`` the SfM points frame ``ref`` sees (may be empty when ``median_depth`` is given:
+    overlap is then taken as 1). A point counts as seen by frame ``j`` when it projects inside
+    the image and, given ``usable (T, H, W)`` bool, onto a usable (non-hand) pixel: hands that
+    later cover part of the scene make a frame a worse source. A frame scores
+    ``overlap * min(a / target, target / a)`` for its angle ``a`` (baseline over the median
+    scene depth); frames seeing less than
     ``min_overlap`` of the points are skipped; picks keep a minimum index gap so that they spread
     along the clip. Returns frame indices (may be fewer than ``num_sources``).
     """
     t = len(cam_from_world)
     h, w = image_size
     fx, fy, cx, cy = np.asarray(intrinsics, dtype=np.float64)
-    world_from_cam0 = np.linalg.inv(cam_from_world[0])
-    pts_cam0 = points_world @ cam_from_world[0, :3, :3].T + cam_from_world[0, :3, 3]  # (P, 3)
+    world_from_cam0 = np.linalg.inv(cam_from_world[ref])
+    pts_cam0 = points_world @ cam_from_world[ref, :3, :3].T + cam_from_world[ref, :3, 3]  # (P, 3)
     z_med = float(np.median(pts_cam0[:, 2])) if median_depth is None else float(median_depth)
     scores = np.full(t, -np.inf)
     for j in np.flatnonzero(candidates):
-        if j == 0:
+        if j == ref:
             continue
         centre_j = np.linalg.inv(cam_from_world[j])[:3, 3]
         baseline = float(np.linalg.norm(centre_j - world_from_cam0[:3, 3]))
@@ -741,7 +746,25 @@ def first_frame_depth(
     params: PlaneSweepParams,
     edge_rel: float = 0.1,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Depth and confidence ``(H, W)`` of ``frames[0]`` at full resolution.
+    """Depth and confidence ``(H, W)`` of ``frames[0]``: :func:`frame_depth` with ``ref`` 0."""
+    return frame_depth(
+        frames, usable, intrinsics, cam_from_world, 0, sources, depth_range, scale, params, edge_rel
+    )
+
+
+def frame_depth(
+    frames: np.ndarray,
+    usable: np.ndarray | None,
+    intrinsics: np.ndarray,
+    cam_from_world: np.ndarray,
+    ref: int,
+    sources: list[int],
+    depth_range: tuple[float, float],
+    scale: float,
+    params: PlaneSweepParams,
+    edge_rel: float = 0.1,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Depth and confidence ``(H, W)`` of ``frames[ref]`` at full resolution.
 
     The sweep runs at ``scale`` times the frame size; inverse depth is upsampled bilinearly and
     confidence by nearest neighbour, after zeroing it where the working-resolution depth jumps by
@@ -753,7 +776,7 @@ def first_frame_depth(
     big_h, big_w = frames.shape[1:3]
     h, w = max(8, round(big_h * scale)), max(8, round(big_w * scale))
     k_small = scale_intrinsics(intrinsics, w / big_w, h / big_h)
-    idx = [0, *sources]
+    idx = [ref, *sources]
     grey = np.stack([_grey_at(frames[i], (h, w)) for i in idx])  # (1+S, h, w)
     if usable is None:
         valid = np.ones((len(idx), h, w), np.float32)
@@ -768,7 +791,7 @@ def first_frame_depth(
         grey[0],
         grey[1:],
         k_small,
-        cam_from_world[0],
+        cam_from_world[ref],
         cam_from_world[sources],
         depth_range,
         valid[0],
@@ -783,3 +806,176 @@ def first_frame_depth(
     inv = cv2.resize(1.0 / result.depth, (big_w, big_h), interpolation=cv2.INTER_LINEAR)
     conf_big = cv2.resize(conf, (big_w, big_h), interpolation=cv2.INTER_NEAREST)
     return (1.0 / inv).astype(np.float32), conf_big
+
+
+@dataclass(frozen=True)
+class ClipDepthParams:
+    """Knobs of :func:`clip_depth` (per-frame depth of a clip from known poses)."""
+
+    stride: int = 2  # every stride-th frame (and the last) is swept; the others stay 0 (unknown)
+    num_sources: int = 6  # source frames per reference frame
+    window_frames: int = 8  # sources are taken among frames at most this far from the reference
+    scale: float = 0.5  # sweep resolution as a fraction of the frame size
+    target_angle_deg: float = 8.0  # preferred triangulation angle of a source (select_sources)
+    edge_rel: float = 0.1  # no confidence where depth jumps by more than this within 3x3 pixels
+    min_confidence: float = 0.5  # depth kept where the sweep's confidence is at least this
+    consistency_rel: float = 0.01  # a depth agrees with a neighbour's within this relative error
+    min_consistent: int = 1  # swept neighbours (2 on each side) that must agree; 0 = no check
+    sweep: PlaneSweepParams = PlaneSweepParams()  # the sweep itself
+
+    def __post_init__(self) -> None:
+        """Raise :class:`PlaneSweepError` naming every bad field at once."""
+        problems: list[str] = []
+        for name in ("stride", "window_frames"):
+            if getattr(self, name) < 1:
+                problems.append(f"{name} must be >= 1, got {getattr(self, name)}")
+        if self.num_sources < 2:
+            problems.append(f"num_sources must be >= 2, got {self.num_sources}")
+        if not 0.05 <= self.scale <= 1.0:
+            problems.append(f"scale must be in [0.05, 1], got {self.scale}")
+        if not 0.0 < self.target_angle_deg < 90.0:
+            problems.append(f"target_angle_deg must be in (0, 90), got {self.target_angle_deg}")
+        if not self.edge_rel > 0:
+            problems.append(f"edge_rel must be > 0, got {self.edge_rel}")
+        if not self.consistency_rel > 0:
+            problems.append(f"consistency_rel must be > 0, got {self.consistency_rel}")
+        if self.min_consistent < 0:
+            problems.append(f"min_consistent must be >= 0, got {self.min_consistent}")
+        if not 0.0 <= self.min_confidence <= 1.0:
+            problems.append(f"min_confidence must be in [0, 1], got {self.min_confidence}")
+        if problems:
+            raise PlaneSweepError("; ".join(problems))
+
+
+@dataclass(frozen=True)
+class ClipDepth:
+    """Per-frame depth of a clip: swept frames have depth where confident, the others zero."""
+
+    depth: np.ndarray  # (T, H, W) float32 z-depth in the poses' scale, 0 = unknown
+    confidence: np.ndarray  # (T, H, W) float32 in [0, 1], 0 on frames not swept
+    swept: tuple[int, ...]  # frames that were swept
+    skipped: tuple[int, ...]  # swept frames without 2 usable sources (depth 0)
+
+
+def swept_frames(num_frames: int, stride: int) -> list[int]:
+    """Frames :func:`clip_depth` sweeps: every ``stride``-th from 0, and the last."""
+    frames = list(range(0, num_frames, stride))
+    if frames[-1] != num_frames - 1:
+        frames.append(num_frames - 1)
+    return frames
+
+
+def clip_depth(
+    frames: np.ndarray,
+    usable: np.ndarray | None,
+    intrinsics: np.ndarray,
+    cam_from_world: np.ndarray,
+    depth_ranges: np.ndarray,
+    params: ClipDepthParams | None = None,
+) -> ClipDepth:
+    """Depth of every ``params.stride``-th frame of ``frames (T, H, W, 3)`` from known poses.
+
+    Each swept frame is the reference of a plane sweep (:func:`frame_depth`) against up to
+    ``num_sources`` frames within ``window_frames`` of it (chosen by :func:`select_sources`:
+    close in time, so that an object the hands move has moved little between them), over its
+    own ``depth_ranges[k] = (near, far)``. ``usable (T, H, W)`` bool is False on hands (not
+    matched); ``cam_from_world (T, 4, 4)``. Depth is kept where confidence reaches
+    ``min_confidence`` and, unless ``min_consistent`` is 0, where neighbouring swept frames
+    agree (:func:`consistent_depth`). A frame with fewer than 2 sources that move away from it
+    keeps depth 0 and is listed in ``skipped``. Raises :class:`PlaneSweepError` on bad shapes.
+    """
+    p = params if params is not None else ClipDepthParams()
+    frames = np.asarray(frames)
+    t, h, w = frames.shape[:3]
+    cam_from_world = np.asarray(cam_from_world, np.float64)
+    depth_ranges = np.asarray(depth_ranges, np.float64)
+    if cam_from_world.shape != (t, 4, 4) or depth_ranges.shape != (t, 2):
+        raise PlaneSweepError(
+            f"need poses ({t}, 4, 4) and depth ranges ({t}, 2) for {t} frames, got "
+            f"{cam_from_world.shape} and {depth_ranges.shape}"
+        )
+    if usable is not None and np.shape(usable) != (t, h, w):
+        raise PlaneSweepError(f"usable must be ({t}, {h}, {w}), got {np.shape(usable)}")
+    depth = np.zeros((t, h, w), np.float32)
+    conf = np.zeros((t, h, w), np.float32)
+    swept, skipped = swept_frames(t, p.stride), []
+    for ref in swept:
+        near, far = (float(x) for x in depth_ranges[ref])
+        window = np.abs(np.arange(t) - ref) <= p.window_frames
+        sources = select_sources(
+            cam_from_world,
+            window,
+            np.zeros((0, 3)),
+            intrinsics,
+            (h, w),
+            p.num_sources,
+            median_depth=float(np.sqrt(near * far)),
+            target_angle_deg=p.target_angle_deg,
+            ref=ref,
+        )
+        if len(sources) < 2:
+            skipped.append(ref)
+            continue
+        d, c = frame_depth(
+            frames,
+            usable,
+            intrinsics,
+            cam_from_world,
+            ref,
+            sources,
+            (near, far),
+            p.scale,
+            p.sweep,
+            p.edge_rel,
+        )
+        keep = c >= p.min_confidence
+        depth[ref] = np.where(keep, d, 0.0)
+        conf[ref] = c
+    if p.min_consistent > 0:
+        depth = consistent_depth(
+            depth, intrinsics, cam_from_world, swept, p.consistency_rel, p.min_consistent
+        )
+    return ClipDepth(depth, conf, tuple(swept), tuple(skipped))
+
+
+def consistent_depth(
+    depth: np.ndarray,
+    intrinsics: np.ndarray,
+    cam_from_world: np.ndarray,
+    swept: list[int],
+    rel: float,
+    min_consistent: int,
+) -> np.ndarray:
+    """``depth (T, H, W)`` kept where at least ``min_consistent`` neighbouring swept frames agree.
+
+    A pixel of frame ``k`` is lifted to 3D and projected into each of the two swept frames
+    before and after it; a neighbour agrees when its own depth at that pixel (nearest) is within
+    ``rel`` (relative) of the projected depth. Isolated sweep errors disagree, and so does an
+    object while the hands move it; the scene at rest agrees.
+    """
+    from egosim.pipeline.geometry import unproject_depth
+
+    h, w = depth.shape[1:]
+    fx, fy, cx, cy = np.asarray(intrinsics, np.float64)
+    out = np.zeros_like(depth)
+    for i, k in enumerate(swept):
+        sel = depth[k] > 0
+        if not sel.any():
+            continue
+        pts = unproject_depth(depth[k], intrinsics)[sel].astype(np.float64)  # (n, 3) camera k
+        votes = np.zeros(len(pts), np.int32)
+        for j in [*swept[max(0, i - 2) : i], *swept[i + 1 : i + 3]]:
+            j_from_k = cam_from_world[j] @ np.linalg.inv(cam_from_world[k])
+            q = pts @ j_from_k[:3, :3].T + j_from_k[:3, 3]  # (n, 3) camera j
+            z = q[:, 2]
+            with np.errstate(divide="ignore", invalid="ignore"):
+                u = np.floor(fx * q[:, 0] / z + cx)
+                v = np.floor(fy * q[:, 1] / z + cy)
+            inside = (z > 0) & (u >= 0) & (u < w) & (v >= 0) & (v < h)
+            dj = np.zeros(len(pts), np.float32)
+            dj[inside] = depth[j][v[inside].astype(int), u[inside].astype(int)]
+            votes += (inside & (dj > 0) & (np.abs(dj - z) <= rel * z)).astype(np.int32)
+        kept = np.zeros((h, w), bool)
+        kept[sel] = votes >= min_consistent
+        out[k] = np.where(kept, depth[k], 0.0)
+    return out

@@ -58,7 +58,104 @@ def oracle_generator(segment: Mapping[str, Any], render: Mapping[str, Any]) -> d
     return dict(segment)
 
 
-GENERATORS: dict[str, Generator] = {"oracle": oracle_generator}  # name -> clip generator
+# Columns of a segment row that are the world's ground truth: a generated clip has none of them
+# (so fusion estimates depth from the generated frames and the known trajectory).
+GROUND_TRUTH_COLUMNS = (
+    "depth",
+    "static_video",
+    "static_depth",
+    "first_frame_clean",
+    "hand_mask",
+    "object_mask",
+    "num_objects",
+    "object_poses",
+)
+
+
+class ModelGenerator:
+    """The trained model as the clip generator: segment k's clip from state k's render.
+
+    Conditions, as ``simulate`` builds them from a pack row: the render's ``scene_video`` and
+    ``visible`` (state k along segment k's trajectory), the skeleton video of the segment's hand
+    joints (the registered ``keypoint_render`` stage), the render's first frame as the first
+    frame, and the segment's ``text`` as the prompt. The returned clips row is the segment's
+    action (cameras, joints, timestamps) with the generated ``video``, the ground-truth columns
+    cleared (:data:`GROUND_TRUTH_COLUMNS`) and ``hand_mask`` from the registered ``hand_mask``
+    stage (keypoints backend) on the generated frames. The model is loaded on first use from
+    ``checkpoint`` (``simulate``'s loader: a missing path or a pickle is a clear error).
+    """
+
+    def __init__(self, config: ClosedLoopConfig) -> None:
+        self.config = config
+        self._model: Any = None
+
+    @property
+    def model(self) -> Any:
+        """The loaded model (``egosim.model.inference.LoadedModel``), loaded once."""
+        if self._model is None:
+            from egosim.model.errors import ModelError
+            from egosim.model.inference import load_trained
+
+            cfg = self.config
+            try:
+                self._model = load_trained(
+                    cfg.checkpoint or None, preset=cfg.preset or None, device=cfg.device
+                )
+            except (ModelError, OSError, ValueError) as exc:
+                raise ClosedLoopError(
+                    f"generator 'model': cannot load checkpoint {cfg.checkpoint!r}: {exc}"
+                ) from exc
+        return self._model
+
+    def __call__(self, segment: Mapping[str, Any], render: Mapping[str, Any]) -> dict[str, Any]:
+        """Generate the segment's clip (see the class docstring)."""
+        from egosim.model.conditioning import Conditions
+        from egosim.model.sampler import sample
+
+        cid, t = segment["clip_id"], int(segment["num_frames"])
+        h, w = int(segment["height"]), int(segment["width"])
+        hands = hands_row(segment)
+        keypoints = get_stage("keypoint_render")().process({"clips": segment, "hands": hands})
+        scene = media.decode_rgb_video(render["scene_video"], h, w, f"render {cid} scene_video")
+        conditions = Conditions(
+            scene_video=scene,
+            visibility=(media.decode_lossless_video(render["visible"], f"render {cid}") > 0).astype(
+                np.uint8
+            ),
+            skeleton_video=media.decode_rgb_video(keypoints["skeleton_video"], h, w),
+            first_frame=scene[0],
+            prompt=str(segment.get("text") or ""),
+        )
+        model = self.model
+        m = model.bundle.preset.pixel_multiple
+        if h % m or w % m:
+            raise ClosedLoopError(
+                f"segment {cid!r}: frames {h}x{w} are not multiples of {m} (preset "
+                f"{model.bundle.preset.name!r})"
+            )
+        cfg = self.config
+        video = sample(model.bundle, conditions, steps=cfg.steps, seed=cfg.seed)
+        if video.shape != (t, h, w, 3):
+            raise ClosedLoopError(
+                f"segment {cid!r}: the model made {video.shape}, the segment is {(t, h, w, 3)}"
+            )
+        clip = {**segment, **dict.fromkeys(GROUND_TRUTH_COLUMNS)}
+        clip["video"] = media.encode_rgb_video(video, float(segment["fps"]), cfg.video_crf)
+        mask = get_stage("hand_mask")().process({"clips": clip, "hands": hands})
+        clip["hand_mask"] = mask["hand_mask"]
+        return clip
+
+
+def build_generator(config: ClosedLoopConfig) -> Generator:
+    """The clip generator ``config.generator`` names (:data:`GENERATORS`)."""
+    return GENERATORS[config.generator](config)
+
+
+# name -> factory of the clip generator from the loop's config
+GENERATORS: dict[str, Callable[[ClosedLoopConfig], Generator]] = {
+    "oracle": lambda config: oracle_generator,
+    "model": ModelGenerator,
+}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -66,8 +163,13 @@ class ClosedLoopConfig(StageConfig):
     """Parameters of the closed loop (``egosim simulate --continuous N``)."""
 
     num_segments: int = 1  # N: action segments the loop must be given, in order
-    generator: str = "oracle"  # clip generator: "oracle" (the ground-truth clip)
-    video_crf: int = 18  # H.264 quality of the stitched video (lower = better)
+    generator: str = "oracle"  # clip generator: "oracle" (the ground-truth clip) or "model"
+    checkpoint: str = ""  # model: run dir or .safetensors checkpoint ("" = untrained preset)
+    preset: str = ""  # model: expected preset ("" = the checkpoint's, "tiny" without one)
+    steps: int = 50  # model: Euler steps of the flow sampler (EgoSim: 50)
+    seed: int = 0  # model: noise seed
+    device: str = "auto"  # model: torch device (auto = cuda if available)
+    video_crf: int = 18  # H.264 quality of the stitched video and generated clips (lower = better)
     fusion: StateFusionConfig = dataclasses.field(default_factory=StateFusionConfig)  # fusion
 
     def __post_init__(self) -> None:
@@ -78,6 +180,8 @@ class ClosedLoopConfig(StageConfig):
             problems.append(
                 f"generator must be one of {sorted(GENERATORS)}, got {self.generator!r}"
             )
+        if self.steps < 1:
+            problems.append(f"steps must be >= 1, got {self.steps}")
         if not 0 <= self.video_crf <= 51:
             problems.append(f"video_crf must be in [0, 51], got {self.video_crf}")
         if problems:
@@ -206,7 +310,7 @@ def run_closed_loop(
     if bad:
         raise ClosedLoopError(f"segments must be 'clips' shards, got schemas {bad}")
     check_inputs(initial, segments, config)
-    generate = GENERATORS[config.generator]
+    generate = build_generator(config)
     render_stage = get_stage("scene_render")()
     fusion_stage = get_stage("state_fusion")(config.fusion)
     params = {"generator": config.generator, "num_segments": config.num_segments}

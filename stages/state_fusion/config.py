@@ -16,6 +16,7 @@ from egosim.pipeline.stage import ConfigError, StageConfig
 # object instances: "geometric" (plane + DBSCAN, no weights) or "grounded_sam" (Grounding-DINO
 # boxes for object_labels, SAM masks; local weights; stages/state_fusion/segmenters.py)
 SEGMENTATION_BACKENDS = ("geometric", "grounded_sam")
+DEPTH_SOURCES = ("auto", "clip", "estimate")  # where per-frame depth comes from
 BOX_OVERLAPS = ("iou", "ioa")  # how the interaction test compares object and hand boxes
 
 
@@ -30,6 +31,19 @@ class StateFusionConfig(StageConfig):
     sam_model_path: str = ""  # grounded_sam: local SAM folder (transformers layout)
     box_threshold: float = 0.3  # grounded_sam: Grounding-DINO box score threshold
     text_threshold: float = 0.25  # grounded_sam: Grounding-DINO text score threshold
+    # Per-frame depth (issue 13 step 1): the clip's depth column, or a plane sweep with the
+    # clip's cameras (stages/common/plane_sweep.py: clip_depth); tuned on the default world
+    depth_source: str = "auto"  # "clip" (reject without depth), "estimate", or "auto" (clip's,
+    # else estimate)
+    sweep_stride: int = 2  # every stride-th frame (and the last) gets depth; the others none
+    sweep_sources: int = 6  # source frames per swept frame
+    sweep_window_frames: int = 8  # sources within this many frames of the swept one
+    sweep_max_width: int = 416  # sweep at min(1, sweep_max_width / width) of the frame size
+    sweep_planes: int = 64  # inverse-depth planes
+    sweep_window: int = 7  # ZNCC window side in pixels at the sweep resolution (odd)
+    sweep_min_confidence: float = 0.5  # swept depth kept where its confidence reaches this
+    sweep_depth_margin: float = 0.3  # depth range = prior depth's 1-99 percentiles widened so
+    sweep_depth_range: tuple[float, float] = (0.2, 5.0)  # near, far when there is no prior depth
     # Interaction test (paper, supp. 2.2)
     hand_box_iou: float = 0.1  # object/hand box overlap above this: candidate (paper: 0.1)
     box_overlap: str = "ioa"  # "ioa": overlap / object box; "iou": paper's (see fusion.py)
@@ -82,6 +96,24 @@ class StateFusionConfig(StageConfig):
             problems.append(
                 "backend 'grounded_sam' needs object_labels, dino_model_path and sam_model_path"
             )
+        if self.depth_source not in DEPTH_SOURCES:
+            problems.append(
+                f"depth_source must be one of {DEPTH_SOURCES}, got {self.depth_source!r}"
+            )
+        for name in ("sweep_stride", "sweep_window_frames", "sweep_max_width"):
+            if getattr(self, name) < 1:
+                problems.append(f"{name} must be >= 1, got {getattr(self, name)}")
+        if self.sweep_sources < 2:
+            problems.append(f"sweep_sources must be >= 2, got {self.sweep_sources}")
+        if self.sweep_window < 3 or self.sweep_window % 2 == 0:
+            problems.append(f"sweep_window must be odd and >= 3, got {self.sweep_window}")
+        if self.sweep_planes < 3:
+            problems.append(f"sweep_planes must be >= 3, got {self.sweep_planes}")
+        if not 0.0 <= self.sweep_depth_margin < 1.0:
+            problems.append(f"sweep_depth_margin must be in [0, 1), got {self.sweep_depth_margin}")
+        rng = self.sweep_depth_range
+        if len(rng) != 2 or not (0 < rng[0] < rng[1] and np.isfinite(rng[1])):
+            problems.append(f"sweep_depth_range must be (near, far), 0 < near < far, got {rng}")
         if self.box_overlap not in BOX_OVERLAPS:
             problems.append(f"box_overlap must be one of {BOX_OVERLAPS}, got {self.box_overlap!r}")
         positive = (
@@ -113,6 +145,7 @@ class StateFusionConfig(StageConfig):
             "instance_match_fraction",
             "overlap_colour",
             "min_agreement",
+            "sweep_min_confidence",
         )
         for name in fractions:
             value = getattr(self, name)

@@ -8,12 +8,16 @@ state the clip starts from, a ``state`` row keyed by this clip's id: in simulati
 clip was generated from), or else ``scene_cloud`` (the clip's hand-free first frame as the state
 before it: :func:`initial_state`; the first update of a dataset clip through the runner).
 
-Depth: the clip's own per-frame ``depth`` column (the synthetic world, EgoDex, MCAP with depth,
-or a generated clip's depth when the simulator returns it). ``depth_camera`` gives depth for
-frame 0 only (its plane sweep is not a shared function), so a clip without per-frame depth is
-rejected with that reason rather than fused from one frame. When the cameras come from the
-``cameras`` role and it has ``depth0`` in another scale than the clip's depth, the clip's depth is
-brought to the cameras' scale by the median ratio over frame 0.
+Depth (``depth_source``): the clip's own per-frame ``depth`` column (the synthetic world, EgoDex,
+MCAP with depth) or, when the clip has none (a generated clip, most real video) or
+``depth_source`` is ``estimate``, a plane sweep of every ``sweep_stride``-th frame with the
+clip's resolved cameras (:mod:`.depth`, the ``depth_camera`` sweep moved to
+``stages/common/plane_sweep.py``): only depth is estimated, over the depth range of the
+``cameras`` row's ``depth0``, else of the previous state seen from the clip's cameras (when those
+are the clip's own, i.e. in the state's frame), else ``sweep_depth_range``; hand pixels get their
+joints' depth for the interaction test. ``depth_source: clip`` rejects a clip without depth.
+When the cameras come from the ``cameras`` role and it has ``depth0`` in another scale than the
+clip's depth, the clip's depth is brought to the cameras' scale by the median ratio over frame 0.
 
 Registration: when the cameras come from ``poses``/``cameras`` and the clip also carries its own
 ``world_from_cam`` (the action's trajectory, in the previous state's world frame), the Sim3 from
@@ -38,7 +42,14 @@ from egosim.schemas.hands import HANDS
 from egosim.schemas.scene import SCENE_CLOUD
 from egosim.schemas.state import STATE
 from egosim.stages.common.cameras import CAMERA_COLUMNS, CAMERA_ROLES, resolve_cameras
+from egosim.stages.common.plane_sweep import PlaneSweepError
 from egosim.stages.state_fusion.config import StateFusionConfig
+from egosim.stages.state_fusion.depth import (
+    estimate_clip_depth,
+    fill_hand_depth,
+    prior_depth_range,
+    state_depths,
+)
 from egosim.stages.state_fusion.fusion import (
     SOURCE_PREVIOUS,
     FusionError,
@@ -71,44 +82,77 @@ def hand_boxes(
     return boxes
 
 
+def _depth0(rows: Mapping[str, Mapping[str, Any]], cid: str) -> np.ndarray | None:
+    """The ``cameras`` row's frame-0 depth ``(H, W)`` (cameras' scale), or None."""
+    cam_row = rows.get("cameras")
+    if cam_row is None or cam_row.get("depth0") is None:
+        return None
+    return media.decode_depth_video(
+        cam_row["depth0"], cam_row["depth_unit_m"], f"clip {cid} depth0", max_frames=1
+    )[0]
+
+
 def observation_from_rows(
-    rows: Mapping[str, Mapping[str, Any]], config: StateFusionConfig
+    rows: Mapping[str, Mapping[str, Any]],
+    config: StateFusionConfig,
+    previous: State | None = None,
 ) -> Observation:
-    """Decode one clip's rows into an :class:`Observation`; raises ClipRejected when unusable."""
+    """Decode one clip's rows into an :class:`Observation`; raises ClipRejected when unusable.
+
+    ``previous`` (the state the clip starts from) bounds the depth range of an estimated depth.
+    """
     clip, hands_row, mask_row = rows["clips"], rows["hands"], rows["hand_mask"]
     cid, t, h, w = clip["clip_id"], int(clip["num_frames"]), clip["height"], clip["width"]
-    if clip.get("depth") is None:
+    estimate = config.depth_source == "estimate" or (
+        config.depth_source == "auto" and clip.get("depth") is None
+    )
+    if not estimate and clip.get("depth") is None:
         raise ClipRejected(
-            f"clip {cid!r}: no per-frame depth (the clip's depth column is null); state_fusion "
-            "needs depth for every frame and depth_camera gives frame 0 only"
+            f"clip {cid!r}: no per-frame depth (the clip's depth column is null) and "
+            "depth_source is 'clip'; use 'auto' or 'estimate' to sweep it from the cameras"
         )
     cams = resolve_cameras(rows)
     if cams.world_from_cam is None:
         raise ClipRejected(f"clip {cid!r}: no camera poses (world_from_cam is null in every role)")
     frames = media.decode_rgb_video(clip["video"], h, w, f"clip {cid} video")
-    depth = media.decode_depth_video(clip["depth"], clip["depth_unit_m"], f"clip {cid} depth")
     masks = media.decode_lossless_video(mask_row["hand_mask"], f"clip {cid} hand_mask")
+    depth = (
+        None
+        if estimate
+        else media.decode_depth_video(clip["depth"], clip["depth_unit_m"], f"clip {cid} depth")
+    )
     problems = [
         f"{name} has {len(a)} frames of {a.shape[1:3]}, clip has {t} of {(h, w)}"
         for name, a in (("video", frames), ("depth", depth), ("hand_mask", masks))
-        if a.shape[:3] != (t, h, w)
+        if a is not None and a.shape[:3] != (t, h, w)
     ]
     if int(hands_row["num_frames"]) != t:
         problems.append(f"hands has {hands_row['num_frames']} frames, clip has {t}")
     if problems:
         raise ClipRejected(f"clip {cid!r}: inputs disagree: " + "; ".join(problems))
-    cam_row = rows.get("cameras")
-    if cams.source != "clips" and cam_row is not None and cam_row.get("depth0") is not None:
-        depth0 = media.decode_depth_video(
-            cam_row["depth0"], cam_row["depth_unit_m"], f"clip {cid} depth0", max_frames=1
-        )[0]
+    depth0 = _depth0(rows, cid) if cams.source != "clips" else None
+    joints = np.asarray(hands_row["hand_joints"], np.float64).reshape(t, 2, 21, 3)
+    valid = np.asarray(hands_row["hand_valid"], bool).reshape(t, 2)
+    boxes = hand_boxes(joints, valid, cams.world_from_cam, cams.intrinsics)
+    if estimate:
+        prior = depth0
+        if prior is None and previous is not None and cams.source == "clips":
+            prior = state_depths(previous.points, cams.world_from_cam, cams.intrinsics, (h, w))
+        near_far = prior_depth_range(prior, config)
+        try:
+            depth = estimate_clip_depth(
+                frames, masks > 0, cams.intrinsics, cams.world_from_cam, near_far, config
+            )
+        except PlaneSweepError as exc:
+            raise ClipRejected(f"clip {cid!r}: per-frame depth by plane sweep: {exc}") from exc
+        depth = fill_hand_depth(
+            depth, masks > 0, joints, valid, boxes, cams.world_from_cam, cams.intrinsics
+        )
+    elif depth0 is not None:
         both = (depth0 > 0) & (depth[0] > 0)
         if both.sum() < 100:
             raise ClipRejected(f"clip {cid!r}: depth0 and depth share {int(both.sum())} pixels")
         depth = depth * np.float32(np.median(depth0[both] / depth[0][both]))
-    joints = np.asarray(hands_row["hand_joints"], np.float64).reshape(t, 2, 21, 3)
-    valid = np.asarray(hands_row["hand_valid"], bool).reshape(t, 2)
-    boxes = hand_boxes(joints, valid, cams.world_from_cam, cams.intrinsics)
     reference = None
     if cams.source != "clips" and clip.get("world_from_cam") is not None:
         reference = np.asarray(clip["world_from_cam"], np.float64).reshape(t, 4, 4)
@@ -171,6 +215,7 @@ class StateFusionStage(ClipStage):
         "scene_cloud": SCENE_CLOUD,  # the initial state when there is no previous_state
     }
     output = STATE
+    version = 2  # 2: a clip without per-frame depth is fused from a plane sweep (was rejected)
     backends = ("geometric", "grounded_sam")
     # What process reads (the executor decodes nothing else): the clip's frames, depth and
     # camera, the cleaned joints, the hand masks; the state roles are read whole.
@@ -189,9 +234,9 @@ class StateFusionStage(ClipStage):
     def process(self, rows: Mapping[str, Mapping[str, Any]]) -> dict[str, Any]:
         """The ``state`` row of one clip (see the module docstring)."""
         cid = rows["clips"]["clip_id"]
-        obs = observation_from_rows(rows, self.config)
         prev_row = rows.get("previous_state")
         previous = state_from_row(prev_row) if prev_row is not None else None
+        obs = observation_from_rows(rows, self.config, previous)
         if previous is None and rows.get("scene_cloud") is not None:
             previous = initial_state(rows["scene_cloud"], obs)
             obs = dataclasses.replace(obs, reference_world_from_cam=None)  # its frame already
