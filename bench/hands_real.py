@@ -23,6 +23,11 @@ with the default :class:`~egosim.stages.hands.mediapipe_backend.MediaPipeParams`
 - **Synthetic world** (``render_clip(WorldConfig(seed, mode))``, true joints known): recall, 2D
   error, 3D orientation error and wrist-relative MPJPE (:mod:`egosim.stages.hands.metrics`),
   for the palm-PnP lift and the old translation-only lift on the same detections.
+- **InterHand fixture** (``interhand_fixture/``: real hands, studio cameras, 3D joints): the
+  landmark model run on the ROI of each true hand (the palm detector finds 1 of 6 in these tight
+  crops), then the depth each lift gives against the true median joint depth: the palm-PnP lift
+  the hands stage and the metric scale share (``prefer_fingers_away=False``: no head-mounted
+  prior in a studio) and the translation-only fit of MediaPipe's world landmarks.
 - Seconds per clip of the whole backend (detection, tracking, sides, smoothing, lift): wall clock
   and this process's CPU time (``cpu_s``; the wall clock counts other work on a shared machine).
 """
@@ -226,6 +231,53 @@ def synthetic_figures(seeds: list[int], variant: str = "default") -> dict[str, d
     return out
 
 
+# InterHand joint order per hand: thumb tip..base, index, middle, ring, pinky (tip first), wrist.
+INTERHAND_TO_MANO = [20, 3, 2, 1, 0, 7, 6, 5, 4, 11, 10, 9, 8, 15, 14, 13, 12, 19, 18, 17, 16]
+MIN_INSIDE_JOINTS = 15  # a true hand with fewer joints inside the image is not measured
+MIN_PRESENCE = 0.5  # the landmark model's answer on a hand's ROI counts from this presence on
+
+
+def interhand_depth_figures(folder: Path) -> list[dict[str, float]]:
+    """Per real InterHand hand: true median joint depth and each lift's depth / truth."""
+    import json
+
+    import cv2
+
+    from egosim.pipeline.geometry import project_points
+    from egosim.stages.common.hand_landmarks import place_in_camera
+    from egosim.stages.common.hand_lift import palm_pnp_pose
+    from egosim.stages.common.roi_landmarks import LandmarkModel, roi_from_landmarks
+
+    cams = json.loads((folder / "test_interhand2.6m_camera.json").read_text())
+    joints3d = json.loads((folder / "test_interhand2.6m_joint_3d.json").read_text())
+    data = json.loads((folder / "test_interhand2.6m_data.json").read_text())
+    model = LandmarkModel(1)
+    out = []
+    for image in data["images"]:
+        cam, cid = cams[str(image["capture"])], image["camera"]
+        rot, pos = np.array(cam["camrot"][cid]), np.array(cam["campos"][cid])
+        k = np.array([*cam["focal"][cid], *cam["princpt"][cid]])
+        world = joints3d[str(image["capture"])][str(image["frame_idx"])]["world_coord"]
+        cam_pts = (np.array(world) - pos) @ rot.T / 1000.0  # (42, 3) camera metres
+        rgb = np.ascontiguousarray(cv2.imread(str(folder / image["file_name"]))[:, :, ::-1])
+        h, w = rgb.shape[:2]
+        for which, hand in enumerate((cam_pts[:21], cam_pts[21:])):
+            hand = hand[INTERHAND_TO_MANO]  # (21, 3) right hand first
+            uv = project_points(hand, k)[0]  # (21, 2)
+            inside = (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
+            if inside.sum() < MIN_INSIDE_JOINTS:
+                continue
+            found = model.run(rgb, roi_from_landmarks(uv))
+            if found.presence < MIN_PRESENCE:
+                continue
+            truth = float(np.median(hand[:, 2]))
+            pose = palm_pnp_pose(found.uv, found.world, k, which == 0, prefer_fingers_away=False)
+            palm = float(np.median(pose[0][:, 2])) / truth if pose is not None else float("nan")
+            moved = float(np.median(place_in_camera(found.uv, found.world, k)[:, 2])) / truth
+            out.append({"true_depth_m": truth, "palm_pnp": palm, "translation": moved})
+    return out
+
+
 def _line(name: str, figures: dict[str, float]) -> str:
     return f"{name:28s} " + "  ".join(f"{k}={v:.3g}" for k, v in figures.items())
 
@@ -243,6 +295,12 @@ def main(argv: list[str] | None = None) -> None:
     args = ap.parse_args(argv)
     if not args.skip_real:
         real(args.data)
+        print("InterHand real hands, lifted depth / true depth (landmarks on the true hand's ROI)")
+        figures = interhand_depth_figures(args.data / "interhand_fixture")
+        for i, fig in enumerate(figures):
+            print(_line(f"hand {i}", fig))
+        for lift in ("palm_pnp", "translation"):
+            print(f"median {lift}: {np.nanmedian([f[lift] for f in figures]):.3f}")
     if not args.skip_synthetic:
         for variant in args.variants:
             held = " (held out)" if variant != "default" else ""
