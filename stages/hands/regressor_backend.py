@@ -444,8 +444,9 @@ def load_regressor(folder: str | Path, device: str = "cpu") -> HandRegressor:
     if not (folder / WEIGHTS_FILE).is_file():
         pickles = sorted(p.name for p in folder.iterdir() if p.suffix in PICKLE_SUFFIXES)
         hint = (
-            f"; {pickles} are pickles, which are never loaded (they can run code): convert "
-            "their tensors to safetensors in a trusted environment"
+            f"; {pickles} are pickles, which are never loaded (they can run code): a HaMeR "
+            "checkpoint converts with `egosim hands convert-hamer CKPT --out FOLDER` (read as "
+            "data, never unpickled)"
             if pickles
             else ""
         )
@@ -462,7 +463,7 @@ def load_regressor(folder: str | Path, device: str = "cpu") -> HandRegressor:
     if arch != ARCHITECTURE:
         raise RegressorWeightsError(
             f"{folder / CONFIG_FILE}: architecture must be {ARCHITECTURE!r}, got {arch!r} "
-            "(HaMeR/WiLoR checkpoints need converting: see the module docstring)"
+            "(HaMeR checkpoints need converting: `egosim hands convert-hamer CKPT --out FOLDER`)"
         )
     known = {f.name for f in dataclasses.fields(RegressorSpec)}
     unknown = sorted(set(config) - known)
