@@ -42,6 +42,8 @@ class StateFusionConfig(StageConfig):
     sweep_planes: int = 64  # inverse-depth planes
     sweep_window: int = 7  # ZNCC window side in pixels at the sweep resolution (odd)
     sweep_min_confidence: float = 0.5  # swept depth kept where its confidence reaches this
+    sweep_consistency_rel: float = 0.01  # ... and a neighbouring swept frame agrees this closely
+    sweep_min_consistent: int = 1  # neighbouring swept frames that must agree (0 = no check)
     sweep_depth_margin: float = 0.3  # depth range = prior depth's 1-99 percentiles widened so
     sweep_depth_range: tuple[float, float] = (0.2, 5.0)  # near, far when there is no prior depth
     # Interaction test (paper, supp. 2.2)
@@ -69,6 +71,10 @@ class StateFusionConfig(StageConfig):
     voxel_size_m: float = 0.01  # TSDF voxel size in metres (ours)
     sdf_trunc_voxels: float = 4.0  # TSDF truncation in voxels (ours)
     depth_max_m: float = 3.0  # depth beyond this is not fused (paper: "max depth truncation")
+    tsdf_min_weight: float = 3.0  # surface voxels seen in at least this many frames (open3d's)
+    # ... with estimated depth (every sweep_stride-th frame, each depth already confirmed by a
+    # neighbouring frame: clip_depth's consistency check), tuned on the default world
+    tsdf_min_weight_estimated: float = 1.0
     block_count: int = 16000  # voxel blocks preallocated (8^3 voxels each); grows when needed
     # Incremental fusion with the previous state (paper, supp. 2.3)
     overlap_depth_m: float = 0.03  # old point replaced where observed depth differs by more (ours)
@@ -107,6 +113,11 @@ class StateFusionConfig(StageConfig):
             problems.append(f"sweep_sources must be >= 2, got {self.sweep_sources}")
         if self.sweep_window < 3 or self.sweep_window % 2 == 0:
             problems.append(f"sweep_window must be odd and >= 3, got {self.sweep_window}")
+        if not self.sweep_consistency_rel > 0 or self.sweep_min_consistent < 0:
+            problems.append(
+                "need sweep_consistency_rel > 0 and sweep_min_consistent >= 0, got "
+                f"{self.sweep_consistency_rel} and {self.sweep_min_consistent}"
+            )
         if self.sweep_planes < 3:
             problems.append(f"sweep_planes must be >= 3, got {self.sweep_planes}")
         if not 0.0 <= self.sweep_depth_margin < 1.0:
@@ -133,6 +144,8 @@ class StateFusionConfig(StageConfig):
             "min_centre_spread_m",
             "max_registration_rms_m",
             "outlier_std_ratio",
+            "tsdf_min_weight",
+            "tsdf_min_weight_estimated",
         )
         for name in positive:
             value = getattr(self, name)

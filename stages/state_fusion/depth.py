@@ -32,6 +32,8 @@ def sweep_params(config: StateFusionConfig, width: int) -> ClipDepthParams:
         window_frames=config.sweep_window_frames,
         scale=min(1.0, config.sweep_max_width / width),
         min_confidence=config.sweep_min_confidence,
+        consistency_rel=config.sweep_consistency_rel,
+        min_consistent=config.sweep_min_consistent,
         sweep=PlaneSweepParams(num_planes=config.sweep_planes, window=config.sweep_window),
     )
 

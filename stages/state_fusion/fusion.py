@@ -116,6 +116,8 @@ class Observation:
     # (T, 4, 4) the same cameras in the previous state's world frame (the action's trajectory in
     # simulation); None when the clip's cameras are already in that frame.
     reference_world_from_cam: np.ndarray | None = None
+    # True when depth was estimated (plane sweep: every stride-th frame, consistency-checked)
+    depth_estimated: bool = False
 
 
 # ---------------------------------------------------------------- registration
@@ -483,8 +485,12 @@ def _integrate_tsdf(
     world_from_cam: np.ndarray,
     intrinsics: np.ndarray,
     config: StateFusionConfig,
+    min_weight: float = 3.0,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Fuse ``depth (T, H, W)`` (0 = skip) by TSDF; returns points ``(N, 3)`` and RGB ``(N, 3)``."""
+    """Fuse ``depth (T, H, W)`` (0 = skip) by TSDF; returns points ``(N, 3)`` and RGB ``(N, 3)``.
+
+    Surface points come from voxels observed in at least ``min_weight`` frames (open3d's
+    default 3)."""
     k_mat = o3c.Tensor(intrinsics_matrix(intrinsics), o3c.float64)  # (3, 3)
     grid = o3d.t.geometry.VoxelBlockGrid(
         attr_names=("tsdf", "weight", "color"),
@@ -510,7 +516,7 @@ def _integrate_tsdf(
         grid.integrate(
             blocks, d_img, c_img, k_mat, k_mat, extrinsic, 1.0, config.depth_max_m, trunc
         )
-    cloud = grid.extract_point_cloud()
+    cloud = grid.extract_point_cloud(weight_threshold=min_weight)
     if "positions" not in cloud.point or len(cloud.point.positions) == 0:
         return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint8)
     pts = cloud.point.positions.numpy().astype(np.float32)
@@ -731,7 +737,8 @@ def _objects_and_background(
             obj[pix] = True
             grown = _dilate(obj.reshape(h, w), config.hand_dilation_px)
             tsdf_depth[k][grown] = 0.0
-    bg_pts, bg_rgb = _integrate_tsdf(tsdf_depth, obs.frames, poses, intrinsics, config)
+    min_weight = config.tsdf_min_weight_estimated if obs.depth_estimated else config.tsdf_min_weight
+    bg_pts, bg_rgb = _integrate_tsdf(tsdf_depth, obs.frames, poses, intrinsics, config, min_weight)
     bg_inst = np.zeros(len(bg_pts), np.int32)  # track index + 1 for untouched objects
     for m in np.flatnonzero(~interactive):
         seen = np.concatenate(list(tracks[m].points.values()))

@@ -165,6 +165,7 @@ def observation_from_rows(
         intrinsics=cams.intrinsics,
         world_from_cam=cams.world_from_cam,
         reference_world_from_cam=reference,
+        depth_estimated=estimate,
     )
 
 
