@@ -55,7 +55,7 @@ MIDDLE_KNUCKLE = 9  # MANO index of the middle finger's MCP joint
 class ArmParams:
     """Where the arm is looked for, relative to the hand's own direction and size."""
 
-    fan_half_angle_deg: float = 25.0  # probable-background fan either side of the arm's direction
+    fan_half_angle_deg: float = 55.0  # probable-background fan either side of the arm's direction
     max_turn_deg: float = 90.0  # the arm's direction is searched this far from the hand's (0: off)
     seed_start: float = 0.25  # certain-arm strip starts this many hand lengths past the wrist
     seed_end: float = 0.8  # ... and ends this many hand lengths past the wrist

@@ -67,7 +67,7 @@ class HandMaskConfig(StageConfig):
     radius_scale: float = 1.0  # multiplies the average adult bone and forearm radii
     forearm: bool = True  # look for the arm beyond the wrist (False: hands only)
     colour_refine: bool = True  # GrabCut with colour models (False: capsules and arm band only)
-    fan_half_angle_deg: float = 25.0  # probable-background fan either side of the arm direction
+    fan_half_angle_deg: float = 55.0  # probable-background fan either side of the arm direction
     grabcut_iterations: int = 3  # GrabCut iterations per frame
     grabcut_max_side: int = 256  # GrabCut works on a region downscaled to this longest side
     propagate_frames: int = 8  # carry each hand's mask this many frames backwards and forwards
@@ -175,11 +175,13 @@ class HandMaskStage(ClipStage):
     # cleaned joints and a replacement camera (see the module docstring)
     optional_inputs: ClassVar[Mapping[str, ShardSchema]] = {**CAMERA_ROLES, "hands": HANDS}
     output = HAND_MASK
-    version = 7  # 2: image-space arm masks (no world axis). 3: arm found by a colour walk, masks
+    version = 8  # 2: image-space arm masks (no world axis). 3: arm found by a colour walk, masks
     # carried into frames whose hands were missed. 4: arm re-aimed along its colour region.
     # 5: that region is probably arm wherever it runs. 6: each hand carried into the frames that
     # missed it, and only its certain seeds (skeleton, arm strip) carried with confidence.
-    # 7: a robot clip's embodiment_mask (URDF arm) added
+    # 7: a robot clip's embodiment_mask (URDF arm) added. 8: probable-background fan 25 -> 55
+    # degrees either side of the arm (GrabCut may take an arm bent at the wrist or widened by
+    # perspective)
     backends = ("keypoints", "sam")
     # What process reads (the executor decodes nothing else): the frames, joints and camera
     # of the clip, the robot arm's mask, the cleaned joints.
