@@ -22,7 +22,9 @@
   (cleaned poses, scene cloud rendered into that frame); the contact frames of a hand are the
   quarter of its frames where that ratio is largest (the fingertips closest to the surface behind
   them, i.e. touching it); the figure is the median over contact frames. 1 = hands lie on the
-  surfaces they touch. n/a without depth (static and rotation-only cameras);
+  surfaces they touch. Also against the measured scene points only (point confidence 255: most
+  depth under the hands is filled, a guess that moves with the fill). n/a without depth (static
+  and rotation-only cameras);
 - for DWM clips with a ground-truth static-scene video (``videos_static``): PSNR of the scene
   render against it on the pixels the render marks visible and no hand covers (``videos_hands``
   dilated by 15 px), and the mean distance in px from the render's Canny edges to the truth's,
@@ -145,13 +147,20 @@ def _depth_at(depth: np.ndarray, u: float, v: float, radius: int = 4) -> float:
     return float(np.median(vals)) if len(vals) else float("nan")
 
 
-def hand_surface_ratio(run: Path, cid: str, cams: dict) -> float | None:
-    """Median fingertip/scene depth ratio over each hand's contact frames (see module doc)."""
+def hand_surface_ratio(
+    run: Path, cid: str, cams: dict, measured_only: bool = False
+) -> float | None:
+    """Median fingertip/scene depth ratio over each hand's contact frames (see module doc);
+    ``measured_only``: against the scene points whose depth was measured (point confidence
+    255), not the filled ones (under the hands most depth is filled, a guess)."""
     cloud = read_step(run, "scene_cloud").get(cid)
     hands = read_step(run, "hands", ["clip_id", "hand_joints", "hand_valid"]).get(cid)
     if cloud is None or hands is None or cams.get("depth0") is None:
         return None
     pts = np.frombuffer(cloud["points_xyz"], dtype="<f4").reshape(-1, 3).astype(np.float64)
+    if measured_only:
+        confidence = np.frombuffer(cloud["point_confidence"], dtype=np.uint8)  # (N,)
+        pts = pts[confidence == 255]
     k = np.asarray(cams["intrinsics"], dtype=np.float64)
     hw = (int(cams["height"]), int(cams["width"]))
     cam_from_world = invert_se3(_poses(run, cid, cams))  # (T, 4, 4)
@@ -295,6 +304,7 @@ def summarise(case: RealCase, run: Path, data: Path, seconds: float) -> dict[str
             rejects = [f"{r['step']}: {r['reason']}"[:160] for r in reader.iter_rows()]
     posed = total = 0
     models, fovs, nominal, scales, ratios, scene, focal_err = [], [], [], [], [], [], []
+    measured_ratios: list[float] = []
     for cid, cam in cams.items():
         t = int(cam["num_frames"])
         total += t
@@ -310,6 +320,9 @@ def summarise(case: RealCase, run: Path, data: Path, seconds: float) -> dict[str
         ratio = hand_surface_ratio(run, cid, cam)
         if ratio is not None:
             ratios.append(ratio)
+        ratio = hand_surface_ratio(run, cid, cam, measured_only=True)
+        if ratio is not None:
+            measured_ratios.append(ratio)
         fig = scene_vs_truth(run, cid, case, data)
         if fig is not None:
             scene.append(fig)
@@ -326,6 +339,7 @@ def summarise(case: RealCase, run: Path, data: Path, seconds: float) -> dict[str
         "focal_error": focal_err,
         "scale": scales,
         "hand_surface_ratio": ratios,
+        "hand_surface_ratio_measured": measured_ratios,
         "seconds": seconds,
         "rejects": rejects,
     }
@@ -362,6 +376,9 @@ def print_table(rows: list[dict[str, Any]]) -> None:
     for r in rows:
         if r["scale"]:
             print(f"{r['video']}: scale {', '.join(r['scale'])}")
+        if r.get("hand_surface_ratio_measured"):
+            measured = np.median(r["hand_surface_ratio_measured"])
+            print(f"{r['video']}: hand/surf against measured scene points only {measured:.2f}")
         sv = r.get("scene_vs_truth")
         if sv:
             print(
