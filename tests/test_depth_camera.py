@@ -187,6 +187,24 @@ def test_given_backend_static_and_missing_poses() -> None:
         DepthCameraStage(DepthCameraConfig(backend="given")).process({"clips": static})
 
 
+def test_inputs_that_disagree_with_the_clip_are_rejected_naming_it() -> None:
+    """The frames and the hand mask are decoded through the clip's record and checked against
+    its frame count and size (a mask of another length would mask the wrong frames)."""
+    row = row_from_clip(make_clip("d", num_frames=5, height=24, width=32))
+    row["hand_mask"] = media.encode_mask_video(np.zeros((3, 24, 32), np.uint8))
+    stage = DepthCameraStage(DepthCameraConfig(backend="given"))
+    with pytest.raises(ClipRejected) as info:
+        stage.process({"clips": row})
+    assert str(info.value) == (
+        "inputs disagree: clip d hands decodes to (3, 24, 32), expected (5, 24, 32)"
+    )
+    row = row_from_clip(make_clip("d", num_frames=5, height=24, width=32))
+    row["num_frames"] = 6
+    row["world_from_cam"] = None  # only the video disagrees
+    with pytest.raises(ClipRejected, match=r"inputs disagree: clip 'd' video decodes to \(5,"):
+        stage.process({"clips": row})
+
+
 # --- plane sweep on hand-built geometry ------------------------------------------------------
 
 

@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from egosim.pipeline.clip_io import write_clips
+from egosim.pipeline.clip_io import row_from_clip, write_clips
 from egosim.pipeline.execute import ShardTask, run_shard_task
 from egosim.pipeline.shards import open_shard
 from egosim.pipeline.stage import ClipRejected
@@ -25,7 +25,7 @@ from egosim.world.clip import hand_joints, render_clip
 from egosim.world.config import WorldConfig
 from egosim.world.interaction import script_interaction
 from egosim.world.scene import build_scene
-from tests.conftest import write_poses
+from tests.conftest import make_clip, one_shard_task, write_poses
 
 FPS = 16.0
 K = np.array([300.0, 300.0, 208.0, 120.0])  # 416x240 pinhole
@@ -198,6 +198,53 @@ def test_stage_projects_with_connected_poses(tmp_path: Path) -> None:
         for k, r in [("c", cleaned), ("o", own)]
     }
     np.testing.assert_array_equal(joints["c"][keep], joints["o"][keep])
+
+
+def test_detecting_backends_get_frames_depth_and_labels_only(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The executor reads what the backends use (frames, depth, labels, camera), not the clip's
+    static video, masks or object poses; a stand-in MediaPipe returning the labels as
+    detections gives the given backend's joints."""
+    clip = make_clip("m", num_frames=6)  # every optional column filled
+    clips = tmp_path / "clips.parquet"
+    write_clips(clips, [clip])
+    seen = []
+
+    def labels_as_detections(decoded, params):  # the mediapipe backend's signature
+        seen.append(decoded)
+        t = decoded.num_frames
+        joints, conf = decoded.hand_joints, decoded.hand_confidence
+        side = np.tile([0, 1], (t, 1))
+        return Detections(
+            joints.astype(np.float64), side, conf.astype(np.float64), decoded.hand_valid
+        )
+
+    monkeypatch.setattr("egosim.stages.hands.stage.mediapipe_detections", labels_as_detections)
+    outputs = {}
+    for backend in ("mediapipe", "given"):
+        params = {"backend": backend, "despike": False}
+        task = one_shard_task("hands", tmp_path / backend, {"clips": clips}, params=params)
+        assert run_shard_task(task).rows == 1
+        with open_shard(task.output, HANDS) as reader:
+            outputs[backend] = next(reader.iter_rows())
+    (decoded,) = seen
+    assert decoded.frames.shape == (6, 24, 32, 3)
+    np.testing.assert_allclose(decoded.depth, clip.depth, atol=1e-3)  # the lift uses it
+    np.testing.assert_allclose(decoded.world_from_cam, clip.world_from_cam, atol=1e-12)
+    for unread in ("static_frames", "hand_mask", "object_mask", "first_frame_clean"):
+        assert getattr(decoded, unread) is None, unread
+    assert decoded.object_poses is None and decoded.text is None
+    for name in ("hand_joints", "hand_valid"):
+        np.testing.assert_array_equal(outputs["mediapipe"][name], outputs["given"][name], name)
+
+
+def test_a_clip_without_poses_gets_the_shared_reject() -> None:
+    row = row_from_clip(make_clip("np", num_frames=4))
+    row["world_from_cam"] = None
+    with pytest.raises(ClipRejected) as info:
+        HandsStage().process({"clips": row})
+    assert str(info.value) == "clip 'np': no camera poses (world_from_cam is null)"
 
 
 def test_auto_backend_uses_labels_when_the_clip_has_them() -> None:

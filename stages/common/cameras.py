@@ -13,13 +13,14 @@ intrinsics and poses.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sized
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
 from egosim.pipeline import media
+from egosim.pipeline.records import CameraRecord, ClipsRecord, DepthCameraRecord, PosesRecord
 from egosim.pipeline.stage import ClipRejected
 from egosim.schemas import ShardSchema
 from egosim.schemas.depth_camera import DEPTH_CAMERA
@@ -50,23 +51,53 @@ class Cameras:
     source: str  # role the poses came from: "poses", "cameras" or "clips"
 
 
-def _poses(row: Mapping[str, Any], t: int, clip_id: str, role: str) -> np.ndarray:
-    poses = np.asarray(row["world_from_cam"], dtype=np.float64)
-    if poses.shape != (t, 16):
-        raise ClipRejected(
-            f"clip {clip_id!r}: {role} has poses of shape {poses.shape}, expected ({t}, 16)"
-        )
-    return poses.reshape(t, 4, 4)
+# The record class each role's row is read through (a plain mapping is wrapped in it).
+_CAMERA_RECORDS: dict[str, type[CameraRecord]] = {
+    "clips": ClipsRecord,
+    "poses": PosesRecord,
+    "cameras": DepthCameraRecord,
+}
+
+
+def _poses(row: CameraRecord, t: int, clip_id: str, role: str) -> np.ndarray:
+    """``role``'s poses ``(T, 4, 4)`` float64, checked against the clip's ``t`` frames.
+
+    Parsed once by the record (the stage holding it reads the same parse); a copy is returned
+    so a caller changing it in place cannot change the record's value.
+    """
+    value = row["world_from_cam"]
+    if isinstance(value, Sized) and len(value) == t:
+        try:
+            return np.array(row.array("world_from_cam", np.float64, (t, 4, 4)))
+        except ClipRejected:
+            pass  # worded below, as for a wrong frame count
+    shape = np.asarray(value, dtype=np.float64).shape
+    raise ClipRejected(f"clip {clip_id!r}: {role} has poses of shape {shape}, expected ({t}, 16)")
+
+
+def _camera_records(rows: Mapping[str, Mapping[str, Any]]) -> dict[str, CameraRecord]:
+    """Each camera role's row in ``rows`` typed as its record (``Record.of``: a record as it is,
+    a plain mapping wrapped)."""
+    return {
+        role: record.of(rows[role])
+        for role, record in _CAMERA_RECORDS.items()
+        if rows.get(role) is not None
+    }
 
 
 def resolve_cameras(rows: Mapping[str, Mapping[str, Any]]) -> Cameras:
-    """Intrinsics from ``cameras`` else ``clips``; poses from ``poses``, ``cameras``, ``clips``."""
-    clip = rows["clips"]
-    cid, t = clip["clip_id"], int(clip["num_frames"])
-    cams = rows.get("cameras")
-    intrinsics = np.asarray((cams or clip)["intrinsics"], dtype=np.float64)
+    """Intrinsics from ``cameras`` else ``clips``; poses from ``poses``, ``cameras``, ``clips``.
+
+    ``rows`` are the records a stage's ``process`` was handed, or plain mappings (wrapped in
+    the role's record class); values are read through the records' accessors, parsed once.
+    """
+    records = _camera_records(rows)
+    clip = records["clips"]
+    cid, t = clip["clip_id"], clip.num_frames
+    cams = records.get("cameras")
+    intrinsics = np.array((cams or clip).intrinsics)  # (4,) a copy: see _poses
     for role in ("poses", "cameras", "clips"):
-        row = rows.get(role)
+        row = records.get(role)
         if row is not None and row.get("world_from_cam") is not None:
             return Cameras(intrinsics, _poses(row, t, cid, role), role)
     return Cameras(intrinsics, None, "none")

@@ -48,6 +48,7 @@ import numpy as np
 
 from egosim.pipeline import media
 from egosim.pipeline.geometry import invert_se3
+from egosim.pipeline.records import ClipsRecord
 from egosim.pipeline.stage import ClipRejected, ClipStage, ConfigError, StageConfig
 from egosim.schemas.base import ShardSchema
 from egosim.schemas.clips import CLIPS
@@ -541,11 +542,13 @@ def estimate_given(
     row: Mapping[str, Any],
     config: DepthCameraConfig,
 ) -> CameraEstimate:
-    """The ``given`` backend on one clips ``row``; raises :class:`ClipRejected`."""
-    t = int(row["num_frames"])
-    if row.get("world_from_cam") is None:
+    """The ``given`` backend on one clips ``row`` (a :class:`ClipsRecord` or a plain mapping,
+    wrapped in one); raises :class:`ClipRejected`."""
+    row = ClipsRecord.of(row)
+    t = row.num_frames
+    poses = row.world_from_cam  # (T, 4, 4)
+    if poses is None:
         raise ClipRejected(f"clip {clip_id}: backend 'given' needs the source's world_from_cam")
-    poses = np.asarray(row["world_from_cam"], dtype=np.float64).reshape(t, 4, 4)
     depth0 = None
     # The static (hand-free) depth when the source has it: the scene behind the hands.
     key = "static_depth" if row.get("static_depth") is not None else "depth"
@@ -556,7 +559,7 @@ def estimate_given(
         res = given.given_camera(
             frames,
             usable_pixels(hand_mask, config.hand_dilate_px),
-            np.asarray(row["intrinsics"], dtype=np.float64),
+            row.intrinsics,
             poses,
             depth0,
             (config.given_depth_range[0], config.given_depth_range[1]),
@@ -681,14 +684,13 @@ class DepthCameraStage(ClipStage):
     config: DepthCameraConfig
 
     def estimate(self, row: Mapping[str, Any]) -> CameraEstimate:
-        """Run the configured backend on one clips row; raises :class:`ClipRejected`."""
-        clip_id = row["clip_id"]
-        h, w = int(row["height"]), int(row["width"])
+        """Run the configured backend on one clips row (a :class:`ClipsRecord` or a plain
+        mapping, wrapped in one); raises :class:`ClipRejected`."""
+        row = ClipsRecord.of(row)
+        clip_id = row.clip_id
         try:
-            frames = media.decode_rgb_video(row["video"], h, w, f"clip {clip_id} video")
-            hand_mask = None
-            if row.get("hand_mask") is not None:
-                hand_mask = media.decode_lossless_video(row["hand_mask"], f"clip {clip_id} hands")
+            frames = row.frames  # (T, H, W, 3)
+            hand_mask = row.mask_video("hand_mask", f"clip {clip_id} hands")  # (T, H, W) or None
         except media.MediaError as exc:
             raise ClipRejected(f"clip {clip_id}: {exc}") from exc
         backend = self.config.backend
@@ -698,20 +700,15 @@ class DepthCameraStage(ClipStage):
             return estimate_given(clip_id, frames, hand_mask, row, self.config)
         if backend == "da3":
             return estimate_da3(clip_id, frames, self.config)
-        intrinsics = np.asarray(row["intrinsics"], dtype=np.float64)
-        est = estimate_sfm(clip_id, frames, hand_mask, intrinsics, self.config)
+        est = estimate_sfm(clip_id, frames, hand_mask, row.intrinsics, self.config)
         if self.config.metric_scale == "hand_size":
             est = with_hand_size_scale(est, frames)
         return est
 
     def process(self, rows: Mapping[str, Mapping[str, Any]]) -> dict[str, Any]:
         """Return the ``depth_camera`` row of one clips row."""
-        row = rows["clips"]
+        row = ClipsRecord.of(rows["clips"])
         est = self.estimate(row)
         return row_from_estimate(
-            row["clip_id"],
-            est,
-            int(row["height"]),
-            int(row["width"]),
-            self.config.confidence_threshold,
+            row["clip_id"], est, row.height, row.width, self.config.confidence_threshold
         )

@@ -25,12 +25,13 @@ from typing import Any, ClassVar, Literal
 
 import numpy as np
 
-from egosim.pipeline.clip_io import clip_from_row
+from egosim.pipeline.clip_io import CLIP_REQUIRED_COLUMNS, clip_from_row
 from egosim.pipeline.geometry import se3_problems
-from egosim.pipeline.stage import ClipRejected, ClipStage, ConfigError, StageConfig
+from egosim.pipeline.records import ClipsRecord, require_camera_poses
+from egosim.pipeline.stage import ClipRejected, ClipStage, ConfigError, StageConfig, join_columns
 from egosim.schemas import CLIPS, ShardSchema
 from egosim.schemas.hands import HANDS
-from egosim.stages.common.cameras import CAMERA_ROLES, Cameras, resolve_cameras
+from egosim.stages.common.cameras import CAMERA_COLUMNS, CAMERA_ROLES, Cameras, resolve_cameras
 from egosim.stages.hands.filters import (
     Detections,
     HandFilterError,
@@ -126,29 +127,28 @@ def clean_hands(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, int, int]:
     """Run the backend and both filters on one clips row.
 
-    ``cameras`` (from :func:`resolve_cameras`) defaults to the clips row's own camera.
+    ``row`` is a :class:`ClipsRecord` or a plain mapping (wrapped in one). ``cameras`` (from
+    :func:`resolve_cameras`) defaults to the clips row's own camera.
     Returns ``(joints (T, 2, 21, 3), valid (T, 2), confidence (T, 2, 21), duplicates removed,
     outliers removed)``; raises :class:`ClipRejected` naming the clip when it cannot.
     """
-    cid = row["clip_id"]
-    t = int(row["num_frames"])
-    cams = cameras if cameras is not None else resolve_cameras({"clips": row})
-    if cams.world_from_cam is None:
-        raise ClipRejected(f"clip {cid!r}: no camera poses (world_from_cam is null)")
-    poses = cams.world_from_cam  # (T, 4, 4)
+    clip = ClipsRecord.of(row)
+    cid, t = clip.clip_id, clip.num_frames
+    cams = cameras if cameras is not None else resolve_cameras({"clips": clip})
+    poses = require_camera_poses(cams.world_from_cam, cid)  # (T, 4, 4)
     problems = se3_problems(poses)
     if problems:
         raise ClipRejected(f"clip {cid!r}: {cams.source} world_from_cam: " + "; ".join(problems))
     intrinsics = cams.intrinsics  # (4,)
     try:
-        det = _detections(row, config, poses, intrinsics)
+        det = _detections(clip, config, poses, intrinsics)
         det.check(t)
         det, dups = deduplicate(det, poses, intrinsics, config.iou_threshold)
         joints, valid, conf = to_hands(det)
         outliers = 0
         if config.despike:
             spikes = temporal_outliers(
-                joints, valid, poses, float(row["fps"]), config.max_speed, config.max_angular_speed
+                joints, valid, poses, clip.fps, config.max_speed, config.max_angular_speed
             )
             valid &= ~spikes
             joints[spikes] = np.nan
@@ -176,12 +176,30 @@ class HandsStage(ClipStage):
     optional_inputs: ClassVar[Mapping[str, ShardSchema]] = CAMERA_ROLES  # replace the clip's camera
     output = HANDS
     backends = ("given", "mediapipe", "hamer", "regressor")
+    # What process reads of the clip: every backend's inputs (the config picks the backend, the
+    # declaration is per class): the labels (given, regressor boxes "given"), and for the
+    # detecting backends what clip_from_row needs plus the depth they lift with; the static
+    # video, masks and object poses are neither read nor decoded.
+    columns: ClassVar[Mapping[str, tuple[str, ...]]] = join_columns(
+        {
+            "clips": (
+                *CLIP_REQUIRED_COLUMNS,
+                "world_from_cam",
+                "depth",
+                "depth_unit_m",
+                "hand_joints",
+                "hand_valid",
+                "hand_confidence",
+            )
+        },
+        CAMERA_COLUMNS,
+    )
     config: HandsConfig
 
     def process(self, rows: Mapping[str, Mapping[str, Any]]) -> dict[str, Any]:
         """Clean the joints of one clip."""
-        row = rows["clips"]
-        t = int(row["num_frames"])
+        row = ClipsRecord.of(rows["clips"])
+        t = row.num_frames
         joints, valid, conf, dups, outliers = clean_hands(row, self.config, resolve_cameras(rows))
         return {
             "clip_id": row["clip_id"],
