@@ -433,7 +433,7 @@ def simulate(
         typer.Option("--segments", help="--continuous: clips shards of the segments, in order."),
     ] = None,
     generator: Annotated[
-        str, typer.Option("--generator", help="--continuous: clip generator (oracle).")
+        str, typer.Option("--generator", help="--continuous: clip generator (oracle, model).")
     ] = "oracle",
 ) -> None:
     """Generate every packed clip: runs workflows/simulate.yaml, then writes the videos.
