@@ -277,6 +277,83 @@ def _read_frames(
     return np.stack(frames)
 
 
+def _video_key(root: Path, episode: int, info: dict[str, Any], opts: LeRobotOptions) -> str:
+    """The camera's video feature: the one asked for, else the first "head" one, else the first."""
+    videos = [k for k, f in info["features"].items() if f.get("dtype") == "video"]
+    key = opts.video_key or next((k for k in videos if "head" in k), videos[0] if videos else "")
+    if key not in videos:
+        raise _reject(root, episode, f"video key {key!r} is not a video feature ({videos})")
+    return key
+
+
+def _required_ee_layout(root: Path, episode: int, info: dict[str, Any]) -> EeLayout:
+    """:func:`ee_layout`, rejecting a dataset that has none (joint states only)."""
+    layout = ee_layout(info)
+    if layout is None:
+        raise _reject(
+            root,
+            episode,
+            f"no end-effector pose: none of {list(EE_FEATURES)} names x, y, z, a rotation "
+            "(qx..qw or roll, pitch, yaw) and gripper; joint-space datasets need forward "
+            "kinematics, which egosim does not do",
+        )
+    return layout
+
+
+def _check_rows(root: Path, episode: int, rows: Any, layout: EeLayout) -> None:
+    """Reject data rows that lack the columns read or hold none of this episode."""
+    missing = [k for k in ("timestamp", layout.feature) if k not in rows.column_names]
+    if missing:
+        raise _reject(root, episode, f"data lacks column(s) {missing}")
+    if rows.num_rows == 0:
+        raise _reject(root, episode, "data file holds no rows of this episode")
+
+
+def _ee_poses(state: np.ndarray, layout: EeLayout) -> np.ndarray:
+    """``world_from_ee (T, 4, 4)`` from the state rows ``(T, D)``.
+
+    A row whose roll, pitch, yaw are not all finite gets a NaN rotation (the episode check
+    rejects it, naming the row).
+    """
+    position = state[:, layout.position]  # (T, 3)
+    if layout.quaternion:
+        return pose_from_xyz_quat(position, state[:, layout.rotation], "xyzw")
+    rpy = state[:, layout.rotation]  # (T, 3)
+    ok = np.isfinite(rpy).all(axis=1)
+    rot = np.full((len(state), 3, 3), np.nan)
+    if ok.any():
+        rot[ok] = Rotation.from_euler("xyz", rpy[ok]).as_matrix()
+    return make_se3(rot, position)
+
+
+def _camera_poses(root: Path, episode: int, rows: Any, opts: LeRobotOptions) -> np.ndarray:
+    """``world_from_cam (T, 4, 4)`` in OpenCV axes: per frame from the data, else the fixed one."""
+    cam_from_ours = CAM_FROM_OURS[opts.camera_axes]
+    if CAMERA_POSE_FEATURE in rows.column_names:
+        cam = _column(rows, CAMERA_POSE_FEATURE)  # (T, 7)
+        return pose_from_xyz_quat(cam[:, :3], cam[:, 3:7], "xyzw") @ cam_from_ours
+    if len(opts.camera_pose) == 16:
+        fixed = np.asarray(opts.camera_pose, dtype=np.float64).reshape(4, 4) @ cam_from_ours
+        return np.repeat(fixed[None], rows.num_rows, axis=0)
+    raise _reject(
+        root,
+        episode,
+        f"no camera pose: the data has no {CAMERA_POSE_FEATURE!r} and no fixed camera pose "
+        f"(16 values) was given, got {list(opts.camera_pose)}",
+    )
+
+
+def _caption(root: Path, info: dict[str, Any], rows: Any, ep: dict[str, Any]) -> str | None:
+    """The episode's task string: by its first row's ``task_index``, else the episode's tasks."""
+    tasks = _tasks(root, info)
+    text = None
+    if "task_index" in rows.column_names:
+        text = tasks.get(int(rows.column("task_index")[0].as_py()))
+    if text is None and ep.get("tasks"):
+        text = "; ".join(str(s) for s in ep["tasks"])
+    return text
+
+
 def read_lerobot_episode(
     root: Path,
     episode: int,
@@ -299,51 +376,14 @@ def read_lerobot_episode(
     if episode not in eps:
         raise _reject(root, episode, f"no such episode (the dataset has {len(eps)})")
     ep = eps[episode]
-    videos = [k for k, f in info["features"].items() if f.get("dtype") == "video"]
-    key = opts.video_key or next((k for k in videos if "head" in k), videos[0] if videos else "")
-    if key not in videos:
-        raise _reject(root, episode, f"video key {key!r} is not a video feature ({videos})")
-    layout = ee_layout(info)
-    if layout is None:
-        raise _reject(
-            root,
-            episode,
-            f"no end-effector pose: none of {list(EE_FEATURES)} names x, y, z, a rotation "
-            "(qx..qw or roll, pitch, yaw) and gripper; joint-space datasets need forward "
-            "kinematics, which egosim does not do",
-        )
+    key = _video_key(root, episode, info, opts)
+    layout = _required_ee_layout(root, episode, info)
     rows = _read_rows(root, info, ep)
-    missing = [k for k in ("timestamp", layout.feature) if k not in rows.column_names]
-    if missing:
-        raise _reject(root, episode, f"data lacks column(s) {missing}")
+    _check_rows(root, episode, rows, layout)
     t = rows.num_rows
-    if t == 0:
-        raise _reject(root, episode, "data file holds no rows of this episode")
     state = _column(rows, layout.feature)  # (T, D)
-    position = state[:, layout.position]  # (T, 3)
-    if layout.quaternion:
-        world_from_ee = pose_from_xyz_quat(position, state[:, layout.rotation], "xyzw")
-    else:
-        rpy = state[:, layout.rotation]  # (T, 3)
-        ok = np.isfinite(rpy).all(axis=1)
-        rot = np.full((t, 3, 3), np.nan)
-        if ok.any():
-            rot[ok] = Rotation.from_euler("xyz", rpy[ok]).as_matrix()
-        world_from_ee = make_se3(rot, position)
-    cam_from_ours = CAM_FROM_OURS[opts.camera_axes]
-    if CAMERA_POSE_FEATURE in rows.column_names:
-        cam = _column(rows, CAMERA_POSE_FEATURE)  # (T, 7)
-        world_from_cam = pose_from_xyz_quat(cam[:, :3], cam[:, 3:7], "xyzw") @ cam_from_ours
-    elif len(opts.camera_pose) == 16:
-        fixed = np.asarray(opts.camera_pose, dtype=np.float64).reshape(4, 4) @ cam_from_ours
-        world_from_cam = np.repeat(fixed[None], t, axis=0)
-    else:
-        raise _reject(
-            root,
-            episode,
-            f"no camera pose: the data has no {CAMERA_POSE_FEATURE!r} and no fixed camera pose "
-            f"(16 values) was given, got {list(opts.camera_pose)}",
-        )
+    world_from_ee = _ee_poses(state, layout)  # (T, 4, 4)
+    world_from_cam = _camera_poses(root, episode, rows, opts)  # (T, 4, 4)
     frames = _read_frames(root, info, ep, key, t)
     h, w = frames.shape[1:3]
     if opts.intrinsics:
@@ -351,12 +391,6 @@ def read_lerobot_episode(
     else:
         intrinsics = intrinsics_from_fov(w, h, opts.horizontal_fov_deg)
     stamps = _column(rows, "timestamp")
-    tasks = _tasks(root, info)
-    text = None
-    if "task_index" in rows.column_names:
-        text = tasks.get(int(rows.column("task_index")[0].as_py()))
-    if text is None and ep.get("tasks"):
-        text = "; ".join(str(s) for s in ep["tasks"])
     episode_data = RobotEpisode(
         name=f"{root.name}_ep{episode:06d}",
         source="lerobot",
@@ -369,7 +403,7 @@ def read_lerobot_episode(
         world_from_ee=world_from_ee[:, None],  # (T, 1, 4, 4)
         gripper_state=state[:, [layout.gripper]],  # (T, 1)
         hands=(opts.hand,),
-        text=text,
+        text=_caption(root, info, rows, ep),
         joint_positions=_column(rows, opts.joint_feature)
         if opts.joint_feature in rows.column_names
         else None,
