@@ -66,6 +66,87 @@ def _read_hdf5(path: Path) -> tuple[dict[str, np.ndarray], int, str | None]:
     return data, t, text
 
 
+def _sibling_video(hdf5_path: Path) -> Path:
+    """The episode's ``.mp4`` next to ``hdf5_path``; rejects either file missing."""
+    if not hdf5_path.is_file():
+        raise ClipRejected(f"{hdf5_path}: EgoDex hdf5 file does not exist")
+    mp4_path = hdf5_path.with_suffix(".mp4")
+    if not mp4_path.is_file():
+        raise ClipRejected(f"{hdf5_path}: sibling video {mp4_path.name} is missing")
+    return mp4_path
+
+
+def _camera_poses(hdf5_path: Path, cam: np.ndarray) -> np.ndarray:
+    """``world_from_cam (T, 4, 4)`` in our axes from EgoDex's ``cam`` (world_from_egodex_cam).
+
+    Rejects the clip when a frame's camera transform is not finite.
+    """
+    bad = np.flatnonzero(~np.isfinite(cam).all(axis=(1, 2)))
+    if bad.size:
+        raise ClipRejected(
+            f"{hdf5_path}: 'transforms/camera' is not finite in {bad.size} of {len(cam)} frames "
+            f"(first {bad[:5].tolist()})"
+        )
+    return egodex_camera_to_ours(cam)
+
+
+def _hands(
+    data: dict[str, np.ndarray], t: int, min_wrist_confidence: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Joints ``(T, 2, 21, 3)``, confidences ``(T, 2, 21)`` and validity ``(T, 2)`` of both hands.
+
+    Non-finite positions and confidences become 0 (after validity is decided).
+    """
+    joints = np.zeros((t, 2, NUM_HAND_JOINTS, 3))
+    confidence = np.zeros((t, 2, NUM_HAND_JOINTS))
+    for name, (hand, joint) in EGODEX_HAND_JOINTS.items():
+        joints[:, hand, joint] = data[f"transforms/{name}"][:, :3, 3]  # (T, 3)
+        confidence[:, hand, joint] = data[f"confidences/{name}"]
+    finite = np.isfinite(joints).all(axis=(2, 3))  # (T, 2)
+    wrist_conf = confidence[:, :, 0]  # (T, 2)
+    valid = finite & np.isfinite(wrist_conf) & (wrist_conf > min_wrist_confidence)
+    joints = np.where(np.isfinite(joints), joints, 0.0)
+    confidence = np.where(np.isfinite(confidence), confidence, 0.0)
+    return joints, confidence, valid
+
+
+def _check_hands_in_front(
+    hdf5_path: Path, world_from_cam: np.ndarray, joints: np.ndarray, valid: np.ndarray
+) -> None:
+    """Reject a clip whose valid hand joints lie mostly behind the camera (wrong convention)."""
+    if not valid.any():
+        return
+    cam_from_world = invert_se3(world_from_cam)  # (T, 4, 4)
+    z = np.concatenate(
+        [
+            transform_points(cam_from_world[i], joints[i][valid[i]])[..., 2]
+            for i in range(len(joints))
+        ]
+    )  # (N * 21,) depth of every valid joint
+    in_front = float(np.mean(z > 0))
+    if in_front < MIN_IN_FRONT_FRACTION:
+        raise ClipRejected(
+            f"{hdf5_path}: only {in_front:.0%} of valid hand joints are in front of the "
+            "camera; the camera convention looks wrong (expected camera-to-world with "
+            "x right, y down, z forward)"
+        )
+
+
+def _read_frames(hdf5_path: Path, mp4_path: Path, t: int) -> tuple[np.ndarray, float]:
+    """The video's frames ``(T, H, W, 3)`` and fps; rejects a frame count other than ``t``."""
+    try:
+        frames, _ = read_video_file(mp4_path)
+        fps = probe_video_file(mp4_path).fps
+    except MediaError as exc:
+        raise ClipRejected(f"{hdf5_path}: {exc}") from exc
+    if len(frames) != t:
+        raise ClipRejected(
+            f"{hdf5_path}: frame count mismatch: hdf5 has {t} frames, {mp4_path.name} has "
+            f"{len(frames)}"
+        )
+    return frames, fps
+
+
 def read_egodex_clip(
     hdf5_path: Path, clip_id: str | None = None, min_wrist_confidence: float = 0.0
 ) -> Clip:
@@ -82,57 +163,12 @@ def read_egodex_clip(
     behind the camera (a camera-convention error).
     """
     hdf5_path = Path(hdf5_path)
-    if not hdf5_path.is_file():
-        raise ClipRejected(f"{hdf5_path}: EgoDex hdf5 file does not exist")
-    mp4_path = hdf5_path.with_suffix(".mp4")
-    if not mp4_path.is_file():
-        raise ClipRejected(f"{hdf5_path}: sibling video {mp4_path.name} is missing")
+    mp4_path = _sibling_video(hdf5_path)
     data, t, text = _read_hdf5(hdf5_path)
-
-    cam = data["transforms/camera"]  # (T, 4, 4) world_from_egodex_cam
-    bad = np.flatnonzero(~np.isfinite(cam).all(axis=(1, 2)))
-    if bad.size:
-        raise ClipRejected(
-            f"{hdf5_path}: 'transforms/camera' is not finite in {bad.size} of {t} frames "
-            f"(first {bad[:5].tolist()})"
-        )
-    world_from_cam = egodex_camera_to_ours(cam)  # (T, 4, 4)
-
-    joints = np.zeros((t, 2, NUM_HAND_JOINTS, 3))
-    confidence = np.zeros((t, 2, NUM_HAND_JOINTS))
-    for name, (hand, joint) in EGODEX_HAND_JOINTS.items():
-        joints[:, hand, joint] = data[f"transforms/{name}"][:, :3, 3]  # (T, 3)
-        confidence[:, hand, joint] = data[f"confidences/{name}"]
-    finite = np.isfinite(joints).all(axis=(2, 3))  # (T, 2)
-    wrist_conf = confidence[:, :, 0]  # (T, 2)
-    valid = finite & np.isfinite(wrist_conf) & (wrist_conf > min_wrist_confidence)
-    joints = np.where(np.isfinite(joints), joints, 0.0)
-    confidence = np.where(np.isfinite(confidence), confidence, 0.0)
-
-    if valid.any():
-        cam_from_world = invert_se3(world_from_cam)  # (T, 4, 4)
-        z = np.concatenate(
-            [transform_points(cam_from_world[i], joints[i][valid[i]])[..., 2] for i in range(t)]
-        )  # (N * 21,) depth of every valid joint
-        in_front = float(np.mean(z > 0))
-        if in_front < MIN_IN_FRONT_FRACTION:
-            raise ClipRejected(
-                f"{hdf5_path}: only {in_front:.0%} of valid hand joints are in front of the "
-                "camera; the camera convention looks wrong (expected camera-to-world with "
-                "x right, y down, z forward)"
-            )
-
-    try:
-        frames, _ = read_video_file(mp4_path)
-        fps = probe_video_file(mp4_path).fps
-    except MediaError as exc:
-        raise ClipRejected(f"{hdf5_path}: {exc}") from exc
-    if len(frames) != t:
-        raise ClipRejected(
-            f"{hdf5_path}: frame count mismatch: hdf5 has {t} frames, {mp4_path.name} has "
-            f"{len(frames)}"
-        )
-
+    world_from_cam = _camera_poses(hdf5_path, data["transforms/camera"])  # (T, 4, 4)
+    joints, confidence, valid = _hands(data, t, min_wrist_confidence)
+    _check_hands_in_front(hdf5_path, world_from_cam, joints, valid)
+    frames, fps = _read_frames(hdf5_path, mp4_path, t)
     k = data["camera/intrinsic"]
     return Clip(
         clip_id=clip_id or f"{hdf5_path.parent.name}_{hdf5_path.stem}",
