@@ -170,6 +170,55 @@ class Window:
     kind: ClipKind  # full: num_frames window; short: whole short source; tail: the remainder
 
 
+_ClipFrame = tuple[float, int, np.ndarray]  # one clip frame: (time, source frame index, frame)
+
+
+def _window(
+    kept: dict[int, _ClipFrame], index: int, start: int, n: int, fps: float, kind: ClipKind
+) -> Window:
+    """Window ``index``: the ``n`` kept clip frames from clip frame ``start``."""
+    picks = [kept[i] for i in range(start, start + n)]
+    return Window(
+        index=index,
+        frames=np.stack([p[2] for p in picks]),
+        timestamps=np.array([p[0] for p in picks], dtype=np.float64),
+        source_indices=np.array([p[1] for p in picks], dtype=np.int64),
+        fps=fps,
+        kind=kind,
+    )
+
+
+def _targets_reached(
+    current: _ClipFrame, prev: _ClipFrame | None, next_target: int, fps: float
+) -> list[tuple[int, _ClipFrame]]:
+    """The clip frames from ``next_target`` on whose times the ``current`` source frame reaches.
+
+    Each takes whichever of ``prev`` and ``current`` is nearer in time (``prev`` on a tie) and
+    keeps its target time.
+    """
+    time = current[0]
+    picks: list[tuple[int, _ClipFrame]] = []
+    while next_target + len(picks) <= time * fps + TIME_TOLERANCE_S * fps:
+        target_time = (next_target + len(picks)) / fps
+        pick = current
+        if prev is not None and abs(prev[0] - target_time) <= abs(time - target_time):
+            pick = prev
+        picks.append((next_target + len(picks), (target_time, pick[1], pick[2])))
+    return picks
+
+
+def _too_short(
+    what: str, count: int, duration: float, made: int, fps: float, policy: WindowPolicy
+) -> ClipRejected:
+    """The rejection of a source of ``count`` frames over ``duration`` s that gave ``made``."""
+    minimum = policy.minimum
+    return ClipRejected(
+        f"{what} is shorter than one clip: {count} source frame(s) over {duration:.2f} s "
+        f"give {made} frame(s) at {fps:g} fps; the minimum is {minimum} frames "
+        f"({(minimum - 1) / fps:.2f} s at {fps:g} fps), a full clip {policy.num_frames}"
+    )
+
+
 def resample_windows(
     frames: Iterable[tuple[float, np.ndarray]],
     policy: WindowPolicy,
@@ -186,24 +235,13 @@ def resample_windows(
     fps = policy.clip_fps(source_fps)
     keep_rate = fps != policy.fps
     num, stride = policy.num_frames, policy.stride or policy.num_frames
-    kept: dict[int, tuple[float, int, np.ndarray]] = {}  # clip index -> (time, src idx, frame)
+    kept: dict[int, _ClipFrame] = {}  # clip index -> (time, src idx, frame)
     next_target = 0  # the next clip-rate frame index to fill
     window = 0  # windows made so far
     count = 0  # source frames seen
     t0: float | None = None
     last_time = 0.0
-    prev: tuple[float, int, np.ndarray] | None = None
-
-    def window_of(index: int, start: int, n: int, kind: ClipKind) -> Window:
-        picks = [kept[i] for i in range(start, start + n)]
-        return Window(
-            index=index,
-            frames=np.stack([p[2] for p in picks]),
-            timestamps=np.array([p[0] for p in picks], dtype=np.float64),
-            source_indices=np.array([p[1] for p in picks], dtype=np.int64),
-            fps=fps,
-            kind=kind,
-        )
+    prev: _ClipFrame | None = None
 
     for src_index, (time, frame) in enumerate(frames):
         count += 1
@@ -216,19 +254,13 @@ def resample_windows(
         if keep_rate:  # every source frame is a clip frame, at its own time
             picks = [(next_target, current)]
         else:
-            picks = []
-            while next_target + len(picks) <= time * fps + TIME_TOLERANCE_S * fps:
-                target_time = (next_target + len(picks)) / fps
-                pick = current
-                if prev is not None and abs(prev[0] - target_time) <= abs(time - target_time):
-                    pick = prev
-                picks.append((next_target + len(picks), (target_time, pick[1], pick[2])))
+            picks = _targets_reached(current, prev, next_target, fps)
         for target, (t, idx, img) in picks:
             if target >= start:
                 kept[target] = (t, idx, img)
             next_target = target + 1
             if next_target == start + num:
-                yield window_of(window, start, num, "full")
+                yield _window(kept, window, start, num, fps, "full")
                 window += 1
                 if policy.max_windows and window >= policy.max_windows:
                     return
@@ -240,13 +272,8 @@ def resample_windows(
     start = window * stride
     n = policy.short_length(next_target - start)
     if window == 0 and n:
-        yield window_of(0, 0, n, "short")
+        yield _window(kept, 0, 0, n, fps, "short")
     elif window and n and policy.tail == "keep":
-        yield window_of(window, start, n, "tail")
+        yield _window(kept, window, start, n, fps, "tail")
     elif window == 0:
-        minimum = policy.minimum
-        raise ClipRejected(
-            f"{what} is shorter than one clip: {count} source frame(s) over {last_time:.2f} s "
-            f"give {next_target} frame(s) at {fps:g} fps; the minimum is {minimum} frames "
-            f"({(minimum - 1) / fps:.2f} s at {fps:g} fps), a full clip {num}"
-        )
+        raise _too_short(what, count, last_time, next_target, fps, policy)
