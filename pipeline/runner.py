@@ -514,7 +514,7 @@ def _run_on_dask(
     observer: RunObserver,
 ) -> RunSummary:
     """Run planned ``tasks`` on a Dask cluster once the run holds its folder's lock."""
-    from distributed import Client, as_completed
+    from distributed import Client
 
     cluster = None
     if scheduler is None:
@@ -523,63 +523,9 @@ def _run_on_dask(
     else:
         client = Client(scheduler)
     try:
-        link, reason = _dashboard(client)
-        log.info("Dask dashboard: %s", link or reason)
-        observer.dashboard(link, reason)
-
-        def on_progress(event: tuple[float, dict[str, Any]]) -> None:
-            msg = event[1]  # Dask adds the sending worker's address to it
-            observer.clip_settled(msg["step"], msg["shard_index"], msg["clip_id"], msg["outcome"])
-
-        client.subscribe_topic(PROGRESS_TOPIC, on_progress)
-        client.subscribe_topic(LOG_TOPIC, lambda event: handle_forwarded(event[1]))
-        client_process = (socket.gethostname(), os.getpid())
-        gpu_capable = _workers_with_gpu(client)
-        futures: dict[tuple[str, int], Any] = {}
-        keys: dict[Any, str] = {}
-        for task in tasks:
-            step = workflow.step(task.step)
-            resources = dict(step.resources)
-            if resources.get("GPU") and not gpu_capable:
-                warnings.warn(
-                    f"step {task.step!r} asks for a GPU but no worker declares one: "
-                    "running it on CPU workers",
-                    stacklevel=2,
-                )
-                resources.pop("GPU")
-            deps = [
-                futures[(up, task.shard_index)]
-                for up in step.inputs.values()
-                if up not in workflow.inputs  # given shards: nothing to wait for
-            ]
-            key = f"{task.step}-{task.shard_index:05d}-{task.fingerprint}"
-            future = client.submit(
-                _run_and_name_worker,
-                task,
-                client_process,
-                *deps,
-                key=key,
-                resources=resources or None,
-                pure=False,
-            )
-            futures[(task.step, task.shard_index)] = future
-            keys[future] = key
-        results: list[ShardResult] = []
-        workers: dict[str, str] = {}
-        failures: list[str] = []
-        for future in as_completed(list(futures.values())):
-            key = keys[future]
-            try:
-                result, worker = future.result()
-            except Exception as exc:  # report every failed task, not just the first
-                failures.append(f"{key.rsplit('-', 1)[0]}: {type(exc).__name__}: {exc}")
-                log.error("task %s failed: %s: %s", key, type(exc).__name__, exc)
-                continue
-            results.append(result)
-            workers[key] = worker
-            observer.task_finished(result)
-            if progress is not None:
-                progress(result, len(results) + len(failures), len(tasks))
+        _follow_cluster(client, observer)
+        keys = _submit_tasks(client, workflow, tasks)
+        results, workers, failures = _collect_results(keys, len(tasks), progress, observer)
     finally:
         client.close()
         if cluster is not None:
@@ -589,6 +535,87 @@ def _run_on_dask(
         message = f"{len(failures)} task(s) failed:\n  - " + "\n  - ".join(failures)
         raise RunError(message, report)
     return RunSummary(out=out, results=results, report=report, workers=workers)
+
+
+def _follow_cluster(client: Any, observer: RunObserver) -> None:
+    """Tell ``observer`` the dashboard and every settled clip; show the workers' log records."""
+    link, reason = _dashboard(client)
+    log.info("Dask dashboard: %s", link or reason)
+    observer.dashboard(link, reason)
+
+    def on_progress(event: tuple[float, dict[str, Any]]) -> None:
+        msg = event[1]  # Dask adds the sending worker's address to it
+        observer.clip_settled(msg["step"], msg["shard_index"], msg["clip_id"], msg["outcome"])
+
+    client.subscribe_topic(PROGRESS_TOPIC, on_progress)
+    client.subscribe_topic(LOG_TOPIC, lambda event: handle_forwarded(event[1]))
+
+
+def _submit_tasks(client: Any, workflow: Workflow, tasks: list[ShardTask]) -> dict[Any, str]:
+    """Submit every task, after the tasks of the same shard it reads; returns future -> key.
+
+    A step that asks for a GPU runs on CPU workers (with a warning) when no worker declares one.
+    """
+    client_process = (socket.gethostname(), os.getpid())
+    gpu_capable = _workers_with_gpu(client)
+    futures: dict[tuple[str, int], Any] = {}
+    keys: dict[Any, str] = {}
+    for task in tasks:
+        step = workflow.step(task.step)
+        resources = dict(step.resources)
+        if resources.get("GPU") and not gpu_capable:
+            warnings.warn(
+                f"step {task.step!r} asks for a GPU but no worker declares one: "
+                "running it on CPU workers",
+                stacklevel=3,  # points at run_workflow, as it did before this was split out
+            )
+            resources.pop("GPU")
+        deps = [
+            futures[(up, task.shard_index)]
+            for up in step.inputs.values()
+            if up not in workflow.inputs  # given shards: nothing to wait for
+        ]
+        key = f"{task.step}-{task.shard_index:05d}-{task.fingerprint}"
+        future = client.submit(
+            _run_and_name_worker,
+            task,
+            client_process,
+            *deps,
+            key=key,
+            resources=resources or None,
+            pure=False,
+        )
+        futures[(task.step, task.shard_index)] = future
+        keys[future] = key
+    return keys
+
+
+def _collect_results(
+    keys: dict[Any, str],
+    n_tasks: int,
+    progress: Callable[[ShardResult, int, int], None] | None,
+    observer: RunObserver,
+) -> tuple[list[ShardResult], dict[str, str], list[str]]:
+    """Wait for the futures as they finish: the results, each task key's worker, the failures."""
+    from distributed import as_completed
+
+    results: list[ShardResult] = []
+    workers: dict[str, str] = {}
+    failures: list[str] = []
+    for future in as_completed(list(keys)):
+        key = keys[future]
+        try:
+            result, worker = future.result()
+        except Exception as exc:  # report every failed task, not just the first
+            failures.append(f"{key.rsplit('-', 1)[0]}: {type(exc).__name__}: {exc}")
+            log.error("task %s failed: %s: %s", key, type(exc).__name__, exc)
+            continue
+        results.append(result)
+        workers[key] = worker
+        observer.task_finished(result)
+        if progress is not None:
+            progress(result, len(results) + len(failures), n_tasks)
+    return results, workers, failures
 
 
 def _dashboard(client: Any) -> tuple[str, str]:
