@@ -80,6 +80,164 @@ def _rest_pose(side: int, rng: np.random.Generator) -> np.ndarray:
     return make_se3(rot, [*xy, TABLE_TOP_Z + 0.015 - lowest])
 
 
+@dataclass
+class _RightHandScript:
+    """What the right hand does with the target, before the shared let-go and return to rest."""
+
+    target: int  # index of the object the right hand moves
+    reach: np.ndarray  # (T, 4, 4) from rest towards the first grasp pose
+    grasp: np.ndarray  # (T, 4, 4) the hand while it grips the target
+    hold_start: float  # normalised time the grip starts
+    held: np.ndarray  # (T,) bool: the right hand grips the target
+    release_end: float  # normalised time the fingers have let go
+    curl: np.ndarray  # (T,) finger closure of the right hand
+    text: str  # caption
+
+
+def _closure(u: np.ndarray, close: tuple[float, float], open_: tuple[float, float]) -> np.ndarray:
+    """Right-hand closure ``(T,)``: from rest to the grasp over ``close``, back over ``open_``."""
+    return REST_CURL + (GRASP_CURL - REST_CURL) * (_phase(u, *close) - _phase(u, *open_))
+
+
+def _open_lid(
+    scene: Scene,
+    rng: np.random.Generator,
+    u: np.ndarray,
+    rest_r: np.ndarray,
+    grip: np.ndarray,
+    poses: np.ndarray,
+) -> _RightHandScript:
+    """Grip the lid's free edge and swing it open; writes the lid's poses into ``poses``."""
+    t = len(poses)  # poses: (T, N, 4, 4)
+    target = next(k for k, o in enumerate(scene.objects) if o.kind == "lid")
+    base = scene.objects[target - 1]
+    edge_local = np.array([base.size[0] + 0.006, 0.0, 0.006])  # lid's free edge, lid frame
+    heading = np.arctan2(*(base.pose[:2, 3] - rest_r[:2, 3])[::-1])
+    hand_rot0 = _rot_zy(heading, np.deg2rad(35.0))
+    angle = np.deg2rad(rng.uniform(85.0, 105.0)) * _phase(u, 0.38, 0.72)  # (T,)
+    hold_start = 0.3
+    held = (u >= hold_start) & (u < 0.78)
+    grasp = np.zeros((t, 4, 4))
+    for k in range(t):
+        poses[k, target] = lid_pose(base.pose, base.size, angle[k])
+        edge = poses[k, target, :3, :3] @ edge_local + poses[k, target, :3, 3]
+        rot = axis_rotation(-poses[k, target, :3, 1], 0.4 * angle[k]) @ hand_rot0
+        grasp[k] = make_se3(rot, edge - rot @ grip)
+    return _RightHandScript(
+        target=target,
+        reach=_blend(rest_r, grasp[0], _phase(u, 0.0, 0.28)),
+        grasp=grasp,
+        hold_start=hold_start,
+        held=held,
+        release_end=0.84,
+        curl=_closure(u, (0.24, 0.3), (0.78, 0.84)),
+        text=f"the right hand opens the lid of the {base.colour} box",
+    )
+
+
+def _place_destination(
+    scene: Scene, rng: np.random.Generator, target: int, p0: np.ndarray, radius: float
+) -> np.ndarray:
+    """A free spot ``(2,)`` in the placing area 10-22 cm from ``p0``, preferably to its left."""
+    dest = p0[:2] + np.array([0.0, 0.15])  # fallback when no free spot is found
+    for attempt in range(200):
+        # Prefer the left (+y); widen to any direction after 50 tries.
+        spread = np.pi / 4 if attempt < 50 else np.pi
+        theta = np.pi / 2 + rng.uniform(-spread, spread)
+        xy = p0[:2] + rng.uniform(0.1, 0.22) * np.array([np.cos(theta), np.sin(theta)])
+        inside = np.all(xy >= PLACE_LO + radius) and np.all(xy <= PLACE_HI - radius)
+        if inside and spot_is_free(scene, xy, radius, target):
+            dest = xy
+            break
+    return dest
+
+
+def _direction_words(shift: np.ndarray) -> str:
+    """The caption's words for the move ``shift (2,)`` (+x away, +y left): its larger component."""
+    if abs(shift[1]) >= abs(shift[0]):
+        return "to the left" if shift[1] > 0 else "to the right"
+    return "further away" if shift[0] > 0 else "closer"
+
+
+def _pick_and_place(
+    scene: Scene,
+    rng: np.random.Generator,
+    u: np.ndarray,
+    rest_r: np.ndarray,
+    grip: np.ndarray,
+    poses: np.ndarray,
+) -> _RightHandScript:
+    """Pick the rightmost object up and place it nearby; writes its poses into ``poses``."""
+    pickable = [k for k, o in enumerate(scene.objects) if o.kind in ("box", "cylinder")]
+    target = min(pickable, key=lambda k: scene.objects[k].pose[1, 3])  # rightmost
+    obj = scene.objects[target]
+    p0 = obj.pose[:3, 3]
+    radius = 0.5 * float(np.hypot(obj.size[0], obj.size[1]))
+    dest = _place_destination(scene, rng, target, p0, radius)
+    where = _direction_words(dest - p0[:2])
+    heading = np.arctan2(*(p0[:2] - rest_r[:2, 3])[::-1])
+    grasp_rot = _rot_zy(heading, np.deg2rad(40.0))
+    grasp0 = make_se3(grasp_rot, p0 + np.array([0.0, 0.0, 0.6 * obj.size[2]]) - grasp_rot @ grip)
+    hand_from_object = invert_se3(grasp0) @ obj.pose
+    end_hand = make_se3(
+        _rot_zy(heading + rng.uniform(-0.5, 0.5), np.deg2rad(40.0)),
+        np.array([*dest, p0[2]]) + grasp0[:3, 3] - p0,
+    )
+    move = _phase(u, 0.45, 0.72)  # (T,)
+    lift = _phase(u, 0.42, 0.58) - _phase(u, 0.62, 0.76)  # (T,) up, then down
+    grasp = _blend(grasp0, end_hand, move)  # (T, 4, 4)
+    grasp[:, 2, 3] += 0.1 * lift
+    hold_start = 0.36
+    held = (u >= hold_start) & (u < 0.8)
+    moved = u >= 0.42  # lift and move both start at 0.42 or later
+    poses[moved, target] = grasp[moved] @ hand_from_object
+    return _RightHandScript(
+        target=target,
+        reach=_blend(rest_r, grasp0, _phase(u, 0.0, 0.32)),
+        grasp=grasp,
+        hold_start=hold_start,
+        held=held,
+        release_end=0.86,
+        curl=_closure(u, (0.3, 0.36), (0.8, 0.86)),
+        text=f"the right hand picks up the {obj.name} and places it {where}",
+    )
+
+
+def _right_hand_path(script: _RightHandScript, rest_r: np.ndarray, u: np.ndarray) -> np.ndarray:
+    """Right wrist ``(T, 4, 4)``: reach, follow the grasp while holding, let go, back to rest."""
+    grasp, release_end = script.grasp, script.release_end
+    released = grasp[-1].copy()
+    released[:3, 3] += [-0.05, 0.0, 0.06]
+    let_go = _blend(grasp[-1], released, _phase(u, release_end - 0.06, release_end))
+    back = _blend(released, rest_r, _phase(u, release_end, 1.0))
+    return np.where(
+        (u < script.hold_start)[:, None, None],
+        script.reach,
+        np.where(
+            script.held[:, None, None],
+            grasp,
+            np.where((u < release_end)[:, None, None], let_go, back),
+        ),
+    )  # (T, 4, 4)
+
+
+def _idle_left_hand(
+    rest_l: np.ndarray, rng: np.random.Generator, u: np.ndarray, t: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """The idle left hand over ``t`` frames: its wrist ``(T, 4, 4)`` and closure ``(T,)``.
+
+    It rests, swaying by a centimetre or two.
+    """
+    sway = 0.012 * np.sin(2 * np.pi * (0.5 * u + rng.uniform(0, 1)))  # (T,)
+    left = np.repeat(rest_l[None], t, axis=0)
+    left[:, 0, 3] += sway
+    left[:, 2, 3] += 0.3 * np.abs(sway)
+    curl_l = 0.2 + 0.1 * np.sin(  # stays in [0.1, REST_CURL_MAX]
+        2 * np.pi * (0.7 * u + rng.uniform(0, 1))
+    )
+    return left, curl_l
+
+
 def script_interaction(scene: Scene, seed: int, num_frames: int, articulated: bool) -> Interaction:
     """The interaction of ``seed`` in ``scene`` over ``num_frames`` frames."""
     rng = np.random.default_rng([seed, 3])
@@ -88,97 +246,15 @@ def script_interaction(scene: Scene, seed: int, num_frames: int, articulated: bo
     poses = np.repeat(scene.initial_object_poses[None], t, axis=0)  # (T, N, 4, 4)
     rest_r, rest_l = _rest_pose(RIGHT_SIDE, rng), _rest_pose(LEFT_SIDE, rng)
     grip = _grip_point(GRASP_CURL)  # (3,)
-    if articulated:
-        target = next(k for k, o in enumerate(scene.objects) if o.kind == "lid")
-        base = scene.objects[target - 1]
-        edge_local = np.array([base.size[0] + 0.006, 0.0, 0.006])  # lid's free edge, lid frame
-        heading = np.arctan2(*(base.pose[:2, 3] - rest_r[:2, 3])[::-1])
-        hand_rot0 = _rot_zy(heading, np.deg2rad(35.0))
-        angle = np.deg2rad(rng.uniform(85.0, 105.0)) * _phase(u, 0.38, 0.72)  # (T,)
-        hold_start = 0.3
-        held = (u >= hold_start) & (u < 0.78)
-        grasp = np.zeros((t, 4, 4))
-        for k in range(t):
-            poses[k, target] = lid_pose(base.pose, base.size, angle[k])
-            edge = poses[k, target, :3, :3] @ edge_local + poses[k, target, :3, 3]
-            rot = axis_rotation(-poses[k, target, :3, 1], 0.4 * angle[k]) @ hand_rot0
-            grasp[k] = make_se3(rot, edge - rot @ grip)
-        curl_r = REST_CURL + (GRASP_CURL - REST_CURL) * (
-            _phase(u, 0.24, 0.3) - _phase(u, 0.78, 0.84)
-        )
-        text = f"the right hand opens the lid of the {base.colour} box"
-        reach = _blend(rest_r, grasp[0], _phase(u, 0.0, 0.28))
-        release_end = 0.84
-    else:
-        pickable = [k for k, o in enumerate(scene.objects) if o.kind in ("box", "cylinder")]
-        target = min(pickable, key=lambda k: scene.objects[k].pose[1, 3])  # rightmost
-        obj = scene.objects[target]
-        p0 = obj.pose[:3, 3]
-        radius = 0.5 * float(np.hypot(obj.size[0], obj.size[1]))
-        dest = p0[:2] + np.array([0.0, 0.15])  # fallback when no free spot is found
-        for attempt in range(200):
-            # Prefer the left (+y); widen to any direction after 50 tries.
-            spread = np.pi / 4 if attempt < 50 else np.pi
-            theta = np.pi / 2 + rng.uniform(-spread, spread)
-            xy = p0[:2] + rng.uniform(0.1, 0.22) * np.array([np.cos(theta), np.sin(theta)])
-            inside = np.all(xy >= PLACE_LO + radius) and np.all(xy <= PLACE_HI - radius)
-            if inside and spot_is_free(scene, xy, radius, target):
-                dest = xy
-                break
-        shift = dest - p0[:2]
-        if abs(shift[1]) >= abs(shift[0]):
-            where = "to the left" if shift[1] > 0 else "to the right"
-        else:
-            where = "further away" if shift[0] > 0 else "closer"
-        heading = np.arctan2(*(p0[:2] - rest_r[:2, 3])[::-1])
-        grasp_rot = _rot_zy(heading, np.deg2rad(40.0))
-        grasp0 = make_se3(
-            grasp_rot, p0 + np.array([0.0, 0.0, 0.6 * obj.size[2]]) - grasp_rot @ grip
-        )
-        hand_from_object = invert_se3(grasp0) @ obj.pose
-        end_hand = make_se3(
-            _rot_zy(heading + rng.uniform(-0.5, 0.5), np.deg2rad(40.0)),
-            np.array([*dest, p0[2]]) + grasp0[:3, 3] - p0,
-        )
-        move = _phase(u, 0.45, 0.72)  # (T,)
-        lift = _phase(u, 0.42, 0.58) - _phase(u, 0.62, 0.76)  # (T,) up, then down
-        grasp = _blend(grasp0, end_hand, move)  # (T, 4, 4)
-        grasp[:, 2, 3] += 0.1 * lift
-        hold_start = 0.36
-        held = (u >= hold_start) & (u < 0.8)
-        moved = u >= 0.42  # lift and move both start at 0.42 or later
-        poses[moved, target] = grasp[moved] @ hand_from_object
-        curl_r = REST_CURL + (GRASP_CURL - REST_CURL) * (
-            _phase(u, 0.3, 0.36) - _phase(u, 0.8, 0.86)
-        )
-        text = f"the right hand picks up the {obj.name} and places it {where}"
-        reach = _blend(rest_r, grasp0, _phase(u, 0.0, 0.32))
-        release_end = 0.86
-    # Right hand: reach, follow the grasp while holding, let go and move back to rest.
-    released = grasp[-1].copy()
-    released[:3, 3] += [-0.05, 0.0, 0.06]
-    let_go = _blend(grasp[-1], released, _phase(u, release_end - 0.06, release_end))
-    back = _blend(released, rest_r, _phase(u, release_end, 1.0))
-    right = np.where(
-        (u < hold_start)[:, None, None],
-        reach,
-        np.where(
-            held[:, None, None], grasp, np.where((u < release_end)[:, None, None], let_go, back)
-        ),
-    )  # (T, 4, 4)
-    # Left hand: resting, swaying by a centimetre or two.
-    sway = 0.012 * np.sin(2 * np.pi * (0.5 * u + rng.uniform(0, 1)))  # (T,)
-    left = np.repeat(rest_l[None], t, axis=0)
-    left[:, 0, 3] += sway
-    left[:, 2, 3] += 0.3 * np.abs(sway)
-    curl_l = 0.2 + 0.1 * np.sin(  # stays in [0.1, REST_CURL_MAX]
-        2 * np.pi * (0.7 * u + rng.uniform(0, 1))
-    )
+    act = _open_lid if articulated else _pick_and_place
+    script = act(scene, rng, u, rest_r, grip, poses)
+    right = _right_hand_path(script, rest_r, u)  # (T, 4, 4)
+    left, curl_l = _idle_left_hand(rest_l, rng, u, t)
     return Interaction(
         world_from_hand=np.stack([left, right], axis=1),
-        curl=np.stack([curl_l, curl_r], axis=1),
+        curl=np.stack([curl_l, script.curl], axis=1),
         object_poses=poses,
-        target=target,
-        held=held,
-        text=text,
+        target=script.target,
+        held=script.held,
+        text=script.text,
     )
