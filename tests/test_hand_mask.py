@@ -132,6 +132,49 @@ def test_arm_walk_follows_a_bar_and_stops_at_its_end() -> None:
     assert ref is None and extent == 20.0
 
 
+def test_arm_direction_turn_cost(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A sleeve 40 degrees off the hand's direction is followed at a low turn cost, not at a
+    high one, and ``ArmParams.turn_cost`` is what the arm search uses (hand_mask v9: the
+    forearm's half-width used to be passed in its place)."""
+    from egosim.stages.hand_mask.arm_region import ArmParams, arm_direction, draw_arm_labels
+
+    h, w = 160, 200
+    rng = np.random.default_rng(1)
+    image = np.clip(rng.normal(120, 40, (h, w, 3)), 0, 255).astype(np.uint8)  # busy table
+    wrist = np.array([100.5, 40.5])
+    turned = np.array([np.sin(np.radians(40.0)), np.cos(np.radians(40.0))])  # 40 deg off "down"
+    end = wrist + 200 * turned
+    cv2.line(image, (100, 40), (round(end[0]), round(end[1])), (150, 40, 160), 15)  # sleeve
+    lab = cv2.cvtColor(image, cv2.COLOR_RGB2LAB).astype(np.float32)
+    none = np.zeros((h, w), np.uint8)
+    down = np.array([0.0, 1.0])
+    cheap = arm_direction(lab, wrist, down, 30.0, none, 90.0, 0.3, 7.0)
+    dear = arm_direction(lab, wrist, down, 30.0, none, 90.0, 1e4, 7.0)
+    # candidates every 5 degrees, and the turn cost may keep it one step short
+    assert np.degrees(np.arccos(np.clip(cheap @ turned, -1, 1))) <= 7.5, cheap
+    assert np.allclose(dear, down), dear
+    # The stage's labels call the search with ArmParams' turn cost and the forearm's
+    # half-width as the side-strip radius.
+    import egosim.stages.hand_mask.arm_region as arm_region
+
+    seen = {}
+
+    def recording(*args, **kwargs):
+        seen.update(kwargs, args=args)
+        return arm_direction(*args, **kwargs)
+
+    kp = np.full((21, 2), np.nan)
+    kp[0] = wrist
+    for j, x in zip((5, 9, 13, 17), (92.5, 98.5, 104.5, 110.5), strict=True):
+        kp[j] = [x, 15.5]  # knuckles above the wrist: the hand points up, its arm "down"
+    monkeypatch.setattr(arm_region, "arm_direction", recording)
+    labels = np.full((h, w), cv2.GC_BGD, np.uint8)
+    draw_arm_labels(labels, kp, CapsuleParams(), ArmParams(turn_cost=0.7), lab)
+    scale = hand_scale_px(kp)
+    assert seen["turn_cost"] == 0.7
+    assert seen["radius"] == pytest.approx(0.027 * scale)  # FOREARM_RADIUS_M[0] at the wrist
+
+
 def test_region_direction_of_a_ray_and_of_a_blob() -> None:
     """A ray from the wrist gives its direction (to 2 degrees); a round patch gives none."""
     from egosim.stages.hand_mask.arm_region import region_direction

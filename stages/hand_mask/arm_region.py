@@ -57,6 +57,7 @@ class ArmParams:
 
     fan_half_angle_deg: float = 55.0  # probable-background fan either side of the arm's direction
     max_turn_deg: float = 90.0  # the arm's direction is searched this far from the hand's (0: off)
+    turn_cost: float = 3.0  # a candidate's score grows by this fraction per radian of turn
     seed_start: float = 0.25  # certain-arm strip starts this many hand lengths past the wrist
     seed_end: float = 0.8  # ... and ends this many hand lengths past the wrist
     seed_width: float = 0.35  # strip half-width, times the forearm's half-width at the wrist
@@ -70,6 +71,8 @@ class ArmParams:
     refine_direction: bool = True  # re-aim the arm along the arm-coloured region's main axis
     refine_half_angle_deg: float = 60.0  # that region is looked for this far either side
     region_probable: bool = True  # that region is probably arm (else background off the band)
+    hand_ring: float = 0.03  # probably-background ring round the hand (GrabCut may grow the
+    # hand into it), times its scale in px per metre: 3 cm at the hand's depth (0: none)
 
     def __post_init__(self) -> None:
         problems = []
@@ -295,7 +298,16 @@ def draw_arm_labels(
         wrist, d, hand_len = found
         r_wrist = FOREARM_RADIUS_M[0] * scale * capsule.radius_scale
         if lab is not None and arm.max_turn_deg > 0:
-            d = arm_direction(lab, wrist, d, hand_len, mask, arm.max_turn_deg, r_wrist)
+            d = arm_direction(
+                lab,
+                wrist,
+                d,
+                hand_len,
+                mask,
+                max_turn_deg=arm.max_turn_deg,
+                turn_cost=arm.turn_cost,
+                radius=r_wrist,
+            )
         fan, band, seed, region = _arm_regions(lab, mask, wrist, d, hand_len, scale, capsule, arm)
         if region is not None and arm.refine_direction:
             better = region_direction(region, wrist, d)
@@ -307,7 +319,8 @@ def draw_arm_labels(
         if region is not None and arm.region_probable:
             band = band | region  # the arm's colour wherever it runs: GrabCut decides
     # A probably-background ring round the hand lets the colour model trim fat capsules.
-    ring = cv2.dilate(mask, np.ones((3, 3), np.uint8), iterations=max(1, round(0.03 * scale)))
+    grow = max(1, round(arm.hand_ring * scale)) if arm.hand_ring > 0 else 0
+    ring = cv2.dilate(mask, np.ones((3, 3), np.uint8), iterations=grow) if grow > 0 else mask
     for region, label in (
         (fan | ring, cv2.GC_PR_BGD),
         (band | mask, cv2.GC_PR_FGD),
