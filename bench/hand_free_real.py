@@ -17,6 +17,8 @@ before the last change; alt tabletop 7 and wild 8 are held out.
 - ``iou_true``: mean per-frame hand+arm mask IoU against the world's mask, masks from the true
   joints (the ``hand_mask`` stage on the clip); ``iou_mp``: from MediaPipe's 2D landmarks (as
   the ``hands`` stage's ``mediapipe`` backend tracks them, before lifting);
+- ``breakdown_true``: where the true-joint masks lose, frame 0 and later frames apart (missed
+  hand / missed arm pixels, false pixels near the truth / far from it; :func:`mask_breakdown`);
 - ``psnr``: frame-0 inpainting (the ``inpaint`` stage's default fill given the predicted masks
   from true joints, the clip's depth and poses) in the true hand+arm region of frame 0, against
   ``first_frame_clean``; ``telea``: OpenCV Telea given the true mask (dilated 2 px).
@@ -150,11 +152,41 @@ def world_case(
         "iou_true": float(np.mean([iou(m > 0, g) for m, g in zip(masks, truth, strict=True)])),
         "iou_mp": float(np.mean([iou(m > 0, g) for m, g in zip(mp_masks, truth, strict=True)])),
         "iou_true_f0": iou(masks[0] > 0, truth[0]),
+        "breakdown_true": mask_breakdown(masks, truth, clip),
         "psnr": _psnr(result.image, clip.first_frame_clean, region),
         "telea": _psnr(telea, clip.first_frame_clean, region),
         "mask_s": mask_s,
         "fill_s": fill_s,
     }
+
+
+def mask_breakdown(masks: np.ndarray, truth: np.ndarray, clip: Any) -> dict[str, dict[str, int]]:
+    """Where ``masks (T, H, W)`` lose against ``truth (T, H, W)``, frame 0 and later frames apart.
+
+    Pixels: ``fn_hand`` (missed, within 3 px of the hand drawn round the clip's true keypoints
+    without a forearm), ``fn_arm`` (missed elsewhere: arm and sleeve), ``fp_near`` (false,
+    within 10 px of the truth: fat edges, a held object), ``fp_far`` (false, farther: bands).
+    """
+    from egosim.stages.hand_mask.capsules import CapsuleParams, draw_hands
+    from egosim.stages.hand_mask.stage import project_keypoints
+
+    kp = project_keypoints(clip)  # (T, 2, 21, 2)
+    valid = np.ones(kp.shape[:2], bool) if clip.hand_valid is None else clip.hand_valid
+    h, w = truth.shape[1:]
+    out = {}
+    for name, frames in (("frame0", [0]), ("later", range(1, len(truth)))):
+        sums = dict.fromkeys(("truth", "fn_hand", "fn_arm", "fp_near", "fp_far"), 0)
+        for t in frames:
+            hand = dilate(draw_hands(kp[t], valid[t], h, w, CapsuleParams(forearm=False))[0], 3)
+            m, g = masks[t] > 0, truth[t]
+            near = dilate(g.astype(np.uint8), 10) > 0
+            sums["truth"] += int(g.sum())
+            sums["fn_hand"] += int((~m & g & (hand > 0)).sum())
+            sums["fn_arm"] += int((~m & g & (hand == 0)).sum())
+            sums["fp_near"] += int((m & ~g & near).sum())
+            sums["fp_far"] += int((m & ~g & ~near).sum())
+        out[name] = sums
+    return out
 
 
 def allowed_region(hands: np.ndarray) -> np.ndarray:
@@ -393,6 +425,12 @@ def main() -> int:
             f"{r['telea']:.2f} | {r['mask_s']:.1f}+{r['fill_s']:.1f} s",
             flush=True,
         )
+        for part, b in r["breakdown_true"].items():
+            print(
+                f"  {part:<6} truth {b['truth']} px: missed hand {b['fn_hand']} arm "
+                f"{b['fn_arm']} | false near {b['fp_near']} far {b['fp_far']}",
+                flush=True,
+            )
     if not args.skip_real and not args.fixed_only and (args.data / DWM).is_dir():
         for cid in ("00013", "00017"):
             r = dwm_case(cid, args.data, args.out)
