@@ -62,8 +62,9 @@ frame-0 depth masked under the hands), with the translation lift. Scale error (e
   (default) / 0.85 (alt) of the true joints' projected palm (median over 300 / 324 hand-frames),
   so the metric palm fitted to it lands further away; the hands stage places those hands at the
   same depth, so hands and scene agree. On real hands with 3D truth (InterHand fixture, landmarks
-  on each true hand's ROI) the ratio is 0.90-1.11, median 0.97 of 6 hands. With the translation lift the MediaPipe path gave
-  -6.3% / +0.5% tuned and -1.9% to +14.3% held out, but disagreed with the hands stage.
+  on each true hand's ROI) the ratio is 0.90-1.11, median 0.97 of 6 hands. With the translation
+  lift the MediaPipe path gave -6.3% / +0.5% tuned and -1.9% to +14.3% held out, but disagreed
+  with the hands stage.
 - Real clips (``python -m bench.real_video``, hand/surface ratio at contact against the scene
   cloud; against its measured points only in brackets): DWM 00013 1.53 (1.59) -> 0.82 (0.85),
   scale 0.094 -> 0.176 m/unit; DWM 00017 1.50 (1.57) -> 0.93 (0.97), scale 0.018 -> 0.029;
