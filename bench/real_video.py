@@ -33,8 +33,9 @@
   offset from the real frames by a constant 6-8 px (its principal point differs; phase
   correlation of real and truth frame 0 finds (-5.7, -5.1) px on 00013 and (-6.2, -5.7) on
   00017, response 0.8-0.9; the shifted truth matches real frame 0 at 29.7 dB instead of 24.8).
-  That shift, measured on frame 0 only (the input, not the render), moves every truth and hand
-  frame; pixels it brings in from outside the image are left out. The JSON keeps the
+  That shift, measured on frame 0 only (the input, not the render), moves every truth frame;
+  pixels it brings in from outside the image are left out. ``videos_hands`` is not offset (its
+  best shift onto the real hands is (0, 0) / (0, 2) px) and is used as it is. The JSON keeps the
   unregistered figures too (``*_unregistered``).
 
 The figures are read from the shards the run wrote; nothing here is tuned to these videos.
@@ -263,10 +264,10 @@ def scene_vs_truth(run: Path, cid: str, case: RealCase, data: Path) -> dict[str,
     names = ("psnr", "psnr_base", "edge", "edge_base")
     figures: dict[str, list[float]] = {n + sfx: [] for n in names for sfx in ("", "_unregistered")}
     for t in range(len(scene)):
+        # videos_hands is not offset (best shift (0, 0) / (0, 2) px at t = 10): never shifted
+        hand = cv2.dilate((hands[t].max(axis=2) > HAND_RENDER_THRESHOLD).astype(np.uint8), kernel)
         for sfx, shift in (("", (dx, dy)), ("_unregistered", (0.0, 0.0))):
             truth_t = _shift(truth[t], *shift) if sfx == "" else truth[t]
-            hand_t = _shift(hands[t], *shift) if sfx == "" else hands[t]
-            hand = cv2.dilate((hand_t.max(axis=2) > HAND_RENDER_THRESHOLD).astype(np.uint8), kernel)
             mask = visible[t] & (hand == 0) & (inside if sfx == "" else True)
             figures["psnr" + sfx].append(_psnr(scene[t], truth_t, mask))
             figures["psnr_base" + sfx].append(_psnr(real[0], truth_t, mask))
