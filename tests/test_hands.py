@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from egosim.pipeline.clip_io import row_from_clip, write_clips
-from egosim.pipeline.execute import ShardTask, run_shard_task
+from egosim.pipeline.execute import run_shard_task
 from egosim.pipeline.shards import open_shard
 from egosim.pipeline.stage import ClipRejected
 from egosim.schemas.hands import HANDS
@@ -117,28 +117,24 @@ def test_invalid_neighbours_are_not_tested() -> None:
     assert not temporal_outliers(joints, valid, poses, FPS).any()
 
 
+def hands_row(out_dir: Path, inputs: dict[str, Path], params: dict, name: str = "hands") -> dict:
+    """Run the hands stage with ``params`` as one shard over ``inputs`` (one clip), writing
+    ``out_dir/<name>.parquet``; check that it kept the clip and return the clip's hands row."""
+    task = one_shard_task("hands", out_dir, inputs, name, params)
+    result = run_shard_task(task)
+    assert result.rows == 1 and result.rejected == 0
+    with open_shard(task.output, HANDS) as reader:
+        return next(reader.iter_rows())
+
+
 def test_stage_end_to_end(tmp_path: Path) -> None:
     clip = render_clip(WorldConfig(seed=2, mode="tabletop", height=48, width=80, num_frames=6))
     good = clip.hand_joints.copy()
     clip.hand_joints[3, 1] += 0.8  # one spike, right hand, frame 3 (12.8 m/s both ways)
     clips = tmp_path / "clips.parquet"
     write_clips(clips, [clip])
-    out = tmp_path / "hands.parquet"
-    result = run_shard_task(
-        ShardTask(
-            step="hands",
-            stage="hands",
-            params={"backend": "given", "max_speed": 6.0},  # 6 frames: a fast script
-            shard_index=0,
-            shard_count=1,
-            output=out,
-            rejects=tmp_path / "hands.rejects.parquet",
-            inputs={"clips": clips},
-        )
-    )
-    assert result.rows == 1 and result.rejected == 0
-    with open_shard(out, HANDS) as reader:
-        row = next(reader.iter_rows())
+    params = {"backend": "given", "max_speed": 6.0}  # 6 frames: a fast script
+    row = hands_row(tmp_path, {"clips": clips}, params)
     with open_shard(clips) as reader:
         clip_row = next(reader.iter_rows())
     valid = np.asarray(row["hand_valid"])
@@ -169,22 +165,7 @@ def test_stage_projects_with_connected_poses(tmp_path: Path) -> None:
     poses = write_poses(tmp_path / "poses.parquet", clip, leap)
 
     def run(inputs: dict[str, Path], name: str) -> dict:
-        out = tmp_path / f"{name}.parquet"
-        result = run_shard_task(
-            ShardTask(
-                step="hands",
-                stage="hands",
-                params={"backend": "given", "max_speed": 6.0},
-                shard_index=0,
-                shard_count=1,
-                output=out,
-                rejects=tmp_path / f"{name}.rejects.parquet",
-                inputs=inputs,
-            )
-        )
-        assert result.rows == 1
-        with open_shard(out, HANDS) as reader:
-            return next(reader.iter_rows())
+        return hands_row(tmp_path, inputs, {"backend": "given", "max_speed": 6.0}, name)
 
     own = run({"clips": clips}, "own")
     cleaned = run({"clips": clips, "poses": poses}, "cleaned")
@@ -224,10 +205,7 @@ def test_detecting_backends_get_frames_depth_and_labels_only(
     outputs = {}
     for backend in ("mediapipe", "given"):
         params = {"backend": backend, "despike": False}
-        task = one_shard_task("hands", tmp_path / backend, {"clips": clips}, params=params)
-        assert run_shard_task(task).rows == 1
-        with open_shard(task.output, HANDS) as reader:
-            outputs[backend] = next(reader.iter_rows())
+        outputs[backend] = hands_row(tmp_path / backend, {"clips": clips}, params)
     (decoded,) = seen
     assert decoded.frames.shape == (6, 24, 32, 3)
     np.testing.assert_allclose(decoded.depth, clip.depth, atol=1e-3)  # the lift uses it

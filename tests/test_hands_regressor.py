@@ -15,11 +15,9 @@ from safetensors.torch import load_file  # noqa: E402
 
 from egosim.model.checkpoint import UnsafeCheckpointError  # noqa: E402
 from egosim.pipeline.clip_io import clip_from_row, write_clips  # noqa: E402
-from egosim.pipeline.execute import ShardTask, run_shard_task  # noqa: E402
 from egosim.pipeline.geometry import invert_se3, project_points, transform_points  # noqa: E402
 from egosim.pipeline.shards import open_shard  # noqa: E402
 from egosim.pipeline.stage import ConfigError  # noqa: E402
-from egosim.schemas.hands import HANDS  # noqa: E402
 from egosim.stages.hands.convert_checkpoint import (  # noqa: E402
     HamerLayout,
     convert_hamer_checkpoint,
@@ -43,6 +41,7 @@ from egosim.stages.hands.regressor_backend import (  # noqa: E402
 from egosim.stages.hands.stage import HandsConfig  # noqa: E402
 from egosim.world.clip import render_clip  # noqa: E402
 from egosim.world.config import WorldConfig  # noqa: E402
+from tests.test_hands import hands_row  # noqa: E402
 from tests.test_mano import tiny_mano  # noqa: E402
 
 TINY = RegressorSpec(
@@ -167,27 +166,13 @@ def test_missing_or_wrong_weights_are_config_errors(tmp_path: Path, weights: Pat
 def test_stage_end_to_end(tmp_path: Path, weights: Path, clip) -> None:
     clips = tmp_path / "clips.parquet"
     write_clips(clips, [clip])
-    out = tmp_path / "hands.parquet"
-    result = run_shard_task(
-        ShardTask(
-            step="hands",
-            stage="hands",
-            params={
-                "backend": "regressor",
-                "regressor_weights": str(weights),
-                "regressor_boxes": "given",
-                "despike": False,  # an untrained network's hands jump about
-            },
-            shard_index=0,
-            shard_count=1,
-            output=out,
-            rejects=tmp_path / "hands.rejects.parquet",
-            inputs={"clips": clips},
-        )
-    )
-    assert result.rows == 1 and result.rejected == 0
-    with open_shard(out, HANDS) as reader:
-        row = next(reader.iter_rows())
+    params = {
+        "backend": "regressor",
+        "regressor_weights": str(weights),
+        "regressor_boxes": "given",
+        "despike": False,  # an untrained network's hands jump about
+    }
+    row = hands_row(tmp_path, {"clips": clips}, params)
     assert row["backend"] == "regressor"
     valid = np.asarray(row["hand_valid"])  # (T, 2)
     joints = np.asarray(row["hand_joints"], dtype=np.float64).reshape(5, 2, 21, 3)
@@ -313,23 +298,8 @@ def test_mano_head_through_the_stage_puts_the_hands_in_their_boxes(tmp_path: Pat
     folder = mano_folder(tmp_path / "w", seed=2, constant=True)
     clips = tmp_path / "clips.parquet"
     write_clips(clips, [clip])
-    out = tmp_path / "hands.parquet"
     params = {"backend": "regressor", "regressor_weights": str(folder), "despike": False}
-    result = run_shard_task(
-        ShardTask(
-            step="hands",
-            stage="hands",
-            params={**params, "regressor_boxes": "given"},
-            shard_index=0,
-            shard_count=1,
-            output=out,
-            rejects=tmp_path / "hands.rejects.parquet",
-            inputs={"clips": clips},
-        )
-    )
-    assert result.rows == 1 and result.rejected == 0
-    with open_shard(out, HANDS) as reader:
-        row = next(reader.iter_rows())
+    row = hands_row(tmp_path, {"clips": clips}, {**params, "regressor_boxes": "given"})
     valid = np.asarray(row["hand_valid"])  # (T, 2)
     joints = np.asarray(row["hand_joints"], dtype=np.float64).reshape(5, 2, 21, 3)
     np.testing.assert_array_equal(valid, clip.hand_valid)  # every labelled hand, every frame
