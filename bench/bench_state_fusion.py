@@ -58,6 +58,7 @@ from egosim.world.state_truth import (
 )
 
 SMALL = {"height": 120, "width": 208, "num_frames": 17}  # bench size (2 shared cores)
+NO_UPDATE = "no update (state 0)"  # the baseline: the previous state kept as it is
 ROI_RADIUS = 0.12  # metres around a moved object's first and last place: the interacted region
 
 
@@ -325,37 +326,41 @@ def _instance_for(state: State, truth: np.ndarray) -> tuple[int, int]:
     return best, frame
 
 
+def _mm_row(name: str, values: list[float], baselines: list[float]) -> dict[str, Any]:
+    """A bench row in millimetres: the mean of ``values`` (metres) against the mean of
+    ``baselines`` (metres), the same figure for the no-update state (state 0)."""
+    return {
+        "name": name,
+        "value": 1000 * float(np.mean(values)),
+        "unit": "mm",
+        "baseline": NO_UPDATE,
+        "baseline_value": 1000 * float(np.mean(baselines)),
+    }
+
+
 def bench_state_fusion() -> list[dict[str, Any]]:
     """Figures over three tabletop seeds at 120x208, 17 frames, against the no-update baseline."""
     runs = [measure_state_update(WorldConfig(seed=s, **SMALL)) for s in (0, 1, 2)]
     objs = [o for r in runs for o in r["objects"]]
-    base = "no update (state 0)"
 
     def mean(key: str) -> float:
         return float(np.mean([r[key] for r in runs]))
 
+    def each(key: str) -> list[float]:
+        return [r[key] for r in runs]
+
     return [
-        {
-            "name": "state: moved-object centroid error",
-            "value": 1000 * float(np.mean([o["error"] for o in objs])),
-            "unit": "mm",
-            "baseline": base,
-            "baseline_value": 1000 * float(np.mean([o["baseline_error"] for o in objs])),
-        },
-        {
-            "name": "state: Chamfer near moved objects",
-            "value": 1000 * mean("chamfer_roi"),
-            "unit": "mm",
-            "baseline": base,
-            "baseline_value": 1000 * mean("chamfer_roi_baseline"),
-        },
-        {
-            "name": "state: Chamfer over the table",
-            "value": 1000 * mean("chamfer_table"),
-            "unit": "mm",
-            "baseline": base,
-            "baseline_value": 1000 * mean("chamfer_table_baseline"),
-        },
+        _mm_row(
+            "state: moved-object centroid error",
+            [o["error"] for o in objs],
+            [o["baseline_error"] for o in objs],
+        ),
+        _mm_row(
+            "state: Chamfer near moved objects", each("chamfer_roi"), each("chamfer_roi_baseline")
+        ),
+        _mm_row(
+            "state: Chamfer over the table", each("chamfer_table"), each("chamfer_table_baseline")
+        ),
         {
             "name": "state: hand points left / interacted points",
             "value": 100 * mean("hand_fraction"),
@@ -382,7 +387,7 @@ def bench_state_fusion() -> list[dict[str, Any]]:
                 "name": f"look back: {label}",
                 "value": float(np.mean([r["look_back"][f"{key}_update"] for r in runs])),
                 "unit": unit,
-                "baseline": base,
+                "baseline": NO_UPDATE,
                 "baseline_value": float(np.mean([r["look_back"][f"{key}_baseline"] for r in runs])),
             }
             for label, key, unit in (
@@ -445,22 +450,18 @@ def bench_state_fusion_estimated_depth() -> list[dict[str, Any]]:
         runs = [measure_state_update(w, look_back=False, fusion=fusion) for w in worlds]
         objs = [o for r in runs for o in r["objects"]]
         out.append(
-            {
-                "name": f"state from estimated depth ({variant}): moved-object centroid error",
-                "value": 1000 * float(np.mean([o["error"] for o in objs])),
-                "unit": "mm",
-                "baseline": "no update (state 0)",
-                "baseline_value": 1000 * float(np.mean([o["baseline_error"] for o in objs])),
-            }
+            _mm_row(
+                f"state from estimated depth ({variant}): moved-object centroid error",
+                [o["error"] for o in objs],
+                [o["baseline_error"] for o in objs],
+            )
         )
         out.append(
-            {
-                "name": f"state from estimated depth ({variant}): Chamfer near moved objects",
-                "value": 1000 * float(np.mean([r["chamfer_roi"] for r in runs])),
-                "unit": "mm",
-                "baseline": "no update (state 0)",
-                "baseline_value": 1000 * float(np.mean([r["chamfer_roi_baseline"] for r in runs])),
-            }
+            _mm_row(
+                f"state from estimated depth ({variant}): Chamfer near moved objects",
+                [r["chamfer_roi"] for r in runs],
+                [r["chamfer_roi_baseline"] for r in runs],
+            )
         )
         out.append(
             {
@@ -505,13 +506,7 @@ def bench_state_fusion_full_size() -> list[dict[str, Any]]:
             "baseline": "first state (no previous)",
             "baseline_value": seconds_first,
         },
-        {
-            "name": "state: moved-object error (480x832x61)",
-            "value": 1000 * float(np.mean(errors)),
-            "unit": "mm",
-            "baseline": "no update (state 0)",
-            "baseline_value": 1000 * float(np.mean(baselines)),
-        },
+        _mm_row("state: moved-object error (480x832x61)", errors, baselines),
     ]
 
 
