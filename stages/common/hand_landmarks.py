@@ -4,25 +4,28 @@ Two pieces that more than one stage needs:
 
 - :func:`detect_hand_landmarks`: ``mediapipe.solutions.hands.Hands`` over a clip's frames in
   order (video/tracking mode by default, which finds far more hands on egocentric video than
-  per-image mode). Per frame up to two hands: 21 image landmarks (pixels), 21 world landmarks
-  (metres about the hand's centre, camera-aligned axes, scaled by MediaPipe's average-hand size
-  prior: wrist to middle knuckle 8-10 cm whatever the hand) and the handedness score; then
-  every found hand is followed through the frames where the palm detector missed it, forwards
-  and backwards (:func:`egosim.stages.common.roi_landmarks.track_through_misses`, the same
-  tracker the ``hands`` stage uses).
+  per-image mode), plus zoomed tiles of the lower image where head-mounted footage shows small,
+  partial hands; per frame up to two hands: 21 image landmarks (pixels), 21 world landmarks
+  (metres about the hand's centre, MediaPipe's average-hand size prior) and the handedness
+  score; then every found hand is followed through the frames where the palm detector missed it,
+  forwards and backwards (:func:`egosim.stages.common.roi_landmarks.track_through_misses`).
+  The ``hands`` stage and ``depth_camera``'s metric scale call it with the same
+  :class:`HandLandmarkParams`, so the scale measures the hands the hands stage places (issue 17:
+  with a simpler detector of its own the scale saw 6 usable detections on DWM 00013 where the
+  hands stage found 22, and none at all on a HOT3D window with hands).
 - :func:`place_in_camera`: the translation that puts the metric world landmarks where their
-  projection fits the 2D landmarks (linear least squares, a translation-only PnP). The result is
-  metric camera-frame joints whose distance comes from the hand-size prior.
+  projection fits the 2D landmarks (linear least squares, a translation-only PnP).
 
-The ``hands`` stage adds tiled search and side assignment (``stages/hands/mediapipe_backend.py``:
-``detect_landmarks``) and its palm-PnP lift (``lift_to_camera``); the metric scale needs neither.
 MediaPipe is imported lazily: install it as ``make setup`` does (``--no-deps mediapipe==0.10.21``).
 """
 
 from __future__ import annotations
 
+import itertools
+import warnings
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
 from egosim.stages.common.roi_landmarks import LandmarkModel, TrackParams, track_through_misses
@@ -37,19 +40,22 @@ class MediaPipeUnavailableError(ImportError):
 
 @dataclass(frozen=True)
 class HandLandmarkParams:
-    """Knobs of the MediaPipe hand detector."""
+    """Knobs of the MediaPipe hand detector (the ``hands`` stage's and the metric scale's)."""
 
     video_mode: bool = True  # tracking mode (False: every frame detected on its own)
     min_detection_confidence: float = 0.3  # palm detector threshold (0.5 misses drawn hands)
     min_tracking_confidence: float = 0.5  # below it the tracker re-runs the palm detector
     model_complexity: int = 1  # landmark model: 0 lite, 1 full
+    swap_labels: bool = True  # egocentric video: MediaPipe's "Left" is the real right hand
+    tiles: tuple[tuple[float, float, float, float], ...] = (
+        (0.0, 0.3, 0.55, 1.0),
+        (0.45, 0.3, 1.0, 1.0),
+    )  # extra search regions (x0, y0, x1, y1) as fractions of the frame; () = full frame only
+    tile_zoom: float = 2.0  # tiles are enlarged by this factor before detection
+    duplicate_distance: float = 0.5  # a tile hand this near a kept hand (in hand sizes) is the same
     track_misses: bool = True  # follow found hands through detector misses, forwards and
     # backwards (the landmark model on flow-carried ROIs, :mod:`.roi_landmarks`; ai-edge-litert)
-    # How hands are followed: the hands v3 tracker (no flow-carrying through misses, crops as they
-    # are). The hands stage's v4 tracker also finds dark, blurred and edge-cut hands, but moved DWM
-    # 00013's metric scale 0.094 -> 0.084 and its hand/surface ratio 1.53 -> 1.71 (further from 1);
-    # with no true scale to check it against, the scale keeps the detections it was measured with.
-    track: TrackParams = TrackParams(max_coast=0, max_gain=1.0)  # noqa: RUF009 (frozen)
+    track: TrackParams = TrackParams()  # noqa: RUF009 (frozen) how hands are followed
 
     def __post_init__(self) -> None:
         problems = []
@@ -64,13 +70,14 @@ class HandLandmarkParams:
 
 
 @dataclass
-class HandLandmarks:
+class RawLandmarks:
     """MediaPipe's output for a clip, up to ``K = 2`` detections per frame, unordered."""
 
-    uv: np.ndarray  # (T, K, 21, 2) float64 pixels (u right, v down), NaN where absent
-    world: np.ndarray  # (T, K, 21, 3) float64 metres about the hand's centre, NaN where absent
-    score: np.ndarray  # (T, K) float64 handedness score in [0, 1], 0 where absent
+    uv: np.ndarray  # (T, K, 21, 2) float64 pixels (u right, v down)
+    world: np.ndarray  # (T, K, 21, 3) float64 metres about the hand's centre
+    label_right: np.ndarray  # (T, K) float64 score that this is the real right hand, in [0, 1]
     present: np.ndarray  # (T, K) bool
+    tracked: np.ndarray | None = None  # (T, K) bool found by following a hand (None: none were)
 
 
 def import_mediapipe():
@@ -87,46 +94,160 @@ def import_mediapipe():
 
 def detect_hand_landmarks(
     frames: np.ndarray, params: HandLandmarkParams | None = None
-) -> HandLandmarks:
-    """Run MediaPipe Hands on ``frames (T, H, W, 3)`` uint8 RGB, in order."""
+) -> RawLandmarks:
+    """Run MediaPipe Hands on ``frames (T, H, W, 3)`` uint8 RGB, in order (full frame + tiles)."""
     params = params or HandLandmarkParams()
     mp = import_mediapipe()
     t, h, w = frames.shape[:3]
-    out = HandLandmarks(
-        uv=np.full((t, MAX_HANDS, NUM_JOINTS, 2), np.nan),
-        world=np.full((t, MAX_HANDS, NUM_JOINTS, 3), np.nan),
-        score=np.zeros((t, MAX_HANDS)),
-        present=np.zeros((t, MAX_HANDS), dtype=bool),
+    out = RawLandmarks(
+        uv=np.full((t, 2, NUM_JOINTS, 2), np.nan),
+        world=np.full((t, 2, NUM_JOINTS, 3), np.nan),
+        label_right=np.full((t, 2), 0.5),
+        present=np.zeros((t, 2), dtype=bool),
     )
-    with mp.solutions.hands.Hands(
-        static_image_mode=not params.video_mode,
-        max_num_hands=MAX_HANDS,
-        model_complexity=params.model_complexity,
-        min_detection_confidence=params.min_detection_confidence,
-        min_tracking_confidence=params.min_tracking_confidence,
-    ) as hands:
+
+    def make(video: bool):
+        return mp.solutions.hands.Hands(
+            static_image_mode=not video,
+            max_num_hands=2,
+            model_complexity=params.model_complexity,
+            min_detection_confidence=params.min_detection_confidence,
+            min_tracking_confidence=params.min_tracking_confidence,
+        )
+
+    full = make(params.video_mode)
+    tiled = [make(False) for _ in params.tiles]
+    try:
         for i in range(t):
-            result = hands.process(np.ascontiguousarray(frames[i]))
-            if not result.multi_hand_landmarks:
-                continue
-            triples = zip(
-                result.multi_hand_landmarks,
-                result.multi_hand_world_landmarks,
-                result.multi_handedness,
-                strict=True,
-            )
-            for k, (image_lm, world_lm, handedness) in enumerate(list(triples)[:MAX_HANDS]):
-                out.uv[i, k] = [(p.x * w, p.y * h) for p in image_lm.landmark]
-                out.world[i, k] = [(p.x, p.y, p.z) for p in world_lm.landmark]
-                out.score[i, k] = handedness.classification[0].score
+            frame = np.ascontiguousarray(frames[i])
+            found = _hands_in(full, frame, (0, 0, w, h), params.swap_labels)
+            for hands, box in zip(tiled, params.tiles, strict=True):
+                if len(found) >= 2:  # both hands found: tiles cannot add one
+                    break
+                x0, y0 = round(box[0] * w), round(box[1] * h)
+                x1, y1 = round(box[2] * w), round(box[3] * h)
+                crop = frame[y0:y1, x0:x1]
+                if params.tile_zoom != 1.0:
+                    crop = cv2.resize(crop, None, fx=params.tile_zoom, fy=params.tile_zoom)
+                tile = _hands_in(hands, crop, (x0, y0, x1 - x0, y1 - y0), params.swap_labels)
+                tile = [d for d in tile if inside_tile(d[0], (x0, y0, x1, y1), (w, h))]
+                found = merge_tile_detections(found, tile, params.duplicate_distance)
+            for k, (uv, world, right) in enumerate(found[:2]):
+                out.uv[i, k], out.world[i, k], out.label_right[i, k] = uv, world, right
                 out.present[i, k] = True
-    if params.track_misses and out.present.any():
+    finally:
+        for hands in (full, *tiled):
+            hands.close()
+    if params.track_misses and out.present.any():  # nothing found: nothing to follow
         model = LandmarkModel(params.model_complexity)
-        tracked = track_through_misses(
-            frames, out.uv, out.world, out.score, out.present, model, params.track
-        )  # fills uv, world, score and present in place
-        out.score[tracked] = 0.5  # the side of a followed hand is not scored here
+        out.tracked = track_through_misses(
+            frames, out.uv, out.world, out.label_right, out.present, model, params.track
+        )
     return out
+
+
+Detection = tuple[np.ndarray, np.ndarray, float]  # uv (21, 2) px, world (21, 3) m, P(right)
+
+
+def _hands_in(hands, image: np.ndarray, box: tuple[int, int, int, int], swap: bool) -> list:
+    """Detections in ``image``, landmarks mapped into the frame through ``box`` (x, y, w, h)."""
+    result = hands.process(np.ascontiguousarray(image))
+    if not result.multi_hand_landmarks:
+        return []
+    found: list[Detection] = []
+    x0, y0, bw, bh = box
+    triples = zip(
+        result.multi_hand_landmarks,
+        result.multi_hand_world_landmarks,
+        result.multi_handedness,
+        strict=True,
+    )
+    for image_lm, world_lm, handedness in triples:
+        uv = np.array([(x0 + p.x * bw, y0 + p.y * bh) for p in image_lm.landmark])
+        world = np.array([(p.x, p.y, p.z) for p in world_lm.landmark])
+        cls = handedness.classification[0]
+        is_right = (cls.label == "Right") != swap
+        found.append((uv, world, cls.score if is_right else 1.0 - cls.score))
+    return found
+
+
+def inside_tile(
+    uv: np.ndarray, box: tuple[int, int, int, int], size: tuple[int, int], margin: float = 0.02
+) -> bool:
+    """False when landmarks ``uv (21, 2)`` cross an edge of ``box`` (x0, y0, x1, y1) that lies
+    inside the frame of ``size`` (w, h): that hand is cut by the tile, so its landmarks are
+    guessed; the full frame or another tile sees it whole. ``margin`` is a fraction of the frame."""
+    x0, y0, x1, y1 = box
+    w, h = size
+    mx, my = margin * w, margin * h
+    if (x0 > 0 and uv[:, 0].min() < x0 - mx) or (y0 > 0 and uv[:, 1].min() < y0 - my):
+        return False
+    return not ((x1 < w and uv[:, 0].max() > x1 + mx) or (y1 < h and uv[:, 1].max() > y1 + my))
+
+
+def merge_tile_detections(kept: list, extra: list, duplicate_distance: float) -> list:
+    """``kept`` plus each ``extra`` detection whose centre is not within ``duplicate_distance``
+    hand sizes of one already kept (the earlier source wins: full frame before tiles)."""
+    merged = list(kept)
+    for det in extra:
+        centre = det[0].mean(axis=0)
+        size = float(hand_size(det[0]))
+        if all(
+            np.linalg.norm(centre - k[0].mean(axis=0))
+            > duplicate_distance * max(size, float(hand_size(k[0])))
+            for k in merged
+        ):
+            merged.append(det)
+    return merged
+
+
+def drop_overlapping(raw: RawLandmarks, duplicate_distance: float) -> RawLandmarks:
+    """``raw`` without a second detection of one hand in a frame.
+
+    MediaPipe's tracker sometimes returns two hands at one place (on the synthetic world: the
+    left hand twice, once labelled right with score 0.91), which would then take both sides. Of
+    two detections whose centres are within ``duplicate_distance`` hand sizes, the one nearer
+    the detections of the neighbouring frames is kept (the earlier slot when neither has any).
+    """
+    present = raw.present.copy()  # (T, K)
+    centre = hand_centres(raw.uv)  # (T, K, 2)
+    size = hand_size(raw.uv)  # (T, K)
+    t = present.shape[0]
+    for f in range(t):
+        slots = np.flatnonzero(present[f])
+        for a, b in itertools.combinations(slots, 2):
+            if not (present[f, a] and present[f, b]):
+                continue
+            limit = duplicate_distance * max(size[f, a], size[f, b])
+            if np.linalg.norm(centre[f, a] - centre[f, b]) > limit:
+                continue
+            near = [  # centres of the neighbouring frames' detections
+                centre[g, k]
+                for g in (f - 1, f + 1)
+                if 0 <= g < t
+                for k in np.flatnonzero(raw.present[g])
+            ]
+
+            cost = [_nearest(centre[f, k], near) for k in (a, b)]
+            present[f, b if cost[0] <= cost[1] else a] = False
+    return RawLandmarks(raw.uv, raw.world, raw.label_right, present)
+
+
+def _nearest(point: np.ndarray, others: list[np.ndarray]) -> float:
+    """Distance from ``point (2,)`` to the nearest of ``others`` (each ``(2,)``); 0 if none."""
+    return min((float(np.linalg.norm(point - c)) for c in others), default=0.0)
+
+
+def hand_size(uv: np.ndarray) -> np.ndarray:
+    """Hand size ``(...,)`` in pixels: the diagonal of the landmarks' box, ``uv (..., 21, 2)``."""
+    return np.linalg.norm(uv.max(axis=-2) - uv.min(axis=-2), axis=-1)
+
+
+def hand_centres(uv: np.ndarray) -> np.ndarray:
+    """Mean over joints of ``uv (T, K, 21, 2)`` -> ``(T, K, 2)``, NaN for absent slots."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN slots
+        return np.nanmean(uv, axis=2)
 
 
 def place_in_camera(

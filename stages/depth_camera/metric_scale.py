@@ -9,8 +9,11 @@ reconstruction units and ``s`` the wanted scale in metres per unit, with equalit
 
 Method, for one clip (:func:`estimate_metric_scale`):
 
-1. **Landmarks**: MediaPipe Hands in video mode (:mod:`egosim.stages.common.hand_landmarks`):
-   per detection 21 pixel landmarks and 21 metric world landmarks.
+1. **Landmarks**: the hands stage's detector (:mod:`egosim.stages.common.hand_landmarks`: MediaPipe
+   Hands in video mode plus zoomed tiles, found hands followed through misses, overlapping
+   detections dropped): per detection 21 pixel landmarks and 21 metric world landmarks.
+   (depth_camera v7 and before ran a plainer detector of its own: 6 usable detections on DWM
+   00013 where this one gives 22, none on a HOT3D window where the hands stage found hands.)
 2. **Metric joints**: the hands stage's own lift (:mod:`egosim.stages.common.hand_lift`, the
    ``lift`` field): an average metric palm placed by planar PnP onto the palm landmarks, every
    joint on its pixel's ray at the depth the posed landmarks give it; so the scene ends up in
@@ -92,8 +95,9 @@ import numpy as np
 from egosim.pipeline.geometry import invert_se3, project_points, transform_points, unproject_depth
 from egosim.stages.common.hand_landmarks import (
     HandLandmarkParams,
-    HandLandmarks,
+    RawLandmarks,
     detect_hand_landmarks,
+    drop_overlapping,
     place_in_camera,
 )
 from egosim.stages.common.hand_lift import MIN_POSE_DEPTH, palm_pnp_pose
@@ -116,7 +120,8 @@ class MetricScaleInputError(ValueError):
 class MetricScaleParams:
     """Knobs of :func:`estimate_metric_scale`."""
 
-    detector: HandLandmarkParams = field(default_factory=HandLandmarkParams)  # MediaPipe
+    detector: HandLandmarkParams = field(default_factory=HandLandmarkParams)  # MediaPipe, the
+    # hands stage's detector (same defaults), so the scale measures the hands that stage places
     joints: tuple[int, ...] = ALL_JOINTS  # joints that give samples (MediaPipe order)
     lift: str = "palm_pnp"  # how a detection is placed in the camera: "palm_pnp", the hands
     # stage's own lift (:mod:`egosim.stages.common.hand_lift`; a detection without a palm pose in
@@ -306,7 +311,7 @@ def place_detection(
 
 
 def detection_samples(
-    landmarks: HandLandmarks,
+    landmarks: RawLandmarks,
     frames: np.ndarray,
     intrinsics: np.ndarray,
     world_from_cam: np.ndarray,
@@ -390,7 +395,7 @@ def scale_from_samples(
 
 
 def _check_inputs(
-    landmarks: HandLandmarks,
+    landmarks: RawLandmarks,
     frames: np.ndarray,
     intrinsics: np.ndarray,
     world_from_cam: np.ndarray,
@@ -414,7 +419,7 @@ def _check_inputs(
 
 
 def scale_from_landmarks(
-    landmarks: HandLandmarks,
+    landmarks: RawLandmarks,
     frames: np.ndarray,
     intrinsics: np.ndarray,
     world_from_cam: np.ndarray,
@@ -474,7 +479,8 @@ def estimate_metric_scale(
     params = params or MetricScaleParams()
     if depth0 is None:  # no detection needed
         return ScaleEstimate(None, None, 0, reason="no frame-0 depth (static camera?)")
-    landmarks = detect_hand_landmarks(frames, params.detector)
+    found = detect_hand_landmarks(frames, params.detector)
+    landmarks = drop_overlapping(found, params.detector.duplicate_distance)  # as the hands stage
     return scale_from_landmarks(
         landmarks, frames, intrinsics, world_from_cam, depth0, confidence0, params
     )

@@ -652,6 +652,8 @@ class DepthCameraStage(ClipStage):
 
     name = "depth_camera"
     description = "intrinsics, poses, frame-0 depth, metric scale: static/SfM/rotation, or given"
+    # 8: the metric scale measures the hands stage's own detections (tiles, hands followed
+    # through misses by the v4 tracker), not a plainer detector of its own
     # 7: the metric scale places hands with the hands stage's palm-PnP lift (was a
     # translation-only fit: real hands sat 1.5x deeper than the surfaces they touch)
     # 6: metric scale falls back to a wide surface window (scale_source hand_size_wide) when
@@ -660,7 +662,7 @@ class DepthCameraStage(ClipStage):
     # takes still corners as the background, skips occluded frames, tolerates an end bump
     # 4: schema v2, background-motion static test, PnP tracking, rotation model, focal prior
     # 3: one SfM thread (reproducible); 2: visibility-aware depth confidence
-    version = 7
+    version = 8
     config_class = DepthCameraConfig
     inputs: ClassVar[Mapping[str, ShardSchema]] = {"clips": CLIPS}
     output = DEPTH_CAMERA

@@ -52,26 +52,28 @@ MediaPipe is imported lazily: install it as ``make setup`` does (``--no-deps med
 from __future__ import annotations
 
 import itertools
-import warnings
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 
 from egosim.pipeline.geometry import transform_points
 from egosim.pipeline.records import LEFT, NUM_HAND_JOINTS, RIGHT, Clip
-from egosim.stages.common.hand_landmarks import (  # shared with the metric scale
+from egosim.stages.common.hand_landmarks import (  # one detector for hands and metric scale
+    HandLandmarkParams,
     MediaPipeUnavailableError,  # noqa: F401 (raised by detect_landmarks, importable here)
-    import_mediapipe,
+    RawLandmarks,
+    drop_overlapping,
+    hand_centres,
+    hand_size,
     place_in_camera,
 )
+from egosim.stages.common.hand_landmarks import detect_hand_landmarks as detect_landmarks
 from egosim.stages.common.hand_lift import (  # one lift for the hands and the metric scale
     MIN_POSE_DEPTH,
     lift_with_rotation,
     palm_pnp_pose,
     scale_to_depth,
 )
-from egosim.stages.common.roi_landmarks import LandmarkModel, TrackParams, track_through_misses
 from egosim.stages.hands.filters import Detections
 
 BRIDGED_CONFIDENCE_FACTOR = 0.5  # confidence of interpolated frames relative to detected ones
@@ -79,40 +81,17 @@ MIDDLE_MCP = 9  # joint index of the middle finger's knuckle (hand size: wrist t
 
 
 @dataclass(frozen=True)
-class MediaPipeParams:
-    """Knobs of the MediaPipe backend."""
+class MediaPipeParams(HandLandmarkParams):
+    """Knobs of the MediaPipe backend: the detector's (:class:`HandLandmarkParams`, shared with the
+    metric scale, so both see the same hands) plus sides, bridging, smoothing and the lift."""
 
-    video_mode: bool = True  # tracking mode (False: every frame detected on its own)
-    min_detection_confidence: float = 0.3  # palm detector threshold
-    min_tracking_confidence: float = 0.5  # below it the tracker re-runs the palm detector
-    model_complexity: int = 1  # landmark model: 0 lite, 1 full
     max_gap: int = 4  # frames of a track's gap filled by interpolation
     smooth_sigma: float = 1.0  # Gaussian smoothing of landmarks over time, in frames; 0 = none
     link_distance: float = 0.6  # max centroid jump between linked detections, in hand sizes
     position_weight: float = 0.5  # weight of the image-position side vote vs the labels
-    swap_labels: bool = True  # egocentric video: MediaPipe's "Left" is the real right hand
-    tiles: tuple[tuple[float, float, float, float], ...] = (
-        (0.0, 0.3, 0.55, 1.0),
-        (0.45, 0.3, 1.0, 1.0),
-    )  # extra search regions (x0, y0, x1, y1) as fractions of the frame; () = full frame only
-    tile_zoom: float = 2.0  # tiles are enlarged by this factor before detection
-    duplicate_distance: float = 0.5  # a tile hand this near a kept hand (in hand sizes) is the same
     lift: str = "palm_pnp"  # 3D lift: "palm_pnp" (template palm PnP) or "translation" (old)
     prefer_fingers_away: bool = True  # palm PnP: of its two poses take knuckles beyond the wrist
-    track_misses: bool = True  # follow found hands through misses (needs ai-edge-litert)
-    track: TrackParams = TrackParams()  # noqa: RUF009 (frozen) how hands are followed
     min_track_frames: int = 3  # a shorter track wanting a side a longer one holds then is dropped
-
-
-@dataclass
-class RawLandmarks:
-    """MediaPipe's output for a clip, up to ``K = 2`` detections per frame, unordered."""
-
-    uv: np.ndarray  # (T, K, 21, 2) float64 pixels (u right, v down)
-    world: np.ndarray  # (T, K, 21, 3) float64 metres about the hand's centre
-    label_right: np.ndarray  # (T, K) float64 score that this is the real right hand, in [0, 1]
-    present: np.ndarray  # (T, K) bool
-    tracked: np.ndarray | None = None  # (T, K) bool found by following a hand (None: none were)
 
 
 @dataclass
@@ -126,165 +105,9 @@ class SideLandmarks:
     detected: np.ndarray  # (T, 2) bool detected (not bridged)
 
 
-def detect_landmarks(frames: np.ndarray, params: MediaPipeParams | None = None) -> RawLandmarks:
-    """Run MediaPipe Hands on ``frames (T, H, W, 3)`` uint8 RGB, in order (full frame + tiles)."""
-    params = params or MediaPipeParams()
-    mp = import_mediapipe()
-    t, h, w = frames.shape[:3]
-    out = RawLandmarks(
-        uv=np.full((t, 2, NUM_HAND_JOINTS, 2), np.nan),
-        world=np.full((t, 2, NUM_HAND_JOINTS, 3), np.nan),
-        label_right=np.full((t, 2), 0.5),
-        present=np.zeros((t, 2), dtype=bool),
-    )
-
-    def make(video: bool):
-        return mp.solutions.hands.Hands(
-            static_image_mode=not video,
-            max_num_hands=2,
-            model_complexity=params.model_complexity,
-            min_detection_confidence=params.min_detection_confidence,
-            min_tracking_confidence=params.min_tracking_confidence,
-        )
-
-    full = make(params.video_mode)
-    tiled = [make(False) for _ in params.tiles]
-    try:
-        for i in range(t):
-            frame = np.ascontiguousarray(frames[i])
-            found = _hands_in(full, frame, (0, 0, w, h), params.swap_labels)
-            for hands, box in zip(tiled, params.tiles, strict=True):
-                if len(found) >= 2:  # both hands found: tiles cannot add one
-                    break
-                x0, y0 = round(box[0] * w), round(box[1] * h)
-                x1, y1 = round(box[2] * w), round(box[3] * h)
-                crop = frame[y0:y1, x0:x1]
-                if params.tile_zoom != 1.0:
-                    crop = cv2.resize(crop, None, fx=params.tile_zoom, fy=params.tile_zoom)
-                tile = _hands_in(hands, crop, (x0, y0, x1 - x0, y1 - y0), params.swap_labels)
-                tile = [d for d in tile if inside_tile(d[0], (x0, y0, x1, y1), (w, h))]
-                found = merge_tile_detections(found, tile, params.duplicate_distance)
-            for k, (uv, world, right) in enumerate(found[:2]):
-                out.uv[i, k], out.world[i, k], out.label_right[i, k] = uv, world, right
-                out.present[i, k] = True
-    finally:
-        for hands in (full, *tiled):
-            hands.close()
-    if params.track_misses and out.present.any():  # nothing found: nothing to follow
-        model = LandmarkModel(params.model_complexity)
-        out.tracked = track_through_misses(
-            frames, out.uv, out.world, out.label_right, out.present, model, params.track
-        )
-    return out
-
-
-Detection = tuple[np.ndarray, np.ndarray, float]  # uv (21, 2) px, world (21, 3) m, P(right)
-
-
-def _hands_in(hands, image: np.ndarray, box: tuple[int, int, int, int], swap: bool) -> list:
-    """Detections in ``image``, landmarks mapped into the frame through ``box`` (x, y, w, h)."""
-    result = hands.process(np.ascontiguousarray(image))
-    if not result.multi_hand_landmarks:
-        return []
-    found: list[Detection] = []
-    x0, y0, bw, bh = box
-    triples = zip(
-        result.multi_hand_landmarks,
-        result.multi_hand_world_landmarks,
-        result.multi_handedness,
-        strict=True,
-    )
-    for image_lm, world_lm, handedness in triples:
-        uv = np.array([(x0 + p.x * bw, y0 + p.y * bh) for p in image_lm.landmark])
-        world = np.array([(p.x, p.y, p.z) for p in world_lm.landmark])
-        cls = handedness.classification[0]
-        is_right = (cls.label == "Right") != swap
-        found.append((uv, world, cls.score if is_right else 1.0 - cls.score))
-    return found
-
-
-def inside_tile(
-    uv: np.ndarray, box: tuple[int, int, int, int], size: tuple[int, int], margin: float = 0.02
-) -> bool:
-    """False when landmarks ``uv (21, 2)`` cross an edge of ``box`` (x0, y0, x1, y1) that lies
-    inside the frame of ``size`` (w, h): that hand is cut by the tile, so its landmarks are
-    guessed; the full frame or another tile sees it whole. ``margin`` is a fraction of the frame."""
-    x0, y0, x1, y1 = box
-    w, h = size
-    mx, my = margin * w, margin * h
-    if (x0 > 0 and uv[:, 0].min() < x0 - mx) or (y0 > 0 and uv[:, 1].min() < y0 - my):
-        return False
-    return not ((x1 < w and uv[:, 0].max() > x1 + mx) or (y1 < h and uv[:, 1].max() > y1 + my))
-
-
-def merge_tile_detections(kept: list, extra: list, duplicate_distance: float) -> list:
-    """``kept`` plus each ``extra`` detection whose centre is not within ``duplicate_distance``
-    hand sizes of one already kept (the earlier source wins: full frame before tiles)."""
-    merged = list(kept)
-    for det in extra:
-        centre = det[0].mean(axis=0)
-        size = float(hand_size(det[0]))
-        if all(
-            np.linalg.norm(centre - k[0].mean(axis=0))
-            > duplicate_distance * max(size, float(hand_size(k[0])))
-            for k in merged
-        ):
-            merged.append(det)
-    return merged
-
-
-def drop_overlapping(raw: RawLandmarks, duplicate_distance: float) -> RawLandmarks:
-    """``raw`` without a second detection of one hand in a frame.
-
-    MediaPipe's tracker sometimes returns two hands at one place (on the synthetic world: the
-    left hand twice, once labelled right with score 0.91), which would then take both sides. Of
-    two detections whose centres are within ``duplicate_distance`` hand sizes, the one nearer
-    the detections of the neighbouring frames is kept (the earlier slot when neither has any).
-    """
-    present = raw.present.copy()  # (T, K)
-    centre = _centres(raw.uv)  # (T, K, 2)
-    size = hand_size(raw.uv)  # (T, K)
-    t = present.shape[0]
-    for f in range(t):
-        slots = np.flatnonzero(present[f])
-        for a, b in itertools.combinations(slots, 2):
-            if not (present[f, a] and present[f, b]):
-                continue
-            limit = duplicate_distance * max(size[f, a], size[f, b])
-            if np.linalg.norm(centre[f, a] - centre[f, b]) > limit:
-                continue
-            near = [  # centres of the neighbouring frames' detections
-                centre[g, k]
-                for g in (f - 1, f + 1)
-                if 0 <= g < t
-                for k in np.flatnonzero(raw.present[g])
-            ]
-
-            cost = [_nearest(centre[f, k], near) for k in (a, b)]
-            present[f, b if cost[0] <= cost[1] else a] = False
-    return RawLandmarks(raw.uv, raw.world, raw.label_right, present)
-
-
-def _nearest(point: np.ndarray, others: list[np.ndarray]) -> float:
-    """Distance from ``point (2,)`` to the nearest of ``others`` (each ``(2,)``); 0 if none."""
-    return min((float(np.linalg.norm(point - c)) for c in others), default=0.0)
-
-
-def hand_size(uv: np.ndarray) -> np.ndarray:
-    """Hand size ``(...,)`` in pixels: the diagonal of the landmarks' box, ``uv (..., 21, 2)``."""
-    return np.linalg.norm(uv.max(axis=-2) - uv.min(axis=-2), axis=-1)
-
-
-def _centres(uv: np.ndarray) -> np.ndarray:
-    """Mean over joints of ``uv (T, K, 21, 2)`` -> ``(T, K, 2)``, NaN for absent slots."""
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN slots
-        return np.nanmean(uv, axis=2)
-
-
 def _tracks(raw: RawLandmarks, params: MediaPipeParams) -> list[list[tuple[int, int]]]:
     """Link detections ``(frame, slot)`` into tracks by nearest centroid, across short gaps."""
-    centre = _centres(raw.uv)  # (T, K, 2)
+    centre = hand_centres(raw.uv)  # (T, K, 2)
     size = hand_size(raw.uv)  # (T, K)
     tracks: list[list[tuple[int, int]]] = []
     open_tracks: list[int] = []  # indices into tracks still extendable
@@ -323,7 +146,7 @@ def assign_sides(
 ) -> np.ndarray:
     """Side per detection ``(T, K)`` int (0 left, 1 right, -1 none); see the module docstring."""
     params = params or MediaPipeParams()
-    centre_u = _centres(raw.uv)[..., 0]  # (T, K)
+    centre_u = hand_centres(raw.uv)[..., 0]  # (T, K)
     side = np.full(raw.present.shape, -1, dtype=int)
     tracks = _tracks(raw, params)
     votes = []
