@@ -99,6 +99,30 @@ def _closure(u: np.ndarray, close: tuple[float, float], open_: tuple[float, floa
     return REST_CURL + (GRASP_CURL - REST_CURL) * (_phase(u, *close) - _phase(u, *open_))
 
 
+def _grip_script(
+    target: int,
+    reach: np.ndarray,
+    grasp: np.ndarray,
+    u: np.ndarray,
+    close: tuple[float, float],
+    open_: tuple[float, float],
+    text: str,
+) -> _RightHandScript:
+    """The script of a grip whose fingers close over ``close`` and open over ``open_`` (normalised
+    times): the hand holds the target from the end of the closing to the start of the opening,
+    and has let go at the end of the opening."""
+    return _RightHandScript(
+        target=target,
+        reach=reach,
+        grasp=grasp,
+        hold_start=close[1],
+        held=(u >= close[1]) & (u < open_[0]),
+        release_end=open_[1],
+        curl=_closure(u, close, open_),
+        text=text,
+    )
+
+
 def _open_lid(
     scene: Scene,
     rng: np.random.Generator,
@@ -115,22 +139,19 @@ def _open_lid(
     heading = np.arctan2(*(base.pose[:2, 3] - rest_r[:2, 3])[::-1])
     hand_rot0 = _rot_zy(heading, np.deg2rad(35.0))
     angle = np.deg2rad(rng.uniform(85.0, 105.0)) * _phase(u, 0.38, 0.72)  # (T,)
-    hold_start = 0.3
-    held = (u >= hold_start) & (u < 0.78)
     grasp = np.zeros((t, 4, 4))
     for k in range(t):
         poses[k, target] = lid_pose(base.pose, base.size, angle[k])
         edge = poses[k, target, :3, :3] @ edge_local + poses[k, target, :3, 3]
         rot = axis_rotation(-poses[k, target, :3, 1], 0.4 * angle[k]) @ hand_rot0
         grasp[k] = make_se3(rot, edge - rot @ grip)
-    return _RightHandScript(
-        target=target,
-        reach=_blend(rest_r, grasp[0], _phase(u, 0.0, 0.28)),
-        grasp=grasp,
-        hold_start=hold_start,
-        held=held,
-        release_end=0.84,
-        curl=_closure(u, (0.24, 0.3), (0.78, 0.84)),
+    return _grip_script(
+        target,
+        _blend(rest_r, grasp[0], _phase(u, 0.0, 0.28)),
+        grasp,
+        u,
+        close=(0.24, 0.3),
+        open_=(0.78, 0.84),
         text=f"the right hand opens the lid of the {base.colour} box",
     )
 
@@ -187,18 +208,15 @@ def _pick_and_place(
     lift = _phase(u, 0.42, 0.58) - _phase(u, 0.62, 0.76)  # (T,) up, then down
     grasp = _blend(grasp0, end_hand, move)  # (T, 4, 4)
     grasp[:, 2, 3] += 0.1 * lift
-    hold_start = 0.36
-    held = (u >= hold_start) & (u < 0.8)
     moved = u >= 0.42  # lift and move both start at 0.42 or later
     poses[moved, target] = grasp[moved] @ hand_from_object
-    return _RightHandScript(
-        target=target,
-        reach=_blend(rest_r, grasp0, _phase(u, 0.0, 0.32)),
-        grasp=grasp,
-        hold_start=hold_start,
-        held=held,
-        release_end=0.86,
-        curl=_closure(u, (0.3, 0.36), (0.8, 0.86)),
+    return _grip_script(
+        target,
+        _blend(rest_r, grasp0, _phase(u, 0.0, 0.32)),
+        grasp,
+        u,
+        close=(0.3, 0.36),
+        open_=(0.8, 0.86),
         text=f"the right hand picks up the {obj.name} and places it {where}",
     )
 
