@@ -183,12 +183,10 @@ def test_stage_end_to_end(tmp_path: Path, weights: Path, clip) -> None:
     np.testing.assert_allclose(joints[valid], direct.joints[valid], atol=1e-5)  # float32 row
 
 
-def test_a_left_hand_is_the_mirror_image_of_a_right_hand(weights: Path, clip) -> None:
-    # Mirror the clip in the camera: frames flipped left-right, cx -> W - cx, hands swap sides
-    # and x -> -x. The network sees the same right-hand crops in both, so each hand's joints
-    # must come out mirrored (up to the resampling of the flipped crops).
-    from dataclasses import replace
-
+def assert_left_hands_mirror_right_hands(clip, weights: Path) -> None:
+    """Mirror ``clip`` in the camera: frames flipped left-right, cx -> W - cx, hands swap sides
+    and x -> -x. The network in ``weights`` sees the same right-hand crops in both, so each
+    hand's joints must come out mirrored (up to the resampling of the flipped crops)."""
     t, w = clip.num_frames, clip.width
     cam_joints = np.stack(
         [
@@ -199,12 +197,11 @@ def test_a_left_hand_is_the_mirror_image_of_a_right_hand(weights: Path, clip) ->
     eye = np.tile(np.eye(4), (t, 1, 1))  # (T, 4, 4) the camera is the world
     fx, fy, cx, cy = clip.intrinsics
     flip = np.array([-1.0, 1.0, 1.0])
-    straight = replace(clip, world_from_cam=eye, hand_joints=cam_joints)
-    mirrored = replace(
-        clip,
+    straight = dataclasses.replace(clip, world_from_cam=eye, hand_joints=cam_joints)
+    mirrored = dataclasses.replace(
+        straight,
         frames=np.ascontiguousarray(clip.frames[:, :, ::-1]),
         intrinsics=np.array([fx, fy, w - cx, cy]),
-        world_from_cam=eye,
         hand_joints=cam_joints[:, ::-1] * flip,
         hand_valid=clip.hand_valid[:, ::-1],
         hand_confidence=None if clip.hand_confidence is None else clip.hand_confidence[:, ::-1],
@@ -212,9 +209,13 @@ def test_a_left_hand_is_the_mirror_image_of_a_right_hand(weights: Path, clip) ->
     params = RegressorParams(str(weights), boxes="given")
     a = regressor_detections(straight, params)
     b = regressor_detections(mirrored, params)
-    np.testing.assert_array_equal(a.present, b.present[:, ::-1])
     assert a.present.all()
+    np.testing.assert_array_equal(a.present, b.present[:, ::-1])
     np.testing.assert_allclose(a.joints, b.joints[:, ::-1] * flip, atol=1e-4)
+
+
+def test_a_left_hand_is_the_mirror_image_of_a_right_hand(weights: Path, clip) -> None:
+    assert_left_hands_mirror_right_hands(clip, weights)
 
 
 def test_default_boxes_come_from_mediapipe(weights: Path, clip) -> None:
@@ -335,34 +336,7 @@ def test_mano_head_through_the_stage_puts_the_hands_in_their_boxes(tmp_path: Pat
 
 
 def test_mano_head_left_hands_mirror_right_hands(tmp_path: Path, clip) -> None:
-    from dataclasses import replace
-
-    folder = mano_folder(tmp_path / "w", seed=3)
-    t, w = clip.num_frames, clip.width
-    cam_joints = np.stack(
-        [
-            transform_points(invert_se3(clip.world_from_cam[f]), clip.hand_joints[f])
-            for f in range(t)
-        ]
-    )
-    eye = np.tile(np.eye(4), (t, 1, 1))
-    fx, fy, cx, cy = clip.intrinsics
-    flip = np.array([-1.0, 1.0, 1.0])
-    straight = replace(clip, world_from_cam=eye, hand_joints=cam_joints)
-    mirrored = replace(
-        straight,
-        frames=np.ascontiguousarray(clip.frames[:, :, ::-1]),
-        intrinsics=np.array([fx, fy, w - cx, cy]),
-        hand_joints=cam_joints[:, ::-1] * flip,
-        hand_valid=clip.hand_valid[:, ::-1],
-        hand_confidence=None if clip.hand_confidence is None else clip.hand_confidence[:, ::-1],
-    )
-    params = RegressorParams(str(folder), boxes="given")
-    a = regressor_detections(straight, params)
-    b = regressor_detections(mirrored, params)
-    assert a.present.all()
-    np.testing.assert_array_equal(a.present, b.present[:, ::-1])
-    np.testing.assert_allclose(a.joints, b.joints[:, ::-1] * flip, atol=1e-4)
+    assert_left_hands_mirror_right_hands(clip, mano_folder(tmp_path / "w", seed=3))
 
 
 def hamer_state(rng: np.random.Generator, patches: int = 4 * 3) -> dict[str, np.ndarray]:
