@@ -77,6 +77,8 @@ class RealCase:
     static_truth: str = ""  # ground-truth static-scene video (DWM dynamic clips)
     hands_truth: str = ""  # ground-truth hand renders on black (DWM dynamic clips)
     true_focal_px: float = 0.0  # true focal in pixels of the source video; 0 = unknown
+    crop_x: tuple[float, float] = ()  # keep this span of the width (fractions): one view of a
+    # side-by-side recording, written beside the run and ingested instead; () = the whole frame
 
 
 CASES = (
@@ -94,6 +96,11 @@ CASES = (
     ),
     RealCase("pour_coke", "dwm_realworld/realworld_fixed/pour_coke.mp4", "dwm"),
     RealCase("lift_tumbler", "dwm_realworld/realworld_fixed/lift_tumbler.mp4", "dwm"),
+    # HOT3D's Aria recording: the RGB view is the middle third (x 427-853 of 1280), a fisheye
+    # image the pipeline treats as a pinhole one; 438 frames at 30 fps, several windows.
+    RealCase(
+        "hot3d_rgb", "hot3d_video/ego_centric_aria.mp4", "egosim", crop_x=(427 / 1280, 853 / 1280)
+    ),
 )
 
 
@@ -107,13 +114,29 @@ def read_step(run: Path, step: str, columns: list[str] | None = None) -> dict[st
     return rows
 
 
+def source_video(case: RealCase, data: Path, out: Path) -> Path:
+    """The video the workflow ingests: the case's file, or its ``crop_x`` view, written once as
+    ``OUT/../NAME_source.mp4`` (H.264, the source's mean frame rate)."""
+    if not case.crop_x:
+        return data / case.video
+    path = out.parent / f"{case.name}_source.mp4"
+    if not path.is_file():
+        frames, times = media.read_video_file(data / case.video)  # (T, H, W, 3), (T,) seconds
+        x0, x1 = (round(f * frames.shape[2]) for f in case.crop_x)
+        fps = (len(times) - 1) / float(times[-1] - times[0])
+        path.parent.mkdir(parents=True, exist_ok=True)
+        media.write_video_file(path, np.ascontiguousarray(frames[:, :, x0:x1]), fps)
+    return path
+
+
 def run_case(case: RealCase, data: Path, out: Path, workers: int) -> float:
     """Run the dataset workflow on one video; returns wall-clock seconds."""
     from egosim.pipeline.runner import run_workflow
 
     workflow = load_workflow(WORKFLOW, [f"ingest.preset={case.preset}"])
+    source = source_video(case, data, out)
     start = time.perf_counter()
-    run_workflow(workflow, out, source=str(data / case.video), n_workers=workers)
+    run_workflow(workflow, out, source=str(source), n_workers=workers)
     return time.perf_counter() - start
 
 
