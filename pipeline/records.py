@@ -44,6 +44,20 @@ class ClipValueError(ValueError):
     """A clip's arrays disagree with each other (shape, dtype or values); names the clip."""
 
 
+class InputsDisagree(ClipRejected):
+    """A decoded column's shape differs from its row's size: ``inputs disagree: <problem>``.
+
+    ``problem`` alone (naming the clip and column) lets a stage list several at once.
+    """
+
+    def __init__(self, problem: str) -> None:
+        super().__init__(f"inputs disagree: {problem}")
+        self.problem = problem  # e.g. "clip 'c' video decodes to (4, 24, 32, 3), expected ..."
+
+    def __reduce__(self) -> tuple[type[InputsDisagree], tuple[str]]:
+        return InputsDisagree, (self.problem,)  # pickled (Dask) with the same message
+
+
 @dataclass
 class Clip:
     """One clip, decoded. Optional fields are ground truth or outputs of later stages."""
@@ -260,7 +274,7 @@ class FramedRecord(Record):
     def rgb_video(self, column: str) -> np.ndarray:
         """Decode an H.264 column to ``(T, H, W, 3)`` uint8, checked against :attr:`size`.
 
-        Raises :class:`ClipRejected` (``inputs disagree``) when it decodes to another shape.
+        Raises :class:`InputsDisagree` when it decodes to another shape.
         """
 
         def parse() -> np.ndarray:
@@ -268,9 +282,7 @@ class FramedRecord(Record):
             what = f"clip {self.clip_id!r} {column}"
             frames = media.decode_rgb_video(self[column], h, w, what)
             if frames.shape != (t, h, w, 3):
-                raise ClipRejected(
-                    f"inputs disagree: {what} decodes to {frames.shape}, expected {(t, h, w, 3)}"
-                )
+                raise InputsDisagree(f"{what} decodes to {frames.shape}, expected {(t, h, w, 3)}")
             return frames
 
         return self._once(f"rgb:{column}", parse)
@@ -278,7 +290,7 @@ class FramedRecord(Record):
     def mask_video(self, column: str, what: str | None = None) -> np.ndarray | None:
         """Decode a lossless mask column to ``(T, H, W)`` uint8 {0, 1} (None when null).
 
-        Checked against :attr:`size` (:class:`ClipRejected`, ``inputs disagree``); ``what``
+        Checked against :attr:`size` (:class:`InputsDisagree`); ``what``
         names the column in that message (default ``clip 'ID' column``).
         """
 
@@ -290,12 +302,69 @@ class FramedRecord(Record):
             name = what or f"clip {self.clip_id!r} {column}"
             mask = media.decode_lossless_video(data, name)
             if mask.shape != (t, h, w):
-                raise ClipRejected(
-                    f"inputs disagree: {name} decodes to {mask.shape}, expected {(t, h, w)}"
-                )
+                raise InputsDisagree(f"{name} decodes to {mask.shape}, expected {(t, h, w)}")
             return (mask > 0).astype(np.uint8)
 
         return self._once(f"mask:{column}", parse)
+
+    def depth_video(self, column: str) -> np.ndarray | None:
+        """Decode a depth column to ``(T, H, W)`` float32 metres, 0 = unknown (None when null).
+
+        Steps of the row's ``depth_unit_m``; checked against :attr:`size`
+        (:class:`InputsDisagree`).
+        """
+
+        def parse() -> np.ndarray | None:
+            data = self[column]
+            if data is None:
+                return None
+            t, h, w = self.size
+            depth = media.decode_depth_video(data, self["depth_unit_m"], self.what(column))
+            if depth.shape != (t, h, w):
+                raise InputsDisagree(
+                    f"{self.what(column)} decodes to {depth.shape}, expected {(t, h, w)}"
+                )
+            return depth
+
+        return self._once(f"depth:{column}", parse)
+
+    def first_depth(self, column: str) -> np.ndarray | None:
+        """Frame 0 of a depth column, ``(H, W)`` float32 metres (None when null).
+
+        Only that frame is decoded; not checked against the row's size (nor was it before the
+        records: ``common.cameras.first_frame_depth`` reads no size columns).
+        """
+
+        def parse() -> np.ndarray | None:
+            data = self[column]
+            if data is None:
+                return None
+            what = self.what(column)
+            return media.decode_depth_video(data, self["depth_unit_m"], what, max_frames=1)[0]
+
+        return self._once(f"depth0:{column}", parse)
+
+
+class HandArraysRecord(FramedRecord):
+    """A framed row with hand joint columns, one slot per hand (0 left, 1 right).
+
+    Each accessor is None when its column is null (a ``clips`` row without hand labels).
+    """
+
+    @property
+    def hand_joints(self) -> np.ndarray | None:
+        """``(T, 2, 21, 3)`` float64 world metres."""
+        return self.array("hand_joints", np.float64, (self.num_frames, 2, NUM_HAND_JOINTS, 3))
+
+    @property
+    def hand_valid(self) -> np.ndarray | None:
+        """``(T, 2)`` bool: the hand is present in the frame."""
+        return self.array("hand_valid", bool, (self.num_frames, 2))
+
+    @property
+    def hand_confidence(self) -> np.ndarray | None:
+        """``(T, 2, 21)`` float64 per-joint confidence in [0, 1]."""
+        return self.array("hand_confidence", np.float64, (self.num_frames, 2, NUM_HAND_JOINTS))
 
 
 class CameraRecord(FramedRecord):
@@ -322,11 +391,16 @@ def require_camera_poses(world_from_cam: np.ndarray | None, clip_id: str) -> np.
     return world_from_cam
 
 
-class ClipsRecord(CameraRecord):
+class ClipsRecord(CameraRecord, HandArraysRecord):
     """A ``clips`` row (ingest's output); :func:`egosim.pipeline.clip_io.clip_from_row` decodes
-    a whole one into a :class:`Clip`."""
+    a whole one into a :class:`Clip`. Its hand arrays are the source's labels (None without)."""
 
     schema = CLIPS
+
+    @property
+    def depth(self) -> np.ndarray | None:
+        """``(T, H, W)`` float32 z-depth in metres (0 = unknown), None when the clip has none."""
+        return self.depth_video("depth")
 
     @property
     def text(self) -> str | None:
@@ -340,25 +414,14 @@ class ClipsRecord(CameraRecord):
         return self.rgb_video("video")
 
 
-class HandsRecord(FramedRecord):
-    """A ``hands`` row: cleaned 3D hand joints per frame and hand slot (0 left, 1 right)."""
+class HandsRecord(HandArraysRecord):
+    """A ``hands`` row: cleaned 3D hand joints per frame and hand slot (0 left, 1 right).
+
+    ``hand_joints``, ``hand_valid`` and ``hand_confidence`` (:class:`HandArraysRecord`) are never
+    null in this schema.
+    """
 
     schema = HANDS
-
-    @property
-    def hand_joints(self) -> np.ndarray:
-        """``(T, 2, 21, 3)`` float64 world metres."""
-        return self.array("hand_joints", np.float64, (self.num_frames, 2, NUM_HAND_JOINTS, 3))
-
-    @property
-    def hand_valid(self) -> np.ndarray:
-        """``(T, 2)`` bool: the hand is present in the frame."""
-        return self.array("hand_valid", bool, (self.num_frames, 2))
-
-    @property
-    def hand_confidence(self) -> np.ndarray:
-        """``(T, 2, 21)`` float64 per-joint confidence in [0, 1]."""
-        return self.array("hand_confidence", np.float64, (self.num_frames, 2, NUM_HAND_JOINTS))
 
 
 class KeypointsRecord(FramedRecord):
@@ -393,6 +456,17 @@ class DepthCameraRecord(CameraRecord):
         """``(T,)`` bool: the backend estimated this frame's pose."""
         return self._once("registered", lambda: np.asarray(self["registered"], dtype=bool))
 
+    @property
+    def static_camera(self) -> bool:
+        """The camera did not move (no parallax: every pose equals the first, no ``depth0``)."""
+        return bool(self["static_camera"])
+
+    @property
+    def depth0(self) -> np.ndarray | None:
+        """``(H, W)`` float32 z-depth of frame 0 in the poses' scale (0 = unknown), None when null
+        (a static or rotation-only camera)."""
+        return self.first_depth("depth0")
+
 
 class PosesRecord(CameraRecord):
     """A ``poses`` row: a cleaned trajectory (from ``pose_clean``)."""
@@ -421,6 +495,15 @@ class HandMaskRecord(FramedRecord):
     """A ``hand_mask`` row: the hand (and arm) mask video."""
 
     schema = HAND_MASK
+
+    @property
+    def hand_mask(self) -> np.ndarray:
+        """``(T, H, W)`` uint8, 1 = hand or arm: the masks, decoded once and checked against
+        :attr:`size`."""
+        masks = self.mask_video("hand_mask")
+        if masks is None:  # not nullable in the schema: only a hand-made row gets here
+            raise ClipRejected(f"{self.what('hand_mask')} is null")
+        return masks
 
 
 class PackRecord(CameraRecord):

@@ -20,7 +20,10 @@ from egosim.pipeline.clip_io import row_from_clip, write_clips
 from egosim.pipeline.execute import run_shard_task
 from egosim.pipeline.records import (
     ClipsRecord,
+    DepthCameraRecord,
+    HandMaskRecord,
     HandsRecord,
+    InputsDisagree,
     PosesRecord,
     Record,
     record_class,
@@ -171,3 +174,78 @@ def test_no_camera_poses_is_one_reject() -> None:
     assert require_camera_poses(poses, "c") is poses
     with pytest.raises(ClipRejected, match=r"clip 'c': no camera poses \(world_from_cam is null\)"):
         require_camera_poses(None, "c")
+
+
+def test_depth_hands_and_mask_accessors_match_the_clip() -> None:
+    """Accessors added for hand_mask, inpaint and state_fusion: the clip's depth (all frames or
+    frame 0 only), its hand labels (None when null), the cameras' depth0 and static flag, the
+    hand mask row's masks; each decoded once and equal to what was written."""
+    clip = make_clip("c", num_frames=4)
+    row = row_from_clip(clip)
+    record = ClipsRecord.of(row)
+    unit = row["depth_unit_m"]
+    depth = record.depth
+    assert depth.shape == (4, clip.height, clip.width) and record.depth is depth
+    np.testing.assert_allclose(depth, clip.depth, atol=unit / 2 + 1e-7)  # quantised to the unit
+    np.testing.assert_array_equal(record.first_depth("static_depth"), _static_depth0(row))
+    assert record.first_depth("static_depth") is record.first_depth("static_depth")
+    np.testing.assert_allclose(record.hand_joints, clip.hand_joints, atol=1e-6)
+    assert record.hand_joints.dtype == np.float64 and record.hand_valid.shape == (4, 2)
+    np.testing.assert_array_equal(record.hand_confidence, clip.hand_confidence)
+    bare = ClipsRecord.of({**row, "hand_joints": None, "depth": None})
+    assert bare.hand_joints is None and bare.depth is None
+
+    depth0 = clip.depth[0] * 2.0
+    cam_unit = media.depth_unit_for(depth0[None])
+    cams = DepthCameraRecord.of(
+        {
+            "clip_id": "c",
+            "static_camera": False,
+            "depth0": media.encode_depth_video(depth0[None], cam_unit),
+            "depth_unit_m": cam_unit,
+        }
+    )
+    assert cams.depth0.shape == (clip.height, clip.width) and cams.static_camera is False
+    np.testing.assert_allclose(cams.depth0, depth0, atol=cam_unit / 2 + 1e-6)
+    still = DepthCameraRecord.of({"clip_id": "c", "static_camera": True, "depth0": None})
+    assert still.depth0 is None and still.static_camera is True
+
+    masks = HandMaskRecord.of(
+        {
+            "clip_id": "c",
+            "num_frames": 4,
+            "height": clip.height,
+            "width": clip.width,
+            "hand_mask": media.encode_mask_video(clip.hand_mask),
+        }
+    )
+    np.testing.assert_array_equal(masks.hand_mask, clip.hand_mask)
+
+
+def _static_depth0(row: dict[str, Any]) -> np.ndarray:
+    """Frame 0 of the row's static depth, decoded whole (the accessor decodes one frame)."""
+    return media.decode_depth_video(row["static_depth"], row["depth_unit_m"])[0]
+
+
+def test_media_that_disagree_with_the_size_say_how_for_a_stage_to_list_them() -> None:
+    """``InputsDisagree`` is a ClipRejected worded "inputs disagree: <problem>"; ``problem``
+    alone names the clip and column (state_fusion lists several at once), and rebuilding it as
+    pickling does (Dask) keeps the message."""
+    row = row_from_clip(make_clip("c", num_frames=4))
+    row["num_frames"] = 5
+    for read, problem in (
+        (lambda r: r.frames, "clip 'c' video decodes to (4, 24, 32, 3), expected (5, 24, 32, 3)"),
+        (lambda r: r.depth, "clip 'c' depth decodes to (4, 24, 32), expected (5, 24, 32)"),
+        (
+            lambda r: r.mask_video("hand_mask"),
+            "clip 'c' hand_mask decodes to (4, 24, 32), expected (5, 24, 32)",
+        ),
+    ):
+        with pytest.raises(InputsDisagree) as info:
+            read(ClipsRecord.of(row))
+        assert info.value.problem == problem
+        assert str(info.value) == f"inputs disagree: {problem}"
+        assert isinstance(info.value, ClipRejected)
+        cls, args = info.value.__reduce__()  # what Dask's pickling rebuilds it from
+        again = cls(*args)
+        assert str(again) == str(info.value) and again.problem == problem

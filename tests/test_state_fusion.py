@@ -284,6 +284,39 @@ def test_bad_input_is_rejected_with_the_reason(world):
         sim3_from_poses(np.zeros((2, 4, 4)), np.zeros((3, 4, 4)), 1e-3)
 
 
+def test_inputs_that_disagree_are_listed_at_once(world):
+    """A video one frame short, a hand mask row of another size and hands one frame short: one
+    reject names all three; a clip with no poses anywhere gets the shared reject."""
+    from egosim.pipeline import media
+
+    clip, rows, _ = world
+    t, h, w = clip.num_frames, clip.height, clip.width
+    bad = {
+        "clips": {**rows["clips"], "video": media.encode_rgb_video(clip.frames[:-1], clip.fps)},
+        "hands": {**rows["hands"], "num_frames": t - 1},
+        "hand_mask": {
+            **rows["hand_mask"],
+            "height": h - 2,
+            "hand_mask": media.encode_mask_video(clip.hand_mask[:, :-2]),
+        },
+    }
+    cid = clip.clip_id
+    with pytest.raises(ClipRejected) as info:
+        observation_from_rows(bad, StateFusionConfig())
+    assert str(info.value) == (
+        f"clip {cid!r}: inputs disagree: clip {cid!r} video decodes to {(t - 1, h, w, 3)}, "
+        f"expected {(t, h, w, 3)}; hand_mask has {t} frames of {(h - 2, w)}, clip has {t} of "
+        f"{(h, w)}; hands has {t - 1} frames, clip has {t}"
+    )
+    short_mask = {**rows["hand_mask"], "hand_mask": media.encode_mask_video(clip.hand_mask[1:])}
+    with pytest.raises(ClipRejected, match=r"hand_mask decodes to \(16, 120, 208\), expected"):
+        observation_from_rows({**rows, "hand_mask": short_mask}, StateFusionConfig())
+    no_poses = {**rows, "clips": {**rows["clips"], "world_from_cam": None}}
+    with pytest.raises(ClipRejected) as info:
+        observation_from_rows(no_poses, StateFusionConfig())
+    assert str(info.value) == f"clip {cid!r}: no camera poses (world_from_cam is null)"
+
+
 def clip_rows_with_zero_depth(clip) -> bytes:
     """The clip's depth column with every pixel unknown (0)."""
     from egosim.pipeline import media

@@ -28,13 +28,20 @@ cameras are taken to be in the state's frame already (identity, recorded).
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from typing import Any, ClassVar
 
 import numpy as np
 
-from egosim.pipeline import media
 from egosim.pipeline.geometry import project_world_points
+from egosim.pipeline.records import (
+    ClipsRecord,
+    DepthCameraRecord,
+    HandMaskRecord,
+    HandsRecord,
+    InputsDisagree,
+    require_camera_poses,
+)
 from egosim.pipeline.stage import ClipRejected, ClipStage, StageError, join_columns
 from egosim.schemas import CLIPS, ShardSchema
 from egosim.schemas.hand_mask import HAND_MASK
@@ -82,14 +89,28 @@ def hand_boxes(
     return boxes
 
 
-def _depth0(rows: Mapping[str, Mapping[str, Any]], cid: str) -> np.ndarray | None:
-    """The ``cameras`` row's frame-0 depth ``(H, W)`` (cameras' scale), or None."""
-    cam_row = rows.get("cameras")
-    if cam_row is None or cam_row.get("depth0") is None:
+def _size_problems(clip: ClipsRecord, hands: HandsRecord, mask: HandMaskRecord) -> list[str]:
+    """Every way the ``hands`` and ``hand_mask`` rows' sizes differ from the clip's."""
+    t, h, w = clip.size
+    problems = []
+    if mask.size != (t, h, w):
+        problems.append(
+            f"hand_mask has {mask.num_frames} frames of {(mask.height, mask.width)}, "
+            f"clip has {t} of {(h, w)}"
+        )
+    if hands.num_frames != t:
+        problems.append(f"hands has {hands.num_frames} frames, clip has {t}")
+    return problems
+
+
+def _decoded(read: Callable[[], np.ndarray | None], problems: list[str]) -> np.ndarray | None:
+    """``read()`` (a record's media accessor), or None with its size problem added to
+    ``problems`` (so that every disagreement is reported at once)."""
+    try:
+        return read()
+    except InputsDisagree as exc:
+        problems.append(exc.problem)
         return None
-    return media.decode_depth_video(
-        cam_row["depth0"], cam_row["depth_unit_m"], f"clip {cid} depth0", max_frames=1
-    )[0]
 
 
 def observation_from_rows(
@@ -100,9 +121,11 @@ def observation_from_rows(
     """Decode one clip's rows into an :class:`Observation`; raises ClipRejected when unusable.
 
     ``previous`` (the state the clip starts from) bounds the depth range of an estimated depth.
+    The rows are read through their records (plain mappings are wrapped, ``Record.of``).
     """
-    clip, hands_row, mask_row = rows["clips"], rows["hands"], rows["hand_mask"]
-    cid, t, h, w = clip["clip_id"], int(clip["num_frames"]), clip["height"], clip["width"]
+    clip = ClipsRecord.of(rows["clips"])
+    hands, mask = HandsRecord.of(rows["hands"]), HandMaskRecord.of(rows["hand_mask"])
+    cid, h, w = clip.clip_id, clip.height, clip.width
     estimate = config.depth_source == "estimate" or (
         config.depth_source == "auto" and clip.get("depth") is None
     )
@@ -111,59 +134,53 @@ def observation_from_rows(
             f"clip {cid!r}: no per-frame depth (the clip's depth column is null) and "
             "depth_source is 'clip'; use 'auto' or 'estimate' to sweep it from the cameras"
         )
-    cams = resolve_cameras(rows)
-    if cams.world_from_cam is None:
-        raise ClipRejected(f"clip {cid!r}: no camera poses (world_from_cam is null in every role)")
-    frames = media.decode_rgb_video(clip["video"], h, w, f"clip {cid} video")
-    masks = media.decode_lossless_video(mask_row["hand_mask"], f"clip {cid} hand_mask")
-    depth = (
-        None
-        if estimate
-        else media.decode_depth_video(clip["depth"], clip["depth_unit_m"], f"clip {cid} depth")
-    )
-    problems = [
-        f"{name} has {len(a)} frames of {a.shape[1:3]}, clip has {t} of {(h, w)}"
-        for name, a in (("video", frames), ("depth", depth), ("hand_mask", masks))
-        if a is not None and a.shape[:3] != (t, h, w)
-    ]
-    if int(hands_row["num_frames"]) != t:
-        problems.append(f"hands has {hands_row['num_frames']} frames, clip has {t}")
+    cams = resolve_cameras(rows)  # in every camera role, by the shared rule
+    world_from_cam = require_camera_poses(cams.world_from_cam, cid)
+    # Each medium is checked against its row's size when decoded, the rows' sizes against
+    # the clip's; every problem is listed at once.
+    problems: list[str] = []
+    frames = _decoded(lambda: clip.frames, problems)  # (T, H, W, 3)
+    depth = None if estimate else _decoded(lambda: clip.depth, problems)  # (T, H, W) metres
+    hand_mask = _decoded(lambda: mask.hand_mask, problems)  # (T, H, W)
+    problems += _size_problems(clip, hands, mask)
     if problems:
         raise ClipRejected(f"clip {cid!r}: inputs disagree: " + "; ".join(problems))
-    depth0 = _depth0(rows, cid) if cams.source != "clips" else None
-    joints = np.asarray(hands_row["hand_joints"], np.float64).reshape(t, 2, 21, 3)
-    valid = np.asarray(hands_row["hand_valid"], bool).reshape(t, 2)
-    boxes = hand_boxes(joints, valid, cams.world_from_cam, cams.intrinsics)
+    assert frames is not None and hand_mask is not None  # else a problem was raised above
+    masks = hand_mask > 0
+    cam_row = rows.get("cameras")
+    depth0 = None  # the cameras' frame-0 depth (their scale), when they are the cameras used
+    if cams.source != "clips" and cam_row is not None:
+        depth0 = DepthCameraRecord.of(cam_row).depth0
+    joints, valid = hands.hand_joints, hands.hand_valid  # (T, 2, 21, 3), (T, 2)
+    boxes = hand_boxes(joints, valid, world_from_cam, cams.intrinsics)
     if estimate:
         prior = depth0
         if prior is None and previous is not None and cams.source == "clips":
-            prior = state_depths(previous.points, cams.world_from_cam, cams.intrinsics, (h, w))
+            prior = state_depths(previous.points, world_from_cam, cams.intrinsics, (h, w))
         near_far = prior_depth_range(prior, config)
         try:
             depth = estimate_clip_depth(
-                frames, masks > 0, cams.intrinsics, cams.world_from_cam, near_far, config
+                frames, masks, cams.intrinsics, world_from_cam, near_far, config
             )
         except PlaneSweepError as exc:
             raise ClipRejected(f"clip {cid!r}: per-frame depth by plane sweep: {exc}") from exc
-        depth = fill_hand_depth(
-            depth, masks > 0, joints, valid, boxes, cams.world_from_cam, cams.intrinsics
-        )
+        depth = fill_hand_depth(depth, masks, joints, valid, boxes, world_from_cam, cams.intrinsics)
     elif depth0 is not None:
         both = (depth0 > 0) & (depth[0] > 0)
         if both.sum() < 100:
             raise ClipRejected(f"clip {cid!r}: depth0 and depth share {int(both.sum())} pixels")
         depth = depth * np.float32(np.median(depth0[both] / depth[0][both]))
-    reference = None
-    if cams.source != "clips" and clip.get("world_from_cam") is not None:
-        reference = np.asarray(clip["world_from_cam"], np.float64).reshape(t, 4, 4)
+    reference = None  # the clip's own trajectory, when the cameras came from another role
+    if cams.source != "clips" and clip.world_from_cam is not None:
+        reference = np.array(clip.world_from_cam)  # a copy: the record keeps its parse
     return Observation(
         clip_id=cid,
         frames=frames,
         depth=depth.astype(np.float32),
-        hand_mask=masks > 0,
+        hand_mask=masks,
         hand_boxes=boxes,
         intrinsics=cams.intrinsics,
-        world_from_cam=cams.world_from_cam,
+        world_from_cam=world_from_cam,
         reference_world_from_cam=reference,
         depth_estimated=estimate,
     )
@@ -224,7 +241,7 @@ class StateFusionStage(ClipStage):
         {
             "clips": ("num_frames", "height", "width", "video", "depth", "depth_unit_m"),
             "hands": ("num_frames", "hand_joints", "hand_valid"),
-            "hand_mask": ("hand_mask",),
+            "hand_mask": ("num_frames", "height", "width", "hand_mask"),
             "cameras": ("depth0", "depth_unit_m"),
         },
         CAMERA_COLUMNS,
