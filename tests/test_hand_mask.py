@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from egosim.pipeline import media
-from egosim.pipeline.clip_io import row_from_clip, write_clips
+from egosim.pipeline.clip_io import clip_from_row, row_from_clip, write_clips
 from egosim.pipeline.execute import ShardTask, run_shard_task
 from egosim.pipeline.records import Clip
 from egosim.pipeline.shards import ShardReader, ShardWriter
@@ -252,6 +252,34 @@ def test_clip_without_joints_is_rejected() -> None:
     row = row_from_clip(Clip(**{**clip.__dict__, "hand_joints": None, "hand_valid": None}))
     with pytest.raises(ClipRejected, match=clip.clip_id):
         HandMaskStage().process({"clips": row})
+
+
+def test_process_reads_its_records_as_the_decoded_clip() -> None:
+    """``process`` (records: frames, labels, camera and robot arm mask read through accessors)
+    gives exactly the masks of ``masks_for_clip`` on the fully decoded clip, with the robot arm
+    added; a hands row of another length is rejected naming the clip."""
+    clip = render_clip(WorldConfig(seed=0, height=64, width=112, num_frames=5))
+    arm = np.zeros(clip.hand_mask.shape, np.uint8)
+    arm[:, 40:, :12] = 1  # a robot arm entering from the lower left
+    clip = dataclasses.replace(clip, embodiment_mask=arm)
+    stage = HandMaskStage(HandMaskConfig(propagate_frames=2))
+    row = row_from_clip(clip)
+    out = stage.process({"clips": row})
+    masks = media.decode_lossless_video(out["hand_mask"])
+    expected = np.maximum(stage.masks_for_clip(clip_from_row(row)), arm)  # frames as stored
+    np.testing.assert_array_equal(masks, expected)
+    assert out["num_frames"] == 5 and (out["height"], out["width"]) == (64, 112)
+    assert expected.sum() > arm.sum()  # the hands are there too
+    hands = {
+        "clip_id": clip.clip_id,
+        "num_frames": 4,
+        "hand_joints": clip.hand_joints[:4].reshape(4, -1).tolist(),
+        "hand_valid": clip.hand_valid[:4].tolist(),
+        "hand_confidence": clip.hand_confidence[:4].reshape(4, -1).tolist(),
+    }
+    with pytest.raises(ClipRejected) as info:
+        stage.process({"clips": row, "hands": hands})
+    assert str(info.value) == f"clip {clip.clip_id!r}: hands cover 4 frames, not 5"
 
 
 def test_config_rejects_bad_values() -> None:

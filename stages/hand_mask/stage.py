@@ -39,9 +39,8 @@ from typing import Any, ClassVar, Literal
 import numpy as np
 
 from egosim.pipeline import media
-from egosim.pipeline.clip_io import CLIP_REQUIRED_COLUMNS, clip_from_row
 from egosim.pipeline.geometry import project_world_points
-from egosim.pipeline.records import Clip
+from egosim.pipeline.records import Clip, ClipsRecord, HandArraysRecord, HandsRecord
 from egosim.pipeline.stage import (
     ClipRejected,
     ClipStage,
@@ -132,7 +131,25 @@ def masks_from_keypoints(
     return masks
 
 
-def project_keypoints(clip: Clip, min_confidence: float = 0.0) -> np.ndarray:
+@dataclasses.dataclass(frozen=True)
+class HandInputs:
+    """What the mask makers read of one clip; a :class:`Clip` has the same fields."""
+
+    clip_id: str  # the clip's id, for error messages
+    frames: np.ndarray  # (T, H, W, 3) uint8 RGB
+    intrinsics: np.ndarray  # (4,) float64 fx, fy, cx, cy in pixels
+    world_from_cam: np.ndarray | None  # (T, 4, 4) float64 camera-to-world
+    hand_joints: np.ndarray | None  # (T, 2, 21, 3) float32 world metres, 0=left 1=right
+    hand_valid: np.ndarray | None  # (T, 2) bool hand present in the frame
+    hand_confidence: np.ndarray | None  # (T, 2, 21) float32 per-joint confidence 0..1
+
+    @property
+    def num_frames(self) -> int:
+        """Number of frames ``T``."""
+        return int(self.frames.shape[0])
+
+
+def project_keypoints(clip: Clip | HandInputs, min_confidence: float = 0.0) -> np.ndarray:
     """2D keypoints ``(T, 2, 21, 2)`` in pixels from the clip's 3D joints; NaN = unknown.
 
     Joints behind the camera or below ``min_confidence`` are NaN.
@@ -150,18 +167,29 @@ def project_keypoints(clip: Clip, min_confidence: float = 0.0) -> np.ndarray:
     return uv
 
 
-def _with_hands(clip: Clip, hands: Mapping[str, Any]) -> Clip:
-    """``clip`` with its joints, validity and confidence replaced by a ``hands`` row's."""
-    t = clip.num_frames
-    if int(hands["num_frames"]) != t:
-        raise ClipRejected(
-            f"clip {clip.clip_id!r}: hands cover {hands['num_frames']} frames, not {t}"
-        )
-    return dataclasses.replace(
-        clip,
-        hand_joints=np.asarray(hands["hand_joints"], dtype=np.float32).reshape(t, 2, 21, 3),
-        hand_valid=np.asarray(hands["hand_valid"], dtype=bool).reshape(t, 2),
-        hand_confidence=np.asarray(hands["hand_confidence"], dtype=np.float32).reshape(t, 2, 21),
+def _float32(values: np.ndarray | None) -> np.ndarray | None:
+    """``values`` as float32 (the precision the masks were always projected at), or None."""
+    return None if values is None else values.astype(np.float32)
+
+
+def _hand_labels(
+    clip: ClipsRecord, hands: HandsRecord | None
+) -> tuple[np.ndarray | None, np.ndarray | None, np.ndarray | None]:
+    """Joints ``(T, 2, 21, 3)``, validity ``(T, 2)`` and confidence ``(T, 2, 21)``: the
+    ``hands`` row's when connected (its frame count checked against the clip's), else the
+    clip's own labels (None where it has none)."""
+    source: HandArraysRecord = clip
+    if hands is not None:
+        if hands.num_frames != clip.num_frames:
+            raise ClipRejected(
+                f"clip {clip.clip_id!r}: hands cover {hands.num_frames} frames, "
+                f"not {clip.num_frames}"
+            )
+        source = hands
+    return (
+        _float32(source.hand_joints),
+        source.hand_valid,
+        _float32(source.hand_confidence),
     )
 
 
@@ -189,7 +217,10 @@ class HandMaskStage(ClipStage):
     columns: ClassVar[Mapping[str, tuple[str, ...]]] = join_columns(
         {
             "clips": (
-                *CLIP_REQUIRED_COLUMNS,
+                "num_frames",
+                "height",
+                "width",
+                "video",
                 "world_from_cam",
                 "hand_joints",
                 "hand_valid",
@@ -205,8 +236,9 @@ class HandMaskStage(ClipStage):
         super().__init__(config)
         self._sam: SamSegmenter | None = None
 
-    def masks_for_clip(self, clip: Clip) -> np.ndarray:
-        """Masks ``(T, H, W)`` uint8 (1 = hand or arm) for a decoded clip."""
+    def masks_for_clip(self, clip: Clip | HandInputs) -> np.ndarray:
+        """Masks ``(T, H, W)`` uint8 (1 = hand or arm) for a decoded clip (or its
+        :class:`HandInputs`)."""
         cfg: HandMaskConfig = self.config  # type: ignore[assignment]
         keypoints = project_keypoints(clip, cfg.min_joint_confidence)  # (T, 2, 21, 2)
         valid = np.ones((clip.num_frames, 2), bool) if clip.hand_valid is None else clip.hand_valid
@@ -234,28 +266,36 @@ class HandMaskStage(ClipStage):
 
     def process(self, rows: Mapping[str, Mapping[str, Any]]) -> dict[str, Any]:
         """Masks for one clips row; see the module docstring."""
-        row = rows["clips"]
-        clip = clip_from_row(row)
+        clip = ClipsRecord.of(rows["clips"])
         cams = resolve_cameras(rows)
-        clip = dataclasses.replace(
-            clip, intrinsics=cams.intrinsics, world_from_cam=cams.world_from_cam
-        )
-        if rows.get("hands") is not None:
-            clip = _with_hands(clip, rows["hands"])
-        if clip.hand_joints is None:
+        hands_row = rows.get("hands")
+        hands = None if hands_row is None else HandsRecord.of(hands_row)
+        joints, valid, confidence = _hand_labels(clip, hands)
+        if joints is None:
             raise ClipRejected(f"clip {clip.clip_id!r}: no hand joints (run the hands stage)")
-        if clip.world_from_cam is None:
+        if cams.world_from_cam is None:
             raise ClipRejected(f"clip {clip.clip_id!r}: no camera poses to project hand joints")
-        masks = self.masks_for_clip(clip)
-        if clip.embodiment_mask is not None:  # a robot arm from its URDF (ingest)
-            masks = np.maximum(masks, clip.embodiment_mask.astype(masks.dtype))
+        inputs = HandInputs(
+            clip.clip_id,
+            clip.frames,
+            cams.intrinsics,
+            cams.world_from_cam,
+            joints,
+            valid,
+            confidence,
+        )
+        masks = self.masks_for_clip(inputs)
+        robot = clip.mask_video("embodiment_mask")  # (T, H, W) a robot arm from its URDF (ingest)
+        if robot is not None:
+            masks = np.maximum(masks, robot.astype(masks.dtype))
+        t, h, w = clip.size
         cfg: HandMaskConfig = self.config  # type: ignore[assignment]
         return {
             "clip_id": clip.clip_id,
-            "num_frames": clip.num_frames,
-            "width": clip.width,
-            "height": clip.height,
+            "num_frames": t,
+            "width": w,
+            "height": h,
             "hand_mask": media.encode_mask_video(masks),
-            "coverage": masks.reshape(clip.num_frames, -1).mean(axis=1).tolist(),
+            "coverage": masks.reshape(t, -1).mean(axis=1).tolist(),
             "backend": cfg.backend,
         }
