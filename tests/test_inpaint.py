@@ -17,6 +17,7 @@ from egosim.pipeline.clip_io import read_clips, row_from_clip, write_clips
 from egosim.pipeline.execute import ShardTask, run_shard_task
 from egosim.pipeline.records import Clip
 from egosim.pipeline.shards import ShardReader, ShardWriter
+from egosim.pipeline.stage import ClipRejected
 from egosim.schemas.hand_mask import HAND_MASK
 from egosim.schemas.inpaint import INPAINT
 from egosim.stages.inpaint.diffusers_backend import (
@@ -27,7 +28,7 @@ from egosim.stages.inpaint.diffusers_backend import (
 from egosim.stages.inpaint.reproject_fill import dilate, opencv_fill, reproject_fill
 from egosim.stages.inpaint.stage import InpaintConfig, InpaintStage
 from egosim.world import WorldConfig, render_clip
-from tests.conftest import one_shard_task, translated, write_cameras
+from tests.conftest import make_clip, one_shard_task, translated, write_cameras
 
 SEEDS = (0, 1, 2, 3)
 
@@ -73,7 +74,30 @@ def test_no_hand_leaves_frame_untouched() -> None:
 
 
 def _mask_row(clip: Clip, masks: np.ndarray) -> dict:
-    return {"clip_id": clip.clip_id, "hand_mask": media.encode_mask_video(masks)}
+    t, h, w = masks.shape
+    return {
+        "clip_id": clip.clip_id,
+        "num_frames": t,
+        "height": h,
+        "width": w,
+        "hand_mask": media.encode_mask_video(masks),
+    }
+
+
+def test_a_hand_mask_of_another_size_is_rejected_naming_the_clip() -> None:
+    """Checked on the rows' sizes before anything is decoded; a mask video that disagrees with
+    its own row is caught when decoded."""
+    clip = make_clip("c", num_frames=4)
+    row = row_from_clip(clip)
+    short = _mask_row(clip, clip.hand_mask[:3])
+    with pytest.raises(ClipRejected) as info:
+        InpaintStage().process({"clips": row, "hand_mask": short})
+    assert str(info.value) == (
+        "clip 'c': hand_mask shape (3, 24, 32) does not match the clip (4, 24, 32)"
+    )
+    lying = {**short, "num_frames": 4}  # says 4 frames, holds 3
+    with pytest.raises(ClipRejected, match=r"inputs disagree: clip 'c' hand_mask decodes to \(3,"):
+        InpaintStage().process({"clips": row, "hand_mask": lying})
 
 
 def test_static_camera_without_depth_fills_by_temporal_median() -> None:

@@ -19,7 +19,6 @@ from typing import Any
 
 import numpy as np
 
-from egosim.pipeline import media
 from egosim.pipeline.records import CameraRecord, ClipsRecord, DepthCameraRecord, PosesRecord
 from egosim.pipeline.stage import ClipRejected
 from egosim.schemas import ShardSchema
@@ -120,15 +119,14 @@ def first_frame_depth(rows: Mapping[str, Mapping[str, Any]]) -> np.ndarray | Non
     """Frame-0 z-depth ``(H, W)`` float32 (0 = unknown): ``cameras`` depth0, else the clip's.
 
     The clip's static depth (ground truth without hands) is preferred over its plain depth.
-    Returns None when no role has depth.
+    Returns None when no role has depth. Read through the roles' records (``depth0``,
+    ``first_depth``: one frame decoded, kept on the record; plain mappings are wrapped); a copy
+    is returned, as in :func:`resolve_cameras`.
     """
-    clip = rows["clips"]
     cams = rows.get("cameras")
-    if cams is not None and cams.get("depth0") is not None:
-        what = f"clip {clip['clip_id']} depth0"
-        return media.decode_depth_video(cams["depth0"], cams["depth_unit_m"], what, max_frames=1)[0]
-    for key in ("static_depth", "depth"):
-        if clip.get(key) is not None:
-            what = f"clip {clip['clip_id']} {key}"
-            return media.decode_depth_video(clip[key], clip["depth_unit_m"], what, max_frames=1)[0]
-    return None
+    depth = None if cams is None else DepthCameraRecord.of(cams).depth0
+    if depth is None:
+        clip = ClipsRecord.of(rows["clips"])
+        key = next((k for k in ("static_depth", "depth") if clip.get(k) is not None), None)
+        depth = None if key is None else clip.first_depth(key)
+    return None if depth is None else np.array(depth)

@@ -33,7 +33,7 @@ from typing import Any, ClassVar, Literal
 import numpy as np
 
 from egosim.pipeline import media
-from egosim.pipeline.clip_io import CLIP_REQUIRED_COLUMNS, clip_from_row
+from egosim.pipeline.records import ClipsRecord, DepthCameraRecord, HandMaskRecord
 from egosim.pipeline.stage import ClipRejected, ClipStage, ConfigError, StageConfig, join_columns
 from egosim.schemas import CLIPS, ShardSchema
 from egosim.schemas.hand_mask import HAND_MASK
@@ -131,7 +131,10 @@ class InpaintStage(ClipStage):
     # What process reads (the executor decodes nothing else): the frames and per-frame depth of
     # the clip, the hand masks, the camera and frame-0 depth (shared rules of common.cameras).
     columns: ClassVar[Mapping[str, tuple[str, ...]]] = join_columns(
-        {"clips": (*CLIP_REQUIRED_COLUMNS, "depth", "depth_unit_m"), "hand_mask": ("hand_mask",)},
+        {
+            "clips": ("num_frames", "height", "width", "video", "depth", "depth_unit_m"),
+            "hand_mask": ("num_frames", "height", "width", "hand_mask"),
+        },
         CAMERA_COLUMNS,
         DEPTH0_COLUMNS,
     )
@@ -206,35 +209,28 @@ class InpaintStage(ClipStage):
     def process(self, rows: Mapping[str, Mapping[str, Any]]) -> dict[str, Any]:
         """The inpainted first frame of one clip; see the module docstring."""
         cfg: InpaintConfig = self.config  # type: ignore[assignment]
-        row = rows["clips"]
-        clip_id = row["clip_id"]
+        clip = ClipsRecord.of(rows["clips"])
+        mask = HandMaskRecord.of(rows["hand_mask"])
+        clip_id, size = clip.clip_id, clip.size
+        if mask.size != size:
+            raise ClipRejected(
+                f"clip {clip_id!r}: hand_mask shape {mask.size} does not match the clip {size}"
+            )
         depth0 = first_frame_depth(rows) if cfg.backend == "reproject" else None  # (H, W)
         cam_row = rows.get("cameras")
-        static = bool(cam_row is not None and cam_row.get("static_camera"))
+        static = cam_row is not None and DepthCameraRecord.of(cam_row).static_camera
         cams = resolve_cameras(rows)
         # Per-frame depth (agreement test) only from the clip, and only when no other role
         # supplies the cameras' depth (see the module docstring).
-        per_frame = cfg.depth_tolerance > 0 and rows.get("cameras") is None
-        keep = (
-            (*CLIP_REQUIRED_COLUMNS, "depth", "depth_unit_m")
-            if per_frame
-            else CLIP_REQUIRED_COLUMNS
-        )
-        clip = clip_from_row({key: row[key] for key in keep})  # frames (and depth) decoded
-        masks = media.decode_lossless_video(rows["hand_mask"]["hand_mask"], f"clip {clip_id} mask")
-        if masks.shape != (clip.num_frames, clip.height, clip.width):
-            raise ClipRejected(
-                f"clip {clip_id!r}: hand_mask shape {masks.shape} does not match the clip "
-                f"{(clip.num_frames, clip.height, clip.width)}"
-            )
+        per_frame = cfg.depth_tolerance > 0 and cam_row is None
         result = self.fill(
-            clip.frames,
-            masks,
+            clip.frames,  # (T, H, W, 3), checked against the clip's size
+            mask.hand_mask,  # (T, H, W), checked against the mask row's (= the clip's) size
             cams.world_from_cam,
             cams.intrinsics,
             depth0,
             clip_id,
-            clip.depth,
+            clip.depth if per_frame else None,
             static,
         )
         n = int(result.filled.sum())
