@@ -56,11 +56,12 @@ Method, for one clip (:func:`estimate_metric_scale`):
 ``contact_offset_m`` (3 cm), ``joint_quantile`` and ``contact_quantile`` were tuned on the
 synthetic world, tabletop seeds 0-1 (61 frames, 480x832, poses and depth scaled by 0.37 and 2.9,
 frame-0 depth masked under the hands), with the translation lift. Scale error (estimate / truth -
-1) with the palm lift, from ``.venv/bin/python tests/test_metric_scale.py MODE:SEED ...``:
+1) with the palm lift and the hands stage's detector (depth_camera v8), from
+``.venv/bin/python tests/test_metric_scale.py MODE:SEED ...``:
 
-- tuned on: tabletop 0 oracle +0.8%, MediaPipe +27.7%; tabletop 1 oracle +7.2%, MediaPipe +15.0%.
+- tuned on: tabletop 0 oracle +0.8%, MediaPipe +14.0%; tabletop 1 oracle +7.2%, MediaPipe +19.8%.
 - held out: default wild 0 oracle +0.3%, MediaPipe +34.5%; alt tabletop 0 / 1 / 2 oracle -4.6% /
-  -6.3% / +1.2%, MediaPipe +14.6% / +10.7% / +12.0%; alt wild 0 oracle -1.6%, MediaPipe +34.9%.
+  -6.3% / +1.2%, MediaPipe +14.6% / +11.5% / +17.0%; alt wild 0 oracle -1.6%, MediaPipe +34.9%.
 - The MediaPipe path is high because MediaPipe's 2D palm on the world's drawn hands is 0.74
   (default) / 0.85 (alt) of the true joints' projected palm (median over 300 / 324 hand-frames),
   so the metric palm fitted to it lands further away; the hands stage places those hands at the
@@ -69,11 +70,12 @@ frame-0 depth masked under the hands), with the translation lift. Scale error (e
   lift the MediaPipe path gave -6.3% / +0.5% tuned and -1.9% to +14.3% held out, but disagreed
   with the hands stage.
 - Real clips (``python -m bench.real_video``, hand/surface ratio at contact against the scene
-  cloud; against its measured points only in brackets): DWM 00013 1.53 (1.59) -> 0.82 (0.85),
-  scale 0.094 -> 0.176 m/unit; DWM 00017 1.50 (1.57) -> 0.93 (0.97), scale 0.018 -> 0.029;
-  EgoDex 1.04 (0.35) -> 0.48 (0.32), scale 0.022 -> 0.024: its hands are unchanged and its
-  all-points figure moved with the fill of the depth under the hands (the plane sweep is
-  confident on 8.5% of that frame-0, a nearly still head over a plain table).
+  cloud; against its measured points only in brackets), v6 -> v8: DWM 00013 1.53 (1.59) -> 1.08
+  (1.13), scale 0.094 -> 0.133 m/unit; DWM 00017 1.50 (1.57) -> 0.91 (0.95), scale 0.018 ->
+  0.030; EgoDex 1.04 (0.35) -> 0.97 (0.32), scale 0.022 -> 0.024. EgoDex's all-points figure
+  follows the fill of the depth under the hands (0.48 in a v7 run with the same hands and a 7%
+  different scale): the plane sweep is confident on 8.5% of its frame 0, a nearly still head over
+  a plain table, and its measured figure says the geometry, not the lift, is off there.
 - Filling frame-0 depth holes before measuring (Telea up to 50 px, or the scene cloud's
   superpixel plane fill) was measured and dropped (depth_camera v5): it cost usable detections
   on the synthetic world and moved the EgoDex clip's scale by +10% to +35%.
