@@ -100,16 +100,16 @@ def detect_hand_landmarks(
     mp = import_mediapipe()
     t, h, w = frames.shape[:3]
     out = RawLandmarks(
-        uv=np.full((t, 2, NUM_JOINTS, 2), np.nan),
-        world=np.full((t, 2, NUM_JOINTS, 3), np.nan),
-        label_right=np.full((t, 2), 0.5),
-        present=np.zeros((t, 2), dtype=bool),
+        uv=np.full((t, MAX_HANDS, NUM_JOINTS, 2), np.nan),
+        world=np.full((t, MAX_HANDS, NUM_JOINTS, 3), np.nan),
+        label_right=np.full((t, MAX_HANDS), 0.5),
+        present=np.zeros((t, MAX_HANDS), dtype=bool),
     )
 
     def make(video: bool):
         return mp.solutions.hands.Hands(
             static_image_mode=not video,
-            max_num_hands=2,
+            max_num_hands=MAX_HANDS,
             model_complexity=params.model_complexity,
             min_detection_confidence=params.min_detection_confidence,
             min_tracking_confidence=params.min_tracking_confidence,
@@ -132,7 +132,7 @@ def detect_hand_landmarks(
                 tile = _hands_in(hands, crop, (x0, y0, x1 - x0, y1 - y0), params.swap_labels)
                 tile = [d for d in tile if inside_tile(d[0], (x0, y0, x1, y1), (w, h))]
                 found = merge_tile_detections(found, tile, params.duplicate_distance)
-            for k, (uv, world, right) in enumerate(found[:2]):
+            for k, (uv, world, right) in enumerate(found[:MAX_HANDS]):
                 out.uv[i, k], out.world[i, k], out.label_right[i, k] = uv, world, right
                 out.present[i, k] = True
     finally:
