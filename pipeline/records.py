@@ -519,13 +519,7 @@ class PackRecord(CameraRecord):
     @property
     def depth0(self) -> np.ndarray | None:
         """``(H, W)`` float32 metres of frame 0 (0 = unknown), None when the pack has none."""
-
-        def parse() -> np.ndarray | None:
-            if self["depth0"] is None:
-                return None
-            return media.decode_depth_video(self["depth0"], self["depth_unit_m"])[0]
-
-        return self._once("depth0", parse)
+        return self.first_depth("depth0")
 
 
 class SimulationRecord(FramedRecord):
