@@ -69,9 +69,46 @@ class PropagationParams:
             raise ValueError("; ".join(problems))
 
 
-def _flow(dis: cv2.DISOpticalFlow, a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Dense flow ``(H, W, 2)`` float32 from grey image ``a`` to ``b`` (pixels)."""
-    return dis.calc(a, b, None)
+class FrameFlows:
+    """Grey frames and dense flows (OpenCV DIS) of one clip, each computed once and kept.
+
+    Both directions of :func:`propagate_both_ways` and every hand of :func:`propagate_hands`
+    need the flows between the same neighbouring frames (one direction's ``t -> t+1`` flow is
+    the other's backward flow), so they share one ``FrameFlows``; :meth:`reversed` is a view of
+    the same store indexed on the reversed clip. Kept for the clip: at most two ``(H, W, 2)``
+    float32 flows per neighbouring pair (about 380 MB for 61 frames at 480x832).
+    """
+
+    def __init__(self, frames: np.ndarray) -> None:
+        self._frames = frames  # (T, H, W, 3) uint8 RGB, in the clip's own order
+        self._reverse = False  # True: indices count from the clip's last frame
+        self._grey: dict[int, np.ndarray] = {}  # clip frame index -> (H, W) uint8 grey
+        self._flows: dict[tuple[int, int], np.ndarray] = {}  # (from, to) -> (H, W, 2) float32
+        self._dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_FAST)
+
+    def reversed(self) -> FrameFlows:
+        """The same frames and stored flows, indexed on the reversed clip."""
+        view = object.__new__(FrameFlows)
+        view.__dict__.update(self.__dict__)
+        view._reverse = not self._reverse
+        return view
+
+    def _index(self, t: int) -> int:
+        return len(self._frames) - 1 - t if self._reverse else t
+
+    def grey(self, t: int) -> np.ndarray:
+        """Frame ``t`` in grey ``(H, W)`` uint8."""
+        i = self._index(t)
+        if i not in self._grey:
+            self._grey[i] = cv2.cvtColor(self._frames[i], cv2.COLOR_RGB2GRAY)
+        return self._grey[i]
+
+    def flow(self, a: int, b: int) -> np.ndarray:
+        """Dense flow ``(H, W, 2)`` float32 from frame ``a`` to frame ``b`` (pixels)."""
+        key = (self._index(a), self._index(b))
+        if key not in self._flows:
+            self._flows[key] = self._dis.calc(self.grey(a), self.grey(b), None)
+        return self._flows[key]
 
 
 def _pull(image: np.ndarray, flow: np.ndarray, interpolation: int) -> np.ndarray:
@@ -88,6 +125,7 @@ def propagate_backwards(
     masks: np.ndarray,
     params: PropagationParams | None = None,
     certain: np.ndarray | None = None,
+    flows: FrameFlows | None = None,
 ) -> np.ndarray:
     """Masks ``(T, H, W)`` uint8 with later masks carried back into earlier frames.
 
@@ -95,7 +133,9 @@ def propagate_backwards(
     own mask; ``certain (T, H, W)`` uint8, optional: the part of each mask that is certainly
     hand or arm (see the module docstring; None: all of it). Frame ``T - 1`` is returned as
     given; every earlier frame gains what the (already propagated) next frame's mask shows of
-    it, as long as that mask was found at most ``max_frames`` frames later.
+    it, as long as that mask was found at most ``max_frames`` frames later. ``flows``: the
+    grey frames and flows of ``frames``, shared with other calls on the same clip (None: made
+    here).
     """
     p = params or PropagationParams()
     out = masks.astype(np.uint8).copy()
@@ -104,14 +144,8 @@ def propagate_backwards(
         return out
     # Frames since the mask at each frame was found (0: its own mask is not empty).
     age = np.where(out.reshape(len(out), -1).any(axis=1), 0, p.max_frames + 1)  # (T,)
-    grey: dict[int, np.ndarray] = {}
-
-    def grey_of(t: int) -> np.ndarray:
-        if t not in grey:
-            grey[t] = cv2.cvtColor(frames[t], cv2.COLOR_RGB2GRAY)
-        return grey[t]
-
-    dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_FAST)
+    flows = flows or FrameFlows(frames)
+    grey_of = flows.grey
     erode = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * p.erode_px + 1,) * 2)
     ring = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * p.ring_px + 1,) * 2)
     for t in range(len(frames) - 2, -1, -1):
@@ -119,7 +153,7 @@ def propagate_backwards(
             continue
         if p.into_empty_only and age[t] == 0:
             continue
-        fwd = _flow(dis, grey_of(t), grey_of(t + 1))  # (H, W, 2) t -> t+1
+        fwd = flows.flow(t, t + 1)  # (H, W, 2) t -> t+1
         warped = _pull(out[t + 1], fwd, cv2.INTER_NEAREST)  # (H, W) proposal at t
         # A pixel is carried only where frame t looks like frame t+1 at the flow's target: the
         # table that the arm will cover next has zero flow but not the arm's colour.
@@ -131,7 +165,7 @@ def propagate_backwards(
         new = (warped > 0) & (out[t] == 0)
         if new.sum() < p.min_pixels:
             continue
-        bwd = _flow(dis, grey_of(t + 1), grey_of(t))  # (H, W, 2) t+1 -> t
+        bwd = flows.flow(t + 1, t)  # (H, W, 2) t+1 -> t
         back = _pull(bwd, fwd, cv2.INTER_LINEAR)  # (H, W, 2) bwd at x + fwd(x)
         consistent = np.hypot(*(fwd + back).transpose(2, 0, 1)) <= p.consistency_px
         carried = _pull(sure[t + 1], fwd, cv2.INTER_NEAREST) & warped & consistent.astype(np.uint8)
@@ -155,15 +189,17 @@ def propagate_both_ways(
     masks: np.ndarray,
     params: PropagationParams | None = None,
     certain: np.ndarray | None = None,
+    flows: FrameFlows | None = None,
 ) -> np.ndarray:
     """Masks ``(T, H, W)`` carried backwards and forwards in time (see :func:`propagate_backwards`).
 
     Each direction starts from the frames' own ``masks`` (and ``certain`` parts); the result is
-    their union.
+    their union. Both directions share ``flows`` (None: made here).
     """
-    back = propagate_backwards(frames, masks, params, certain)
+    flows = flows or FrameFlows(frames)
+    back = propagate_backwards(frames, masks, params, certain, flows)
     rev = None if certain is None else certain[::-1]
-    forward = propagate_backwards(frames[::-1], masks[::-1], params, rev)[::-1]
+    forward = propagate_backwards(frames[::-1], masks[::-1], params, rev, flows.reversed())[::-1]
     return back | forward
 
 
@@ -179,10 +215,12 @@ def propagate_hands(
     ``masks (T, H, W)`` every frame's own mask; ``per_hand (T, K, H, W)`` the parts of it that
     belong to hand ``k``; ``certain (T, K, H, W)`` their certain seeds (see ``arm_region``). Hand
     by hand, :func:`propagate_both_ways` carries ``per_hand[:, k]`` into the frames where it is
-    empty; the result is the union with ``masks``.
+    empty; the result is the union with ``masks``. Every hand and direction shares one
+    :class:`FrameFlows`, so each flow is computed once per clip.
     """
     out = masks.astype(np.uint8).copy()
+    flows = FrameFlows(frames)
     for k in range(per_hand.shape[1]):
         if per_hand[:, k].any():
-            out |= propagate_both_ways(frames, per_hand[:, k], params, certain[:, k])
+            out |= propagate_both_ways(frames, per_hand[:, k], params, certain[:, k], flows)
     return out
