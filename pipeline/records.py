@@ -279,7 +279,7 @@ class FramedRecord(Record):
 
         def parse() -> np.ndarray:
             t, h, w = self.size
-            what = f"clip {self.clip_id!r} {column}"
+            what = self.what(column)
             frames = media.decode_rgb_video(self[column], h, w, what)
             if frames.shape != (t, h, w, 3):
                 raise InputsDisagree(f"{what} decodes to {frames.shape}, expected {(t, h, w, 3)}")
@@ -299,7 +299,7 @@ class FramedRecord(Record):
             if data is None:
                 return None
             t, h, w = self.size
-            name = what or f"clip {self.clip_id!r} {column}"
+            name = what or self.what(column)
             mask = media.decode_lossless_video(data, name)
             if mask.shape != (t, h, w):
                 raise InputsDisagree(f"{name} decodes to {mask.shape}, expected {(t, h, w)}")
