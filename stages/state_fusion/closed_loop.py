@@ -29,6 +29,7 @@ from typing import Any
 import numpy as np
 
 from egosim.pipeline import media
+from egosim.pipeline.records import HandMaskRecord
 from egosim.pipeline.shards import ShardReader, ShardWriter, shard_file_name
 from egosim.pipeline.stage import ClipRejected, ConfigError, StageConfig, get_stage
 from egosim.schemas import CLIPS
@@ -274,19 +275,25 @@ def hands_row(clip: Mapping[str, Any]) -> dict[str, Any]:
     }
 
 
-def hand_mask_row(clip: Mapping[str, Any]) -> dict[str, Any]:
-    """A ``hand_mask`` row from a clip row's ``hand_mask`` column (the generated clip's)."""
-    t = int(clip["num_frames"])
-    mask = media.decode_lossless_video(clip["hand_mask"], f"clip {clip['clip_id']} hand_mask")
-    return {
-        "clip_id": clip["clip_id"],
-        "num_frames": t,
-        "width": clip["width"],
-        "height": clip["height"],
-        "hand_mask": clip["hand_mask"],
-        "coverage": (mask > 0).reshape(len(mask), -1).mean(1).tolist(),
-        "backend": "keypoints",
-    }
+def hand_mask_row(clip: Mapping[str, Any]) -> HandMaskRecord:
+    """A ``hand_mask`` row from a clip row's ``hand_mask`` column (the generated clip's).
+
+    A record, so the masks decoded here for ``coverage`` are the ones fusion reads (decoded once
+    per segment); a mask video of another size than the clip's raises :class:`InputsDisagree`.
+    """
+    row = HandMaskRecord(
+        {
+            "clip_id": clip["clip_id"],
+            "num_frames": int(clip["num_frames"]),
+            "width": clip["width"],
+            "height": clip["height"],
+            "hand_mask": clip["hand_mask"],
+            "backend": "keypoints",
+        }
+    )
+    mask = row.hand_mask  # (T, H, W) uint8 {0, 1}
+    row["coverage"] = (mask > 0).reshape(len(mask), -1).mean(1).tolist()
+    return row
 
 
 def _write(out: Path, step: str, schema: Any, row: Mapping[str, Any], params: dict) -> Path:
