@@ -22,6 +22,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from egosim.pipeline.geometry import intrinsics_matrix, rotation_angle_deg
+
 PALM_JOINTS = (0, 5, 9, 13, 17)  # wrist and the index, middle, ring and pinky knuckles
 MIN_POSE_DEPTH = 0.05  # metres: a palm pose with a joint nearer the camera does not pose others
 # An average adult right palm (metres; x from the wrist towards the fingers, y towards the thumb,
@@ -52,8 +54,7 @@ def palm_candidates(uv: np.ndarray, intrinsics: np.ndarray, right: bool) -> list
     """Camera points ``(5, 3)`` of :data:`PALM_TEMPLATE` (mirrored for a left hand) that project
     onto the palm landmarks ``uv[PALM_JOINTS]``: the two poses of a planar PnP (IPPE), best first.
     Empty when the PnP fails (degenerate landmarks)."""
-    fx, fy, cx, cy = np.asarray(intrinsics, dtype=np.float64)
-    camera_matrix = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+    camera_matrix = intrinsics_matrix(intrinsics)  # (3, 3)
     template = PALM_TEMPLATE * np.array([1.0, 1.0 if right else -1.0, 1.0])  # (5, 3)
     image = np.ascontiguousarray(uv[list(PALM_JOINTS)], dtype=np.float64)  # (5, 2)
     if not np.all(np.isfinite(image)):
@@ -103,7 +104,7 @@ def palm_pnp_pose(
         chosen = max(candidates, key=lambda p: p[2, 2] - p[0, 2])
     else:
         own = world_landmarks[palm]  # (5, 3) in MediaPipe's axes
-        chosen = min(candidates, key=lambda p: angle_deg(best_rotation(own, p)))
+        chosen = min(candidates, key=lambda p: rotation_angle_deg(np.eye(3), best_rotation(own, p)))
     rot = best_rotation(world_landmarks[palm], chosen)  # (3, 3) cam_from_landmarks
     model = (world_landmarks - world_landmarks[palm].mean(axis=0)) @ rot.T + chosen.mean(axis=0)
     z = np.maximum(model[:, 2], 1e-3)  # (21,) depth of each joint from the posed model
@@ -132,8 +133,3 @@ def lift_with_rotation(
     turned = (world_landmarks - world_landmarks.mean(axis=0)) @ cam_from_landmarks.T  # (21, 3)
     z = np.maximum(turned[:, 2] - np.median(turned[:, 2]) + median_depth, 1e-3)  # (21,)
     return on_rays(uv, z, intrinsics)
-
-
-def angle_deg(rot: np.ndarray) -> float:
-    """Rotation angle of ``rot (3, 3)`` in degrees."""
-    return float(np.degrees(np.arccos(np.clip((np.trace(rot) - 1.0) / 2.0, -1.0, 1.0))))
