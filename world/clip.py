@@ -72,21 +72,35 @@ def _default_parts(
     return parts
 
 
-def _setup(config: WorldConfig) -> tuple[Scene, np.ndarray, np.ndarray]:
-    """Scene, intrinsics ``(4,)`` and ``world_from_cam (T, 4, 4)`` of the config's variant."""
+def world_cameras(config: WorldConfig) -> tuple[np.ndarray, np.ndarray]:
+    """Intrinsics ``(4,)`` and ``world_from_cam (T, 4, 4)`` of the config's variant.
+
+    Builds no scene: the camera path has its own random stream, so it is the one
+    :func:`render_clip` uses whether or not the scene is built.
+    """
     t, h, w = config.num_frames, config.height, config.width
     if config.variant == "alt":
         fov = alt_fov_deg(config.seed, config.horizontal_fov_deg)
         return (
-            build_scene_alt(config.seed, config.articulated),
             intrinsics_from_fov(w, h, fov),
             camera_path_alt(config.seed, config.mode, t, config.fps),
         )
     return (
-        build_scene(config.seed, config.articulated),
         intrinsics_from_fov(w, h, config.horizontal_fov_deg),
         camera_path(config.seed, config.mode, t, config.fps),
     )
+
+
+def world_scene(config: WorldConfig) -> Scene:
+    """The textured scene of the config's variant (the costly part: its textures)."""
+    if config.variant == "alt":
+        return build_scene_alt(config.seed, config.articulated)
+    return build_scene(config.seed, config.articulated)
+
+
+def _setup(config: WorldConfig) -> tuple[Scene, np.ndarray, np.ndarray]:
+    """Scene, intrinsics ``(4,)`` and ``world_from_cam (T, 4, 4)`` of the config's variant."""
+    return (world_scene(config), *world_cameras(config))
 
 
 def render_clip(config: WorldConfig, clip_id: str | None = None) -> Clip:

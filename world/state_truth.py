@@ -14,7 +14,7 @@ import numpy as np
 
 from egosim.pipeline.geometry import transform_points, unproject_depth
 from egosim.pipeline.records import Clip
-from egosim.world.clip import _setup
+from egosim.world.clip import _setup, world_cameras
 from egosim.world.config import WorldConfig
 from egosim.world.render import WorldRenderer, to_uint8
 
@@ -105,7 +105,7 @@ def look_back_path(config: WorldConfig, offset: int = 1000) -> np.ndarray:
     interaction of ``config``'s clip, along a different path.
     """
     other = WorldConfig(**{**config.__dict__, "seed": config.seed + offset})
-    return _setup(other)[2]
+    return world_cameras(other)[1]  # the path only: building the other seed's scene is wasted
 
 
 def look_back_clip(config: WorldConfig, clip: Clip) -> Clip:
