@@ -140,9 +140,8 @@ def run_case(case: RealCase, data: Path, out: Path, workers: int) -> float:
     return time.perf_counter() - start
 
 
-def _poses(run: Path, cid: str, cams: dict) -> np.ndarray:
-    """World-from-camera ``(T, 4, 4)``: cleaned poses when present, else the estimate."""
-    poses = read_step(run, "poses", ["clip_id", "world_from_cam"]).get(cid)
+def _poses(poses: dict | None, cams: dict) -> np.ndarray:
+    """World-from-camera ``(T, 4, 4)``: the cleaned ``poses`` row if present, else the estimate."""
     src = poses if poses is not None else cams
     return np.asarray(src["world_from_cam"], dtype=np.float64).reshape(-1, 4, 4)
 
@@ -172,13 +171,16 @@ def _depth_at(depth: np.ndarray, u: float, v: float, radius: int = 4) -> float:
 
 
 def hand_surface_ratio(
-    run: Path, cid: str, cams: dict, measured_only: bool = False
+    cloud: dict | None,
+    hands: dict | None,
+    poses: dict | None,
+    cams: dict,
+    measured_only: bool = False,
 ) -> float | None:
-    """Median fingertip/scene depth ratio over each hand's contact frames (see module doc);
+    """Median fingertip/scene depth ratio over each hand's contact frames (see module doc), from
+    one clip's ``scene_cloud``, ``hands``, ``poses`` (None: absent) and ``cameras`` rows;
     ``measured_only``: against the scene points whose depth was measured (point confidence
     255), not the filled ones (under the hands most depth is filled, a guess)."""
-    cloud = read_step(run, "scene_cloud").get(cid)
-    hands = read_step(run, "hands", ["clip_id", "hand_joints", "hand_valid"]).get(cid)
     if cloud is None or hands is None or cams.get("depth0") is None:
         return None
     pts = np.frombuffer(cloud["points_xyz"], dtype="<f4").reshape(-1, 3).astype(np.float64)
@@ -187,7 +189,7 @@ def hand_surface_ratio(
         pts = pts[confidence == 255]
     k = np.asarray(cams["intrinsics"], dtype=np.float64)
     hw = (int(cams["height"]), int(cams["width"]))
-    cam_from_world = invert_se3(_poses(run, cid, cams))  # (T, 4, 4)
+    cam_from_world = invert_se3(_poses(poses, cams))  # (T, 4, 4)
     joints = np.asarray(hands["hand_joints"], dtype=np.float64).reshape(-1, 2, 21, 3)
     valid = np.asarray(hands["hand_valid"], dtype=bool)  # (T, 2)
     per_hand: list[list[float]] = [[], []]
@@ -263,10 +265,11 @@ def _shift(image: np.ndarray, dx: float, dy: float) -> np.ndarray:
     return cv2.warpAffine(image, m, (w, h), flags=cv2.INTER_LINEAR, borderValue=0)
 
 
-def scene_vs_truth(run: Path, cid: str, case: RealCase, data: Path) -> dict[str, float] | None:
-    """Scene render vs the ground-truth static video, and the repeat-frame-0 baseline."""
-    render = read_step(run, "scene_render").get(cid)
-    clip = read_step(run, "ingest").get(cid)
+def scene_vs_truth(
+    render: dict | None, clip: dict | None, cid: str, case: RealCase, data: Path
+) -> dict[str, float] | None:
+    """Scene render vs the ground-truth static video, and the repeat-frame-0 baseline, from one
+    clip's ``scene_render`` and ``ingest`` rows (None: absent)."""
     if render is None or clip is None or not case.static_truth:
         return None
     h, w = int(render["height"]), int(render["width"])
@@ -321,6 +324,12 @@ def summarise(case: RealCase, run: Path, data: Path, seconds: float) -> dict[str
     )
     cams = read_step(run, "cameras")
     packed = read_step(run, "pack", ["clip_id"])
+    # Each step's shards read once for all clips (not once per clip and figure).
+    clouds = read_step(run, "scene_cloud")
+    hands = read_step(run, "hands", ["clip_id", "hand_joints", "hand_valid"])
+    poses = read_step(run, "poses", ["clip_id", "world_from_cam"])
+    renders = read_step(run, "scene_render")
+    videos = read_step(run, "ingest") if case.static_truth else {}
     rejects: list[str] = []
     rej_path = run / "rejects.parquet"
     if rej_path.is_file():
@@ -341,13 +350,14 @@ def summarise(case: RealCase, run: Path, data: Path, seconds: float) -> dict[str
             focal_err.append(float(cam["intrinsics"][0]) / true_f - 1.0)
         if cam.get("metric_scale") is not None:
             scales.append(f"{cam['metric_scale']:.3g} ({cam.get('scale_source')})")
-        ratio = hand_surface_ratio(run, cid, cam)
+        rows = (clouds.get(cid), hands.get(cid), poses.get(cid), cam)
+        ratio = hand_surface_ratio(*rows)
         if ratio is not None:
             ratios.append(ratio)
-        ratio = hand_surface_ratio(run, cid, cam, measured_only=True)
+        ratio = hand_surface_ratio(*rows, measured_only=True)
         if ratio is not None:
             measured_ratios.append(ratio)
-        fig = scene_vs_truth(run, cid, case, data)
+        fig = scene_vs_truth(renders.get(cid), videos.get(cid), cid, case, data)
         if fig is not None:
             scene.append(fig)
     row: dict[str, Any] = {
