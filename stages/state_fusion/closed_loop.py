@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 
 from egosim.pipeline import media
-from egosim.pipeline.records import HandMaskRecord
+from egosim.pipeline.records import ClipsRecord, HandMaskRecord
 from egosim.pipeline.shards import ShardReader, ShardWriter, shard_file_name
 from egosim.pipeline.stage import ClipRejected, ConfigError, StageConfig, get_stage
 from egosim.schemas import CLIPS
@@ -331,7 +331,8 @@ def run_closed_loop(
         before = state_for_clip(current, cid) if role == "state" else {**current, "clip_id": cid}
         try:
             render = render_stage.process({"clips": seg, role: before})
-            clip = {**generate(seg, render), "clip_id": cid}
+            # a record: its frames, decoded once by fusion, are the stitched video's right half
+            clip = ClipsRecord({**generate(seg, render), "clip_id": cid})
             fuse_rows = {
                 "clips": clip,
                 "hands": hands_row(seg),
@@ -345,9 +346,9 @@ def run_closed_loop(
         result.renders.append(_write(out, f"render_{k:02d}", SCENE_RENDER, render, params))
         result.clips.append(_write(out, f"clip_{k:02d}", CLIPS, clip, params))
         result.states.append(_write(out, f"state_{k:02d}", STATE, current, params))
-        h, w = int(clip["height"]), int(clip["width"])
+        h, w = clip.height, clip.width
         scene = media.decode_rgb_video(render["scene_video"], h, w, f"render {cid}")
-        frames.append(np.concatenate([scene, media.decode_rgb_video(clip["video"], h, w)], 2))
+        frames.append(np.concatenate([scene, clip.frames], 2))
     fps = float(segments[0]["fps"])
     tmp = result.video.with_name(result.video.name + ".tmp-loop")
     tmp.write_bytes(media.encode_rgb_video(np.concatenate(frames), fps, config.video_crf))
