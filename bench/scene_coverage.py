@@ -1,20 +1,26 @@
-"""Scene-cloud density and scene-render coverage on real DWM clips and the synthetic world.
+"""Scene-cloud density and scene-render coverage on real clips and the synthetic world.
 
 ``python -m bench.scene_coverage [--data ../shared/data] [--out runs/scene_coverage] [--only NAME]
-[--no-run] [--cloud k=v] [--render k=v]`` prints one table and writes ``OUT/scene_coverage.json``
-and ``OUT/contact_sheet.png`` (per real clip: real frame 0 | render at t=0 | visible at t=0, hands
-in red | render at the end); with ``--cloud``/``--render`` settings both names carry them.
+[--no-run] [--runs DIR] [--cloud k=v] [--render k=v]`` prints one table and writes
+``OUT/scene_coverage.json`` and ``OUT/contact_sheet.png`` (per real clip: real frame 0 | render at
+t=0 | visible at t=0, hands in red | render at the end); with ``--cloud``/``--render`` settings
+both names carry them.
 
-- **Real** (``dwm_*``): the dataset workflow (``workflows/dataset.yaml``, ``ingest.preset=dwm``,
-  through :func:`bench.real_video.run_case`; finished steps are skipped; ``--no-run`` reuses the
-  run folder) on each DWM dynamic clip; then ``scene_cloud`` + ``scene_render`` are run again with
-  the current code (and ``--cloud``/``--render`` settings) on that run's ``ingest``, ``cameras``,
-  ``poses`` and ``inpaint`` shards (:func:`rerender`; ``--workflow-render`` measures the run's own
-  render instead), and the render is compared with ``videos_static`` (the true static scene along
-  the true trajectory). Hand pixels are ``videos_hands`` dilated by ``HAND_DILATE_PX``. The
-  scene steps as they were before the depth fill (scene_cloud v4, scene_render v1) are reproduced
-  by ``--cloud min_confidence=0 --cloud fill=false --cloud speckle_px=0 --render max_crack_px=0
-  --render max_crack_width=0`` (checked: the same figures as the old stages' own render).
+- **Real with truth** (``dwm_0*``): the dataset workflow (``workflows/dataset.yaml``,
+  ``ingest.preset=dwm``, through :func:`bench.real_video.run_case`; finished steps are skipped;
+  ``--no-run`` reuses the run folder) on each DWM dynamic clip; then ``scene_cloud`` +
+  ``scene_render`` are run again with the current code (and ``--cloud``/``--render`` settings) on
+  that run's ``ingest``, ``cameras``, ``poses`` and ``inpaint`` shards (:func:`rerender`;
+  ``--workflow-render`` measures the run's own render instead), and the render is compared with
+  ``videos_static`` (the true static scene along the true trajectory). Hand pixels are
+  ``videos_hands`` dilated by ``HAND_DILATE_PX``. The scene steps as they were before the depth
+  fill (scene_cloud v4, scene_render v1) are reproduced by ``--cloud min_confidence=0 --cloud
+  fill=false --cloud speckle_px=0 --render max_crack_px=0 --render max_crack_width=0`` (checked:
+  the same figures as the old stages' own render).
+- **Real without truth** (EgoDex, the fixed-camera videos, HOT3D's RGB view: every window):
+  the same re-render; hand pixels are the run's own ``hand_mask`` dilated by ``HAND_DILATE_PX``;
+  no ``dB``. ``--runs DIR --no-run`` reads runs made elsewhere (``bench.real_video --out DIR``)
+  and writes only the re-rendered scene steps under ``--out``.
 - **Synthetic** (``world_*``): a small synthetic clip whose depth is removed, so ``depth_camera``
   (backend ``given``: the world's poses) estimates it by plane sweep like on real video; then
   ``scene_cloud`` (hands left out by the world's hand mask) and ``scene_render``; compared with
@@ -67,24 +73,27 @@ SYN_H, SYN_W, SYN_T = 192, 336, 17  # small synthetic clips
 
 
 def coverage_figures(
-    scene: np.ndarray, visible: np.ndarray, truth: np.ndarray, hand: np.ndarray
+    scene: np.ndarray, visible: np.ndarray, truth: np.ndarray | None, hand: np.ndarray
 ) -> dict[str, float]:
     """Coverage and PSNR of a render ``scene (T, H, W, 3)`` with ``visible (T, H, W)`` bool.
 
-    ``truth (T, H, W, 3)`` the static scene, ``hand (T, H, W)`` bool pixels left out of every
-    figure.
+    ``truth (T, H, W, 3)`` the static scene (None: unknown, ``dB`` NaN), ``hand (T, H, W)``
+    bool pixels left out of every figure.
     """
     free = ~hand  # (T, H, W)
     cov = (visible & free).reshape(len(scene), -1).sum(1) / np.maximum(
         free.reshape(len(scene), -1).sum(1), 1
     )  # (T,)
-    psnrs = [_psnr(scene[t], truth[t], visible[t] & free[t]) for t in range(len(scene))]
+    psnrs = [
+        float("nan") if truth is None else _psnr(scene[t], truth[t], visible[t] & free[t])
+        for t in range(len(scene))
+    ]
     return {
         "cov0": float(cov[0]),
         "cov": float(cov.mean()),
         "covN": float(cov[-1]),
         "dB0": psnrs[0],
-        "dB": float(np.nanmean(psnrs)),
+        "dB": float(np.nanmean(psnrs)) if np.isfinite(psnrs).any() else float("nan"),
     }
 
 
@@ -171,11 +180,13 @@ def rerender(
 
 def real_case(
     case: RealCase, data: Path, run: Path, scene: Path | None = None
-) -> tuple[dict[str, Any], np.ndarray | None]:
-    """Figures of one DWM clip, and its contact-sheet row.
+) -> list[tuple[dict[str, Any], np.ndarray]]:
+    """Figures of every clip of one real video, each with its contact-sheet row.
 
     The render is the run's own ``scene_render`` step, or ``scene/scene_render.parquet`` when
-    ``scene`` is given (see :func:`rerender`).
+    ``scene`` is given (see :func:`rerender`). Hand pixels: the case's ``videos_hands`` (DWM
+    dynamic clips, whose ``videos_static`` also gives ``dB``), else the run's own ``hand_mask``
+    (no truth: ``dB`` is NaN), both dilated by ``HAND_DILATE_PX``.
     """
     clips = read_step(run, "ingest")
     if scene is None:
@@ -184,22 +195,33 @@ def real_case(
     else:
         renders = _rows(scene / "scene_render.parquet")
         cloud_rows = _rows(scene / "scene_cloud.parquet")
-    if not renders:
-        return {"case": case.name, "error": "no scene_render output"}, None
-    cid = sorted(renders)[0]
-    render, clip = renders[cid], clips[cid]
-    h, w = int(render["height"]), int(render["width"])
-    video = media.decode_rgb_video(render["scene_video"], h, w, f"{cid} scene")
-    visible = media.decode_lossless_video(render["visible"], f"{cid} visible") > 0
-    real = media.decode_rgb_video(clip["video"], h, w, f"{cid} video")
-    indices = clip.get("source_frame_indices")
-    indices = np.arange(len(video)) if indices is None else np.asarray(indices, dtype=np.int64)
-    truth = _fit(_video_frames(data / case.static_truth), indices, (h, w))
-    hands = _fit(_video_frames(data / case.hands_truth), indices, (h, w))
-    hand = dilate(hands.max(axis=3) > HAND_RENDER_THRESHOLD, HAND_DILATE_PX) > 0  # (T, H, W)
-    row = {"case": case.name, "clip": cid, **_cloud_figures(cloud_rows.get(cid), (h, w))}
-    row.update(coverage_figures(video, visible, truth, hand))
-    return row, sheet_row(real[0], video[0], visible[0], hand[0], video[-1])
+    masks = {} if case.static_truth else read_step(run, "hand_mask")
+    out: list[tuple[dict[str, Any], np.ndarray]] = []
+    for cid in sorted(renders):
+        render, clip = renders[cid], clips[cid]
+        h, w = int(render["height"]), int(render["width"])
+        video = media.decode_rgb_video(render["scene_video"], h, w, f"{cid} scene")
+        visible = media.decode_lossless_video(render["visible"], f"{cid} visible") > 0
+        real = media.decode_rgb_video(clip["video"], h, w, f"{cid} video")
+        if case.static_truth:
+            indices = clip.get("source_frame_indices")
+            indices = np.arange(len(video)) if indices is None else np.asarray(indices, np.int64)
+            truth = _fit(_video_frames(data / case.static_truth), indices, (h, w))
+            hands = _fit(_video_frames(data / case.hands_truth), indices, (h, w))
+            hand = hands.max(axis=3) > HAND_RENDER_THRESHOLD  # (T, H, W)
+        elif cid in masks:
+            mask = media.decode_lossless_video(masks[cid]["hand_mask"], f"{cid} hand_mask")
+            hand, truth = mask > 0, None  # (T, H, W)
+        else:
+            out.append(({"case": case.name, "clip": cid, "error": "no hand_mask row"}, real[0]))
+            continue
+        hand = dilate(hand, HAND_DILATE_PX) > 0  # (T, H, W)
+        row = {"case": case.name, "clip": cid, **_cloud_figures(cloud_rows.get(cid), (h, w))}
+        row.update(coverage_figures(video, visible, truth, hand))
+        out.append((row, sheet_row(real[0], video[0], visible[0], hand[0], video[-1])))
+    if not out:
+        return [({"case": case.name, "error": "no scene_render output"}, None)]
+    return out
 
 
 def sheet_row(
@@ -279,6 +301,12 @@ def main() -> int:
     parser.add_argument("--workers", type=int, default=1, help="local Dask workers (real clips)")
     parser.add_argument("--no-run", action="store_true", help="real clips: read existing runs")
     parser.add_argument(
+        "--runs",
+        type=Path,
+        default=None,
+        help="real clips: folder of the runs (one NAME folder per case; default --out)",
+    )
+    parser.add_argument(
         "--workflow-render",
         action="store_true",
         help="real clips: measure the run's own scene_render instead of re-rendering its inputs",
@@ -298,12 +326,12 @@ def main() -> int:
     rows: list[dict[str, Any]] = []
     sheet: list[np.ndarray] = []
     for case in CASES:
-        if not case.static_truth or (args.only and args.only not in case.name):
+        if args.only and args.only not in case.name:
             continue
         if not (args.data / case.video).is_file():
             print(f"{case.name}: {args.data / case.video} not found, skipped")
             continue
-        run = args.out / case.name
+        run = (args.runs or args.out) / case.name
         start = time.perf_counter()
         if not args.no_run:
             run_case(case, args.data, run, args.workers)
@@ -311,16 +339,16 @@ def main() -> int:
             scene = (
                 None
                 if args.workflow_render
-                else rerender(run, run / tag, cloud_params, render_params)
+                else rerender(run, args.out / case.name / tag, cloud_params, render_params)
             )
         except FileNotFoundError as exc:  # the workflow stopped before inpaint
             rows.append({"case": case.name, "error": str(exc)})
             continue
-        row, strip = real_case(case, args.data, run, scene)
-        row["seconds"] = time.perf_counter() - start
-        rows.append(row)
-        if strip is not None:
-            sheet.append(strip)
+        for row, strip in real_case(case, args.data, run, scene):
+            row["seconds"] = time.perf_counter() - start
+            rows.append(row)
+            if strip is not None:
+                sheet.append(strip)
     for label, mode, seed, variant in SYNTHETIC:
         if args.only and args.only not in label:
             continue
@@ -337,6 +365,11 @@ def main() -> int:
     )
     if sheet:
         path = args.out / f"contact_sheet{tag.removeprefix('scene_bench')}.png"
+        width = max(s.shape[1] for s in sheet)
+        sheet = [
+            cv2.resize(s, (width, round(s.shape[0] * width / s.shape[1])), cv2.INTER_AREA)
+            for s in sheet
+        ]  # one width for clips of different sizes
         cv2.imwrite(str(path), cv2.cvtColor(np.concatenate(sheet, axis=0), cv2.COLOR_RGB2BGR))
         print(f"contact sheet: {path}")
     print_table(rows)
