@@ -169,7 +169,8 @@ class HandsStage(ClipStage):
     # 4: ... carrying a lost hand's ROI by the optical flow for a few frames, on contrast-stretched
     # crops (dark, sleeved hands of head-mounted video); a palm seen edge-on (no palm PnP) is
     # posed like the nearest frame instead of in MediaPipe's own axes.
-    version = 4
+    # 5: the palm lift re-estimates finger joint depths from bone lengths (hand_lift).
+    version = 5
     description = "3D hand joints per frame from the clip's labels, de-duplicated and de-spiked"
     config_class = HandsConfig
     inputs: ClassVar[Mapping[str, ShardSchema]] = {"clips": CLIPS}
