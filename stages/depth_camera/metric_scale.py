@@ -486,3 +486,46 @@ def estimate_metric_scale(
     return scale_from_landmarks(
         landmarks, frames, intrinsics, world_from_cam, depth0, confidence0, params
     )
+
+
+def pooled_metric_scale(
+    segments: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]],
+    intrinsics: np.ndarray,
+    params: MetricScaleParams | None = None,
+) -> ScaleEstimate:
+    """One scale for several segments of one reconstruction (a source's track, depth_camera v9).
+
+    Each segment is ``(frames (T, H, W, 3), world_from_cam (T, 4, 4), depth0 (H, W),
+    confidence0 (H, W) or None)`` with ``depth0`` the depth of the segment's first frame, all in
+    the same reconstruction units. Hands are detected per segment as in
+    :func:`estimate_metric_scale`; the per-detection samples of every segment are pooled and the
+    contact rule (steps 4-6: strict window, else wide) applied once.
+    """
+    params = params or MetricScaleParams()
+    prepared = []
+    for frames, poses, depth0, confidence0 in segments:
+        depth = np.asarray(depth0, dtype=np.float64)
+        if confidence0 is not None:
+            depth = np.where(np.asarray(confidence0) >= params.min_confidence, depth, 0.0)
+        if not np.any(np.isfinite(depth) & (depth > 0)):
+            continue
+        found = detect_hand_landmarks(frames, params.detector)
+        landmarks = drop_overlapping(found, params.detector.duplicate_distance)
+        if landmarks.present.any():
+            prepared.append((landmarks, frames, intrinsics, poses, depth, params))
+    if not prepared:
+        return ScaleEstimate(None, None, 0, reason="no segment with depth and a hand detected")
+    strict = scale_from_samples([s for args in prepared for s in detection_samples(*args)], params)
+    if strict.scale is not None or params.wide_window_px == 0:
+        return strict
+    wide_samples = [s for args in prepared for s in detection_samples(*args, wide=True)]
+    wide = scale_from_samples(wide_samples, params, SOURCE_HAND_SIZE_WIDE)
+    if wide.scale is not None:
+        return wide
+    return ScaleEstimate(
+        None,
+        None,
+        wide.num_samples,
+        source=SOURCE_HAND_SIZE_WIDE,
+        reason=f"strict window: {strict.reason}; wide window: {wide.reason}",
+    )

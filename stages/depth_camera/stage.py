@@ -40,7 +40,9 @@ reject that names the figures.
 from __future__ import annotations
 
 import dataclasses
+import logging
 from collections.abc import Mapping
+from pathlib import Path
 from typing import Any, ClassVar, Literal
 
 import cv2
@@ -66,7 +68,7 @@ from egosim.stages.common.plane_sweep import (
     select_sources,
 )
 from egosim.stages.depth_camera import da3, given
-from egosim.stages.depth_camera.metric_scale import estimate_metric_scale
+from egosim.stages.depth_camera.metric_scale import estimate_metric_scale, pooled_metric_scale
 from egosim.stages.depth_camera.rotation_model import (
     RotationEstimate,
     RotationParams,
@@ -81,10 +83,17 @@ from egosim.stages.depth_camera.sfm import (
     run_sfm,
     spread_to_frames,
 )
+from egosim.stages.depth_camera.source_track import (
+    SourceTrack,
+    SourceTrackError,
+    estimate_track,
+    read_track_frames,
+)
 from egosim.stages.depth_camera.static_camera import check_motion
 from egosim.stages.depth_camera.tracking import NOT_POSED, TrackingParams, register_missing_frames
 
 Backend = Literal["sfm", "given", "da3", "auto"]
+log = logging.getLogger(__name__)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -132,6 +141,10 @@ class DepthCameraConfig(StageConfig):
     da3_process_res: int = 504  # da3: processing resolution
     metric_scale: Literal["hand_size", "none"] = "hand_size"  # sfm: put poses and depth in
     # metres from the hands' size prior (:mod:`.metric_scale`); none: keep SfM's units
+    source_track: Literal["auto", "off"] = "auto"  # sfm: windows of a longer video or frame
+    # folder share one camera track of the whole source (:mod:`.source_track`); off: per window
+    track_keyframe_stride: int = 2  # source track: SfM on every k-th track frame, PnP the rest
+    track_max_frames: int = 360  # source track: track frames per chunk (held in memory)
 
     def __post_init__(self) -> None:
         problems: list[str] = []
@@ -145,6 +158,8 @@ class DepthCameraConfig(StageConfig):
             "sfm_max_mapping_seconds",
             "sfm_threads",
             "sfm_keyframe_stride",
+            "track_keyframe_stride",
+            "track_max_frames",
             "track_min_inliers",
             "depth_sources",
             "depth_top_k",
@@ -212,6 +227,8 @@ class DepthCameraConfig(StageConfig):
             problems.append(
                 f"metric_scale must be 'hand_size' or 'none', got {self.metric_scale!r}"
             )
+        if self.source_track not in ("auto", "off"):
+            problems.append(f"source_track must be 'auto' or 'off', got {self.source_track!r}")
         if problems:
             raise ConfigError("; ".join(problems))
 
@@ -359,6 +376,54 @@ def _plausible_focal(focal: float, width: int, fov_range: tuple[float, ...]) -> 
     return bool(fov_range[0] <= fov <= fov_range[1])
 
 
+def window_depth(
+    frames: np.ndarray,
+    usable: np.ndarray | None,
+    intrinsics: np.ndarray,
+    cam_from_world: np.ndarray,
+    posed: np.ndarray,
+    points0: np.ndarray,
+    config: DepthCameraConfig,
+) -> tuple[np.ndarray, np.ndarray, list[int]] | str:
+    """Frame 0's depth and confidence ``(H, W)`` by plane sweep, and its source frames.
+
+    ``frames (T, H, W, 3)``, ``cam_from_world (T, 4, 4)`` (unposed frames filled), ``posed (T,)``,
+    ``points0 (P, 3)`` model points frame 0 sees (they set the depth range and pick the
+    sources). Returns why not (a string starting with ``; ``) when there is too little to sweep.
+    """
+    h, w = frames.shape[1:3]
+    pts_cam0 = points0 @ cam_from_world[0, :3, :3].T + cam_from_world[0, :3, 3]
+    z = pts_cam0[:, 2][pts_cam0[:, 2] > 0]  # (P,)
+    if len(z) < 20:
+        return f"; only {len(z)} model points in front of frame 0, need 20"
+    near = float(np.percentile(z, 1)) * (1.0 - config.depth_margin)
+    far = float(np.percentile(z, 99)) * (1.0 + config.depth_margin)
+    sources = select_sources(
+        cam_from_world,
+        posed,
+        points0,
+        intrinsics,
+        (h, w),
+        config.depth_sources,
+        target_angle_deg=config.depth_target_angle_deg,
+        usable=usable,
+    )
+    if len(sources) < 2:
+        return f"; only {len(sources)} posed frames overlap frame 0 with parallax: need 2 for depth"
+    depth0, conf0 = first_frame_depth(
+        frames,
+        usable,
+        intrinsics,
+        cam_from_world,
+        sources,
+        (near, far),
+        config.depth_scale,
+        config.sweep_params(),
+        edge_rel=config.depth_edge_rel,
+    )
+    return depth0, conf0, sources
+
+
 def sfm_camera(
     frames: np.ndarray,
     usable: np.ndarray | None,
@@ -367,7 +432,7 @@ def sfm_camera(
     focal_prior_px: float,
 ) -> tuple[CameraEstimate | None, str]:
     """SfM + PnP tracking + frame-0 depth, or ``(None, why not)`` when the model falls short."""
-    t, h, w = frames.shape[:3]
+    t = frames.shape[0]
     reg = np.asarray(sfm.registered, dtype=bool)
     posed_by = np.where(reg, POSED_BY_MAPPER, NOT_POSED).astype(np.int8)
     cam_from_world = sfm.cam_from_world
@@ -403,38 +468,10 @@ def sfm_camera(
         return None, f"{what}; only {len(points0)} model points seen in frame 0, need 20"
     cam_from_world = fill_unregistered(cam_from_world, posed)  # (T, 4, 4)
     posed_by[~posed] = POSED_BY_INTERPOLATION
-    pts_cam0 = points0 @ cam_from_world[0, :3, :3].T + cam_from_world[0, :3, 3]
-    z = pts_cam0[:, 2][pts_cam0[:, 2] > 0]  # (P,)
-    if len(z) < 20:
-        return None, f"{what}; only {len(z)} model points in front of frame 0, need 20"
-    near = float(np.percentile(z, 1)) * (1.0 - config.depth_margin)
-    far = float(np.percentile(z, 99)) * (1.0 + config.depth_margin)
-    sources = select_sources(
-        cam_from_world,
-        posed,
-        points0,
-        sfm.intrinsics,
-        (h, w),
-        config.depth_sources,
-        target_angle_deg=config.depth_target_angle_deg,
-        usable=usable,
-    )
-    if len(sources) < 2:
-        return None, (
-            f"{what}; only {len(sources)} posed frames overlap frame 0 with parallax: need 2 "
-            "for depth"
-        )
-    depth0, conf0 = first_frame_depth(
-        frames,
-        usable,
-        sfm.intrinsics,
-        cam_from_world,
-        sources,
-        (near, far),
-        config.depth_scale,
-        config.sweep_params(),
-        edge_rel=config.depth_edge_rel,
-    )
+    depth = window_depth(frames, usable, sfm.intrinsics, cam_from_world, posed, points0, config)
+    if isinstance(depth, str):
+        return None, f"{what}{depth}"
+    depth0, conf0, sources = depth
     return CameraEstimate(
         intrinsics=sfm.intrinsics,
         world_from_cam=invert_se3(cam_from_world),
@@ -477,22 +514,15 @@ def rotation_camera(rot: RotationEstimate, focal_prior_px: float) -> CameraEstim
     )
 
 
-def estimate_sfm(
+def static_check(
     clip_id: str,
     frames: np.ndarray,
     hand_mask: np.ndarray | None,
     intrinsics: np.ndarray,
     config: DepthCameraConfig,
-    worker_command: list[str] | None = None,
-) -> CameraEstimate:
-    """The ``sfm`` backend on decoded ``frames (T, H, W, 3)``; raises :class:`ClipRejected`.
-
-    ``intrinsics`` (the clip's, from metadata or a field-of-view guess) are the focal prior and
-    the camera of a static or rotation-only clip. See the module docstring for the model choice.
-    """
-    t, w = frames.shape[0], frames.shape[2]
-    intrinsics = np.asarray(intrinsics, dtype=np.float64)
-    prior = float(intrinsics[0])
+) -> CameraEstimate | None:
+    """The static estimate when the background holds still, else None; raises
+    :class:`ClipRejected` for a textureless scene."""
     check = check_motion(frames, hand_mask, config.min_corners, config.static_motion_px)
     if check.textureless:
         raise ClipRejected(
@@ -500,7 +530,33 @@ def estimate_sfm(
             f"in frame 0, need {config.min_corners} for SfM"
         )
     if check.static:
-        return static_estimate(intrinsics, t, "sfm", prior)
+        intrinsics = np.asarray(intrinsics, dtype=np.float64)
+        return static_estimate(intrinsics, len(frames), "sfm", float(intrinsics[0]))
+    return None
+
+
+def estimate_sfm(
+    clip_id: str,
+    frames: np.ndarray,
+    hand_mask: np.ndarray | None,
+    intrinsics: np.ndarray,
+    config: DepthCameraConfig,
+    worker_command: list[str] | None = None,
+    checked: bool = False,
+) -> CameraEstimate:
+    """The ``sfm`` backend on decoded ``frames (T, H, W, 3)``; raises :class:`ClipRejected`.
+
+    ``intrinsics`` (the clip's, from metadata or a field-of-view guess) are the focal prior and
+    the camera of a static or rotation-only clip. See the module docstring for the model choice.
+    ``checked``: :func:`static_check` already ran (and found a textured, moving camera).
+    """
+    t, w = frames.shape[0], frames.shape[2]
+    intrinsics = np.asarray(intrinsics, dtype=np.float64)
+    prior = float(intrinsics[0])
+    if not checked:
+        static = static_check(clip_id, frames, hand_mask, intrinsics, config)
+        if static is not None:
+            return static
     usable = usable_pixels(hand_mask, config.hand_dilate_px)
     rot_intrinsics = intrinsics
     key = keyframe_indices(t, config.sfm_keyframe_stride)  # (K,)
@@ -533,6 +589,186 @@ def estimate_sfm(
         f"{np.median(residuals) if residuals else float('nan'):.2f} px), posing "
         f"{int(rot.posed.sum())}/{t} frames, need {config.min_registered_fraction:.0%}"
     )
+
+
+TRACK_SOURCES = ("video", "frames")  # clip sources whose source_uri the track can read again
+TRACK_CLIP_KINDS = ("full", "tail")  # clip_policy kinds cut from a source longer than a clip
+
+
+@dataclasses.dataclass(frozen=True)
+class TrackRequest:
+    """What a window row says about its source's track (:func:`track_request`)."""
+
+    kind: str  # the clip's source: video or frames
+    uri: str  # the source file or folder
+    fps: float  # the clip rate (track frames are picked at it)
+    source_fps: float | None  # the source's rate
+    size: tuple[int, int]  # (H, W) of the clip's frames
+    intrinsics: tuple[float, ...]  # the clip's (prior) intrinsics
+    source_indices: np.ndarray  # (T,) the window's source frames
+    first_target: int  # the window's first track position, from its timestamps
+
+    def key(self, chunk: int) -> tuple:
+        """Cache key of chunk ``chunk`` of this source's track (file size and time included)."""
+        path = Path(self.uri)
+        try:
+            stat = path.stat()
+            stamp = (stat.st_size, stat.st_mtime_ns)
+        except OSError:
+            stamp = (-1, -1)
+        return (self.kind, str(path), stamp, self.fps, self.source_fps, self.size,
+                self.intrinsics, chunk)  # fmt: skip
+
+
+def track_request(row: ClipsRecord) -> TrackRequest | None:
+    """The window's :class:`TrackRequest` when its source is longer than it and readable again
+    (a ``full`` or ``tail`` window of a video file or frame folder with frames outside it);
+    None for a short clip, a one-window source or another source kind."""
+    policy = row.get("clip_policy") or ""
+    idx = row.get("source_frame_indices")
+    if (
+        row.get("source") not in TRACK_SOURCES
+        or not row.get("source_uri")
+        or policy.split(":")[0] not in TRACK_CLIP_KINDS
+        or idx is None
+        or len(idx) == 0
+    ):
+        return None
+    idx = np.asarray(idx, dtype=np.int64)
+    fps = float(row["fps"])
+    source_fps = row.get("source_fps")
+    n = row.get("source_num_frames")
+    step = 1 if not source_fps else max(1, int(np.ceil(float(source_fps) / fps)))
+    if idx[0] == 0 and n is not None and idx[-1] >= n - 1 - step:
+        return None  # the window holds the whole source
+    keep_rate = source_fps is not None and 0 < source_fps < fps * (1 - 1e-6)
+    ts = np.asarray(row["timestamps"], dtype=np.float64)
+    first_target = int(idx[0]) if keep_rate else round(float(ts[0]) * fps)
+    return TrackRequest(
+        kind=row["source"],
+        uri=row["source_uri"],
+        fps=fps,
+        source_fps=None if source_fps is None else float(source_fps),
+        size=(row.height, row.width),
+        intrinsics=tuple(float(v) for v in row.intrinsics),
+        source_indices=idx,
+        first_target=first_target,
+    )
+
+
+def build_source_track(
+    req: TrackRequest, segment: int, chunk: int, config: DepthCameraConfig
+) -> SourceTrack:
+    """The track of chunk ``chunk`` of a source: SfM + PnP over its track frames, one plane-sweep
+    depth per segment of ``segment`` frames, and the scale pooled over the segments. Raises
+    :class:`SourceTrackError` when the source cannot be read or tracked."""
+    length = max(1, config.track_max_frames // segment) * segment
+    picks, frames = read_track_frames(
+        req.kind, req.uri, req.fps, req.source_fps, req.size, chunk * length, length
+    )
+    prior = req.intrinsics[0]
+    intrinsics, cam_from_world, posed_by, points, sfm = estimate_track(
+        frames,
+        prior,
+        config.sfm_options(prior),
+        config.track_keyframe_stride,
+        config.tracking_params(),
+    )
+    posed = posed_by != POSED_BY_INTERPOLATION
+    depths: dict[int, tuple[np.ndarray, np.ndarray, tuple[int, ...]]] = {}
+    segments = []
+    for start in range(0, len(frames), segment):
+        end = min(start + segment, len(frames))
+        if end - start < 2 or not posed[start] or start not in points:
+            continue
+        depth = window_depth(
+            frames[start:end],
+            None,
+            intrinsics,
+            cam_from_world[start:end],
+            posed[start:end],
+            points[start],
+            config,
+        )
+        if isinstance(depth, str):
+            continue
+        depths[start] = (depth[0], depth[1], tuple(depth[2]))
+        segments.append(
+            (frames[start:end], invert_se3(cam_from_world[start:end]), depth[0], depth[1])
+        )
+    track = SourceTrack(
+        picks=picks,
+        first=chunk * length,
+        intrinsics=intrinsics,
+        cam_from_world=cam_from_world,
+        posed_by=posed_by,
+        frame_points=points,
+        reprojection_error_px=sfm.reprojection_error_px,
+        num_points3d=sfm.num_points3d,
+        mapper=sfm.mapper,
+        depths=depths,
+    )
+    if config.metric_scale != "hand_size" or not segments:
+        return track
+    scale = pooled_metric_scale(segments, intrinsics)
+    if scale.scale is None:
+        return dataclasses.replace(track, scale_reason=scale.reason)
+    return dataclasses.replace(
+        track, metric_scale=scale.scale, scale_source=scale.source, scale_spread=scale.spread
+    )
+
+
+def estimate_from_track(
+    track: SourceTrack,
+    req: TrackRequest,
+    frames: np.ndarray,
+    hand_mask: np.ndarray | None,
+    config: DepthCameraConfig,
+) -> tuple[CameraEstimate | None, str]:
+    """A window's cameras sampled from its source's ``track``, or ``(None, why not)``."""
+    pos = track.positions(req.source_indices, req.first_target)
+    if pos is None:
+        return None, "the window's frames are not consecutive frames of the track's chunk"
+    posed_by = track.posed_by[pos].copy()  # (T,)
+    posed = posed_by != POSED_BY_INTERPOLATION
+    frac = float(posed.mean())
+    what = f"source track ({track.mapper} mapper) posed {int(posed.sum())}/{len(pos)} frames"
+    if frac < config.min_registered_fraction:
+        return None, f"{what}: {frac:.0%}, need {config.min_registered_fraction:.0%}"
+    if not posed[0]:
+        return None, f"{what}, not frame 0"
+    cam_from_world = track.cam_from_world[pos]  # (T, 4, 4)
+    saved = track.depths.get(int(pos[0]))
+    if saved is not None and max(saved[2]) < len(pos):
+        depth0, conf0, sources = saved[0], saved[1], list(saved[2])
+    else:
+        points0 = track.frame_points.get(int(pos[0]), np.zeros((0, 3)))
+        usable = usable_pixels(hand_mask, config.hand_dilate_px)
+        depth = window_depth(
+            frames, usable, track.intrinsics, cam_from_world, posed, points0, config
+        )
+        if isinstance(depth, str):
+            return None, f"{what}{depth}"
+        depth0, conf0, sources = depth
+    est = CameraEstimate(
+        intrinsics=track.intrinsics,
+        world_from_cam=invert_se3(cam_from_world),
+        registered=posed,
+        static=False,
+        depth0=depth0,
+        confidence0=conf0,
+        backend="sfm",
+        reprojection_error_px=track.reprojection_error_px,
+        num_points3d=track.num_points3d,
+        sources=tuple(int(v) for v in sources),
+        camera_model="sfm",
+        posed_by=posed_by,
+        focal_prior_px=req.intrinsics[0],
+        scale_source="none",
+    )
+    if track.metric_scale is not None:
+        est = est.with_scale(track.metric_scale, track.scale_source, track.scale_spread)
+    return est, what
 
 
 def estimate_given(
@@ -662,7 +898,9 @@ class DepthCameraStage(ClipStage):
     # takes still corners as the background, skips occluded frames, tolerates an end bump
     # 4: schema v2, background-motion static test, PnP tracking, rotation model, focal prior
     # 3: one SfM thread (reproducible); 2: visibility-aware depth confidence
-    version = 8
+    # 9: windows of a longer video share one camera track, world frame and metric scale per
+    # source (source_track auto)
+    version = 9
     config_class = DepthCameraConfig
     inputs: ClassVar[Mapping[str, ShardSchema]] = {"clips": CLIPS}
     output = DEPTH_CAMERA
@@ -681,9 +919,21 @@ class DepthCameraStage(ClipStage):
             "static_depth",
             "depth",
             "depth_unit_m",
+            # the source track (source_track auto): where the window sits in its source
+            "source",
+            "source_uri",
+            "fps",
+            "timestamps",
+            "source_fps",
+            "source_num_frames",
+            "source_frame_indices",
+            "clip_policy",
         )
     }
     config: DepthCameraConfig
+    # Source tracks built in this task (all windows of a source are in one shard): cache key
+    # (TrackRequest.key) -> the track, or the reason it could not be built.
+    _tracks: dict[tuple, tuple[SourceTrack | str, int]]
 
     def estimate(self, row: Mapping[str, Any]) -> CameraEstimate:
         """Run the configured backend on one clips row (a :class:`ClipsRecord` or a plain
@@ -702,10 +952,59 @@ class DepthCameraStage(ClipStage):
             return estimate_given(clip_id, frames, hand_mask, row, self.config)
         if backend == "da3":
             return estimate_da3(clip_id, frames, self.config)
-        est = estimate_sfm(clip_id, frames, hand_mask, row.intrinsics, self.config)
+        checked = False
+        req = track_request(row) if self.config.source_track == "auto" else None
+        if req is not None:
+            static = static_check(clip_id, frames, hand_mask, row.intrinsics, self.config)
+            if static is not None:
+                return static
+            checked = True
+            est, why = self._from_track(req, row.num_frames, frames, hand_mask)
+            log.info("clip %s: %s", clip_id, why)
+            if est is not None:
+                return est
+        est = estimate_sfm(clip_id, frames, hand_mask, row.intrinsics, self.config, checked=checked)
         if self.config.metric_scale == "hand_size":
             est = with_hand_size_scale(est, frames)
         return est
+
+    def _from_track(
+        self, req: TrackRequest, segment: int, frames: np.ndarray, hand_mask: np.ndarray | None
+    ) -> tuple[CameraEstimate | None, str]:
+        """The window's cameras from its source's track (built once per source and chunk), or
+        ``(None, why)`` to fall back to the per-window path."""
+        if not hasattr(self, "_tracks"):
+            self._tracks = {}
+        # The chunk: by the segment length of whichever window built the source's first chunk.
+        seg = next(
+            (
+                v[1]
+                for k, v in self._tracks.items()
+                if k[:-1] == req.key(0)[:-1] and isinstance(v, tuple)
+            ),
+            segment,
+        )
+        length = max(1, self.config.track_max_frames // seg) * seg
+        chunk = req.first_target // length
+        key = req.key(chunk)
+        if key not in self._tracks:
+            try:
+                track: SourceTrack | str = build_source_track(req, seg, chunk, self.config)
+            except SourceTrackError as exc:
+                track = str(exc)
+            self._tracks[key] = (track, seg)
+        track, _ = self._tracks[key]
+        if isinstance(track, str):
+            return None, f"no source track ({track}): cameras per window"
+        est, why = estimate_from_track(track, req, frames, hand_mask, self.config)
+        if est is None:
+            return None, f"{why}: cameras per window"
+        scale = (
+            f"scale {track.metric_scale:.4g} ({track.scale_source})"
+            if track.metric_scale is not None
+            else f"no scale ({track.scale_reason})"
+        )
+        return est, f"{why}; one {scale} for the source"
 
     def process(self, rows: Mapping[str, Mapping[str, Any]]) -> dict[str, Any]:
         """Return the ``depth_camera`` row of one clips row."""

@@ -1,0 +1,278 @@
+"""One camera track per source video: cameras estimated over the whole source, then sampled per
+window (depth_camera v9; ``docs/design.md``, "Cameras per source video").
+
+Ingest cuts a long source into windows; estimating each window on its own gave every window its
+own world frame, focal and metric scale. Here the source is read again (video file or frame
+folder named by the clip's ``source_uri``), every frame resized to the clip's size by ingest's
+rule, and the frames ingest's rate rule picks (:func:`rate_picks`) become the *track frames*: every
+window frame is one of them. SfM runs on every ``keyframe_stride``-th track frame and KLT + PnP
+poses the rest (:func:`estimate_track`): one model, one focal, one world frame per source. The
+metric scale is pooled over segments of the track (:func:`pooled_scale`), so every window of a
+source gets the same one.
+
+Frames are held only while the track is built; a :class:`SourceTrack` keeps poses, the model
+points each track frame sees and the segments' depth maps.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from egosim.pipeline.geometry import crop_intrinsics, invert_se3, scale_intrinsics
+from egosim.pipeline.media import MediaError, iter_video_file
+from egosim.schemas.depth_camera import POSED_BY_INTERPOLATION
+from egosim.stages.depth_camera.sfm import (
+    SfmError,
+    SfmOptions,
+    fill_unregistered,
+    keyframe_indices,
+    run_sfm,
+    spread_to_frames,
+)
+from egosim.stages.depth_camera.tracking import NOT_POSED, TrackingParams, register_missing_frames
+
+RATE_TOLERANCE = 1e-6  # relative: as ingest's (a source this close to the clip rate is at it)
+TIME_TOLERANCE_S = 1e-6  # as ingest's: a target this much after a frame's time still reaches it
+IMAGE_SUFFIXES = frozenset({".jpg", ".jpeg", ".png", ".bmp", ".webp"})  # as ingest's frame folders
+
+
+class SourceTrackError(RuntimeError):
+    """The source could not be tracked (unreadable, SfM failed, too long); the message says why."""
+
+
+@dataclass(frozen=True)
+class CoverCrop:
+    """Ingest's spatial rule: scale to cover ``width x height``, then centre-crop."""
+
+    scaled_width: int  # width after scaling
+    scaled_height: int  # height after scaling
+    crop_x: int  # left edge of the crop in the scaled image
+    crop_y: int  # top edge of the crop in the scaled image
+    width: int  # target width
+    height: int  # target height
+    shrink: bool  # True when scaling down (INTER_AREA), else INTER_LINEAR
+
+    @classmethod
+    def plan(cls, src_width: int, src_height: int, width: int, height: int) -> CoverCrop:
+        """The same numbers as ``ingest.standardise.plan_resize`` (checked by the tests)."""
+        scale = max(width / src_width, height / src_height)
+        scaled_w = max(width, round(src_width * scale))
+        scaled_h = max(height, round(src_height * scale))
+        return cls(
+            scaled_w, scaled_h, (scaled_w - width) // 2, (scaled_h - height) // 2, width, height,
+            scale < 1,
+        )  # fmt: skip
+
+    def apply(self, frame: np.ndarray) -> np.ndarray:
+        """``frame (h, w, 3)`` resized and cropped to ``(height, width, 3)``."""
+        interp = cv2.INTER_AREA if self.shrink else cv2.INTER_LINEAR
+        scaled = cv2.resize(frame, (self.scaled_width, self.scaled_height), interpolation=interp)
+        return scaled[
+            self.crop_y : self.crop_y + self.height, self.crop_x : self.crop_x + self.width
+        ]
+
+    def intrinsics(
+        self, source_intrinsics: np.ndarray, src_width: int, src_height: int
+    ) -> np.ndarray:
+        """Intrinsics of the output frames given the source frame's."""
+        scaled = scale_intrinsics(
+            source_intrinsics, self.scaled_width / src_width, self.scaled_height / src_height
+        )
+        return crop_intrinsics(scaled, self.crop_x, self.crop_y)
+
+
+def rate_picks(times: np.ndarray, fps: float, source_fps: float | None) -> np.ndarray:
+    """``(N,)`` source frame indices ingest's rate rule makes clip frames of, in clip order.
+
+    ``times (S,)`` seconds of the source frames (increasing). A source slower than ``fps`` keeps
+    every frame; otherwise target ``k`` at ``k / fps`` from the first frame takes the nearest
+    frame in time (the earlier one on a tie), for every target up to the last frame's time. The
+    same indices as ``ingest.standardise.resample_windows`` (checked by the tests).
+    """
+    times = np.asarray(times, dtype=np.float64) - float(times[0])
+    if source_fps is not None and 0 < source_fps < fps * (1 - RATE_TOLERANCE):
+        return np.arange(len(times))
+    last = int(np.floor(times[-1] * fps + TIME_TOLERANCE_S * fps))
+    targets = np.arange(last + 1) / fps  # (N,)
+    cur = np.searchsorted(times, targets - TIME_TOLERANCE_S, side="left")  # first frame reaching
+    cur = np.minimum(cur, len(times) - 1)
+    prev = np.maximum(cur - 1, 0)
+    take_prev = (cur > 0) & (np.abs(times[prev] - targets) <= np.abs(times[cur] - targets))
+    return np.where(take_prev, prev, cur).astype(np.int64)
+
+
+def _frame_files(folder: Path) -> list[Path]:
+    return sorted(p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES)
+
+
+def _source_frames(kind: str, uri: str, source_fps: float | None) -> Iterator[tuple[float, Any]]:
+    """``(time, frame or loader)`` of every source frame, streamed."""
+    path = Path(uri)
+    if kind == "video" and path.is_file():
+        yield from iter_video_file(path)
+    elif kind == "frames" and path.is_dir() and source_fps:
+        for i, file in enumerate(_frame_files(path)):
+            yield i / float(source_fps), file
+    else:
+        raise SourceTrackError(f"source {kind!r} at {uri!r} is not a readable video or folder")
+
+
+def _rgb(frame: Any) -> np.ndarray:
+    if isinstance(frame, np.ndarray):
+        return frame
+    image = cv2.imread(str(frame), cv2.IMREAD_COLOR)
+    if image is None:
+        raise SourceTrackError(f"cannot read image {frame}")
+    return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
+
+
+def read_track_frames(
+    kind: str,
+    uri: str,
+    fps: float,
+    source_fps: float | None,
+    size: tuple[int, int],
+    first: int,
+    count: int,
+) -> tuple[np.ndarray, np.ndarray]:
+    """``(picks (N,), frames (M, H, W, 3))``: the source's track frames and the pixels of those
+    at track positions ``first .. first + count - 1`` (a chunk), resized to ``size = (H, W)``.
+
+    ``kind`` is the clip's ``source`` (``video`` or ``frames``), ``uri`` its ``source_uri``.
+    Streams the source (ingest's rule, :func:`rate_picks`, applied online), holding one chunk.
+    Raises :class:`SourceTrackError` for another kind or an unreadable source.
+    """
+    height, width = size
+    times: list[float] = []
+    kept: list[np.ndarray] = []
+    plan: CoverCrop | None = None
+    prev: tuple[float, int, Any] | None = None
+    picks: list[int] = []
+    keep_rate = source_fps is not None and 0 < source_fps < fps * (1 - RATE_TOLERANCE)
+
+    def take(index: int, frame: Any) -> None:
+        nonlocal plan
+        k = len(picks)
+        picks.append(index)
+        if first <= k < first + count:
+            rgb = _rgb(frame)
+            if plan is None:
+                plan = CoverCrop.plan(rgb.shape[1], rgb.shape[0], width, height)
+            kept.append(plan.apply(rgb))
+
+    try:
+        for index, (time, frame) in enumerate(_source_frames(kind, uri, source_fps)):
+            times.append(time)
+            t = time - times[0]
+            if keep_rate:
+                take(index, frame)
+                continue
+            while len(picks) <= t * fps + TIME_TOLERANCE_S * fps:
+                target = len(picks) / fps
+                if prev is not None and abs(prev[0] - target) <= abs(t - target):
+                    take(prev[1], prev[2])
+                else:
+                    take(index, frame)
+            prev = (t, index, frame)
+    except (MediaError, OSError) as exc:
+        raise SourceTrackError(f"cannot read source {uri!r}: {exc}") from exc
+    if not kept:
+        raise SourceTrackError(f"source {uri!r} has no track frames at {first}..{first + count}")
+    return np.asarray(picks, dtype=np.int64), np.stack(kept)
+
+
+@dataclass(frozen=True)
+class SourceTrack:
+    """Cameras of one chunk of a source's track frames, in one SfM frame and scale (unscaled)."""
+
+    picks: np.ndarray  # (N,) source frame index of every track frame of the source
+    first: int  # track position of the chunk's first frame
+    intrinsics: np.ndarray  # (4,) fx, fy, cx, cy of the clip-size frames
+    cam_from_world: np.ndarray  # (M, 4, 4) of the chunk's frames; unposed ones interpolated
+    posed_by: np.ndarray  # (M,) int8 schema codes (mapper, PnP, or interpolated)
+    frame_points: dict[int, np.ndarray]  # chunk frame -> (P, 3) model points seen there
+    reprojection_error_px: float  # the SfM model's mean reprojection error
+    num_points3d: int  # points in the model
+    mapper: str  # which mapper built the model
+    metric_scale: float | None = None  # metres per unit of the pooled scale; None = unknown
+    scale_source: str = "none"  # hand_size, hand_size_wide or none
+    scale_spread: float | None = None  # relative spread of the pooled estimate
+    scale_reason: str = ""  # why there is no scale (when metric_scale is None)
+    depths: dict[int, tuple[np.ndarray, np.ndarray, tuple[int, ...]]] = dataclasses.field(
+        default_factory=dict
+    )  # chunk frame of a segment start -> (depth (H, W), confidence (H, W), chunk sources)
+
+    def positions(self, source_indices: np.ndarray, first_target: int) -> np.ndarray | None:
+        """``(T,)`` chunk frames of a window's ``source_indices``, or None when they are not
+        consecutive track frames inside the chunk. ``first_target`` is the window's first track
+        position as its timestamps give it (tried first; else the first match is searched)."""
+        idx = np.asarray(source_indices, dtype=np.int64)
+        t = len(idx)
+        starts = [first_target, *np.flatnonzero(self.picks == idx[0]).tolist()]
+        for k0 in starts:
+            if (
+                k0 >= 0
+                and k0 + t <= len(self.picks)
+                and np.array_equal(self.picks[k0 : k0 + t], idx)
+            ):
+                pos = np.arange(k0, k0 + t) - self.first
+                if pos[0] >= 0 and pos[-1] < len(self.cam_from_world):
+                    return pos
+                return None
+        return None
+
+
+def estimate_track(
+    frames: np.ndarray,
+    prior_focal: float,
+    options: SfmOptions,
+    keyframe_stride: int,
+    tracking: TrackingParams,
+    worker_command: list[str] | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict[int, np.ndarray], object]:
+    """SfM on keyframes of ``frames (N, H, W, 3)`` then PnP tracking of the rest.
+
+    Returns ``(intrinsics (4,), cam_from_world (N, 4, 4), posed_by (N,), frame_points, sfm)``;
+    frames nothing posed are interpolated and coded :data:`POSED_BY_INTERPOLATION`. Raises
+    :class:`SourceTrackError` when SfM finds no model.
+    """
+    n = len(frames)
+    key = keyframe_indices(n, keyframe_stride)  # (K,)
+    try:
+        sfm = run_sfm(frames[key], None, dataclasses.replace(options, prior_focal=prior_focal))
+    except SfmError as exc:
+        raise SourceTrackError(f"SfM on the source's {len(key)} keyframes: {exc}") from exc
+    sfm = spread_to_frames(sfm, key, n)
+    reg = np.asarray(sfm.registered, dtype=bool)
+    tracked = register_missing_frames(
+        frames,
+        None,
+        sfm.intrinsics,
+        sfm.cam_from_world,
+        reg,
+        sfm.all_points3d,
+        sfm.all_point_ids,
+        sfm.obs_frame,
+        sfm.obs_uv,
+        sfm.obs_point_id,
+        tracking,
+    )
+    posed_by = tracked.posed_by.copy()
+    posed = posed_by != NOT_POSED
+    if not posed.any():
+        raise SourceTrackError("SfM on the source posed no frame")
+    cam_from_world = fill_unregistered(tracked.cam_from_world, posed)  # (N, 4, 4)
+    posed_by[~posed] = POSED_BY_INTERPOLATION
+    return sfm.intrinsics, cam_from_world, posed_by, tracked.frame_points, sfm
+
+
+def world_from_cam(track: SourceTrack, positions: np.ndarray) -> np.ndarray:
+    """``(T, 4, 4)`` world-from-camera of the track frames at ``positions``."""
+    return invert_se3(track.cam_from_world[positions])

@@ -1,0 +1,126 @@
+"""Tests of the per-source camera track (depth_camera v9, ``stages/depth_camera/source_track.py``):
+its frames are exactly ingest's window frames, which windows use it, and on a synthetic video
+with true poses cut into windows, one track gives one world frame, focal and scale."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from egosim.pipeline import media
+from egosim.pipeline.clip_io import row_from_clip
+from egosim.pipeline.records import ClipsRecord
+from egosim.stages.depth_camera.source_track import (
+    CoverCrop,
+    SourceTrack,
+    rate_picks,
+    read_track_frames,
+)
+from egosim.stages.depth_camera.stage import track_request
+from egosim.stages.ingest.stage import IngestConfig
+from egosim.stages.ingest.standardise import WindowPolicy, plan_resize, resample_windows
+from egosim.stages.ingest.video_source import read_video_clips
+
+
+@pytest.mark.parametrize("source_fps", [30.0, 29.97, 25.0, 60.0, 16.0, 10.0])
+@pytest.mark.parametrize("stride", [0, 30])
+@pytest.mark.parametrize("jitter", [0.0, 0.003])
+def test_rate_picks_are_the_indices_of_ingests_windows(
+    source_fps: float, stride: int, jitter: float
+) -> None:
+    rng = np.random.default_rng(int(source_fps * 100) + stride)
+    n = round(source_fps * 10)  # 10 s: two full windows and a tail at 16 fps
+    times = np.sort(np.arange(n) / source_fps + rng.normal(0.0, jitter, n)) + 2.5
+    policy = WindowPolicy(fps=16.0, num_frames=61, min_frames=33, stride=stride)
+    windows = list(resample_windows(((t, np.zeros(1)) for t in times), policy, source_fps))
+    picks = rate_picks(times, 16.0, source_fps)
+    assert len(windows) >= 2
+    for w in windows:
+        k0 = w.index * (stride or 61)
+        assert np.array_equal(picks[k0 : k0 + len(w.source_indices)], w.source_indices)
+
+
+@pytest.mark.parametrize(
+    "src, dst", [((1280, 610), (832, 480)), ((426, 610), (832, 480)), ((1920, 1080), (720, 480))]
+)
+def test_cover_crop_is_ingests_resize_plan(src: tuple[int, int], dst: tuple[int, int]) -> None:
+    ours = CoverCrop.plan(src[0], src[1], dst[0], dst[1])
+    theirs = plan_resize(src[0], src[1], dst[0], dst[1])
+    assert (ours.scaled_width, ours.scaled_height, ours.crop_x, ours.crop_y) == (
+        theirs.scaled_width,
+        theirs.scaled_height,
+        theirs.crop_x,
+        theirs.crop_y,
+    )
+    frame = np.random.default_rng(0).integers(0, 255, (src[1], src[0], 3), dtype=np.uint8)
+    assert np.array_equal(ours.apply(frame), theirs.apply(frame))
+    k = np.array([500.0, 500.0, src[0] / 2, src[1] / 2])
+    assert np.allclose(ours.intrinsics(k, src[0], src[1]), theirs.intrinsics(k))
+
+
+def _small_video(tmp_path: Path, n: int = 45, fps: float = 30.0) -> Path:
+    rng = np.random.default_rng(3)
+    base = rng.integers(0, 255, (72, 120, 3), dtype=np.uint8)
+    frames = np.stack([np.roll(base, i, axis=1) for i in range(n)])  # (n, 72, 120, 3)
+    path = tmp_path / "long.mp4"
+    media.write_video_file(path, frames, fps)
+    return path
+
+
+def _ingest(path: Path) -> list:
+    cfg = IngestConfig(source="video", height=32, width=48, num_frames=9, min_frames=5, fps=16.0)
+    return list(read_video_clips(path, cfg))
+
+
+def test_track_frames_are_ingests_window_frames(tmp_path: Path) -> None:
+    path = _small_video(tmp_path)
+    clips = _ingest(path)
+    assert len(clips) >= 2
+    picks, frames = read_track_frames("video", str(path), 16.0, 30.0, (32, 48), 0, 1000)
+    for clip in clips:
+        k0 = round(float(clip.timestamps[0]) * 16.0)
+        t = clip.num_frames
+        assert np.array_equal(picks[k0 : k0 + t], clip.source_frame_indices)
+        assert np.array_equal(frames[k0 : k0 + t], clip.frames)
+    # A chunk holds only its own frames, with the same picks.
+    picks2, chunk = read_track_frames("video", str(path), 16.0, 30.0, (32, 48), 9, 9)
+    assert np.array_equal(picks, picks2)
+    assert np.array_equal(chunk, frames[9:18])
+
+
+def test_which_windows_take_the_source_track(tmp_path: Path) -> None:
+    path = _small_video(tmp_path)
+    rows = [ClipsRecord.of(row_from_clip(c)) for c in _ingest(path)]
+    reqs = [track_request(r) for r in rows]
+    assert all(r is not None for r in reqs)
+    assert [r.first_target for r in reqs] == [0, 9, 18][: len(reqs)]
+    # One window that holds its whole source (DWM: 49 of 49 frames), a short clip, or a source
+    # that cannot be read again keeps the per-window path.
+    whole = dict(rows[0])
+    whole["source_num_frames"] = int(whole["source_frame_indices"][-1]) + 1
+    assert track_request(ClipsRecord.of(whole)) is None
+    short = dict(rows[0], clip_policy="short:egosim")
+    assert track_request(ClipsRecord.of(short)) is None
+    synthetic = dict(rows[1], source="synthetic")
+    assert track_request(ClipsRecord.of(synthetic)) is None
+
+
+def test_track_positions_find_a_window_inside_its_chunk() -> None:
+    picks = np.array([0, 2, 4, 6, 8, 10, 12, 14])
+    track = SourceTrack(
+        picks=picks,
+        first=4,
+        intrinsics=np.array([1.0, 1.0, 0.5, 0.5]),
+        cam_from_world=np.tile(np.eye(4), (4, 1, 1)),
+        posed_by=np.zeros(4, np.int8),
+        frame_points={},
+        reprojection_error_px=0.0,
+        num_points3d=0,
+        mapper="incremental",
+    )
+    assert track.positions(np.array([8, 10, 12]), 4).tolist() == [0, 1, 2]
+    assert track.positions(np.array([8, 10, 12]), 0).tolist() == [0, 1, 2]  # searched
+    assert track.positions(np.array([4, 6, 8]), 2) is None  # starts before the chunk
+    assert track.positions(np.array([8, 9]), 4) is None  # 9 is not a track frame
