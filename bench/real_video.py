@@ -44,6 +44,7 @@ The figures are read from the shards the run wrote; nothing here is tuned to the
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import time
 from dataclasses import dataclass
@@ -54,7 +55,7 @@ import cv2
 import numpy as np
 
 from egosim.pipeline import media
-from egosim.pipeline.geometry import invert_se3
+from egosim.pipeline.geometry import invert_se3, rotation_angle_deg
 from egosim.pipeline.shards import open_shard
 from egosim.pipeline.workflow import load_workflow
 
@@ -317,10 +318,41 @@ def _clip_scale(case: RealCase, data: Path, clip: dict[str, Any]) -> float:
     return plan_resize(info.width, info.height, int(clip["width"]), int(clip["height"])).scale
 
 
+def window_seams(windows: list[tuple[np.ndarray, np.ndarray]]) -> list[dict[str, float]]:
+    """Where consecutive windows of one source meet: ``windows`` is ``[(source_frame_indices (T,),
+    world_from_cam (T, 4, 4)), ...]`` in source order. Per seam, the camera's jump from the last
+    frame of a window to the first of the next (centre distance, rotation in degrees) beside the
+    median frame-to-frame step inside the two windows. Windows sharing one world frame jump
+    about one step; windows in frames of their own jump by whatever separates those frames."""
+    out = []
+    for (ia, pa), (ib, pb) in itertools.pairwise(windows):
+        steps = np.concatenate(
+            [np.linalg.norm(np.diff(p[:, :3, 3], axis=0), axis=1) for p in (pa, pb)]
+        )
+        turns = [
+            rotation_angle_deg(p[i, :3, :3], p[i + 1, :3, :3])
+            for p in (pa, pb)
+            for i in range(len(p) - 1)
+        ]
+        jump = float(np.linalg.norm(pb[0, :3, 3] - pa[-1, :3, 3]))
+        out.append(
+            {
+                "source_gap": int(ib[0] - ia[-1]),
+                "jump": jump,
+                "jump_over_step": jump / max(float(np.median(steps)), 1e-12),
+                "jump_deg": float(rotation_angle_deg(pa[-1, :3, :3], pb[0, :3, :3])),
+                "step_deg": float(np.median(turns)),
+            }
+        )
+    return out
+
+
 def summarise(case: RealCase, run: Path, data: Path, seconds: float) -> dict[str, Any]:
     """The table row of one video from the shards its run wrote."""
     clips = read_step(
-        run, "ingest", ["clip_id", "intrinsics", "width", "height", "num_frames", "fps"]
+        run,
+        "ingest",
+        ["clip_id", "intrinsics", "width", "height", "num_frames", "fps", "source_frame_indices"],
     )
     cams = read_step(run, "cameras")
     packed = read_step(run, "pack", ["clip_id"])
@@ -377,6 +409,16 @@ def summarise(case: RealCase, run: Path, data: Path, seconds: float) -> dict[str
         "seconds": seconds,
         "rejects": rejects,
     }
+    ordered = list(
+        (
+            np.asarray(clips[cid]["source_frame_indices"]),
+            np.reshape(cam["world_from_cam"], (-1, 4, 4)),
+        )
+        for cid, cam in cams.items()
+        if clips[cid].get("source_frame_indices") is not None
+    )
+    ordered.sort(key=lambda w: int(w[0][0]))
+    row["window_seams"] = window_seams(ordered)
     if scene:
         row["scene_vs_truth"] = {k: float(np.mean([f[k] for f in scene])) for k in scene[0]}
     return row
@@ -410,6 +452,13 @@ def print_table(rows: list[dict[str, Any]]) -> None:
     for r in rows:
         if r["scale"]:
             print(f"{r['video']}: scale {', '.join(r['scale'])}")
+        if r.get("window_seams"):
+            seams = ", ".join(
+                f"{m['jump_over_step']:.1f}x step / {m['jump_deg']:.1f} deg "
+                f"(step {m['step_deg']:.1f})"
+                for m in r["window_seams"]
+            )
+            print(f"{r['video']}: camera jump where windows meet: {seams}")
         if r.get("hand_surface_ratio_measured"):
             measured = np.median(r["hand_surface_ratio_measured"])
             print(f"{r['video']}: hand/surf against measured scene points only {measured:.2f}")
