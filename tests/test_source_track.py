@@ -124,3 +124,22 @@ def test_track_positions_find_a_window_inside_its_chunk() -> None:
     assert track.positions(np.array([8, 10, 12]), 0).tolist() == [0, 1, 2]  # searched
     assert track.positions(np.array([4, 6, 8]), 2) is None  # starts before the chunk
     assert track.positions(np.array([8, 9]), 4) is None  # 9 is not a track frame
+
+
+def test_window_seams_measure_the_jump_between_windows() -> None:
+    from bench.real_video import window_seams
+
+    # A camera moving 1 cm per frame along x, cut into two windows of one world frame, then the
+    # second window put in a frame of its own (shifted 0.5 m, turned 30 degrees about z).
+    poses = np.tile(np.eye(4), (20, 1, 1))
+    poses[:, 0, 3] = 0.01 * np.arange(20)
+    idx = np.arange(20)
+    one = window_seams([(idx[:10], poses[:10]), (idx[10:], poses[10:])])
+    assert one[0]["source_gap"] == 1
+    assert one[0]["jump_over_step"] == pytest.approx(1.0)
+    assert one[0]["jump_deg"] == pytest.approx(0.0, abs=1e-9)
+    c, s = np.cos(np.radians(30)), np.sin(np.radians(30))
+    other = np.array([[c, -s, 0, 0.5], [s, c, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]])
+    two = window_seams([(idx[:10], poses[:10]), (idx[10:], other @ poses[10:])])
+    assert two[0]["jump_deg"] == pytest.approx(30.0)
+    assert two[0]["jump_over_step"] > 10
