@@ -37,8 +37,10 @@ Steps, for one clip:
    placed by a planar PnP of an average palm template onto the 2D palm landmarks (of its two
    poses, the one with the fingers pointing away from a head-mounted camera), the world
    landmarks are rotated onto that palm to give each joint a depth, and each joint is put on its
-   pixel's ray. The points are then scaled about the camera centre (which keeps the projection)
-   so that their median depth equals the median depth observed under the 2D landmarks; without
+   pixel's ray; finger joints' depths are then pulled towards the bone lengths
+   (:func:`~egosim.stages.common.hand_lift.refine_by_bone_lengths`). The points are then scaled
+   about the camera centre (which keeps the projection) so that their median depth equals the
+   median depth observed under the 2D landmarks; without
    depth the template's average-hand size sets the distance. A palm seen edge-on has no PnP
    pose in front of the camera: it takes the rotation and depth of the same hand's nearest frame
    with one (within ``max_gap`` frames; :func:`lift_with_rotation`) rather than MediaPipe's own
