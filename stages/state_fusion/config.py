@@ -67,6 +67,13 @@ class StateFusionConfig(StageConfig):
     settled_distance_m: float = 0.02  # frames this close (median) to the last place: at rest
     instance_match_m: float = 0.02  # new object point within this of a previous instance: match
     instance_match_fraction: float = 0.3  # fraction of matching points to reuse an instance id
+    # Carried objects (carry.py; ours, tuned on the default world): an object of the previous
+    # state a closed hand takes, lifts and puts down moves with the palm's rigid motion
+    carry_held: bool = True  # place carried objects by the hands' motion
+    carry_contact_m: float = 0.05  # grip point within this of the object: contact
+    carry_lift_m: float = 0.02  # the carried object must rise this far above its rest height
+    carry_rest_m: float = 0.01  # ... and come back within this of it: put down
+    carry_close_drop: float = 0.1  # closed hand: finger spread this far below its most open
     # TSDF fusion (open3d tensor VoxelBlockGrid; paper: "scalable TSDF", values not legible)
     voxel_size_m: float = 0.01  # TSDF voxel size in metres (ours)
     sdf_trunc_voxels: float = 4.0  # TSDF truncation in voxels (ours)
@@ -146,6 +153,10 @@ class StateFusionConfig(StageConfig):
             "outlier_std_ratio",
             "tsdf_min_weight",
             "tsdf_min_weight_estimated",
+            "carry_contact_m",
+            "carry_lift_m",
+            "carry_rest_m",
+            "carry_close_drop",
         )
         for name in positive:
             value = getattr(self, name)

@@ -49,6 +49,7 @@ from egosim.pipeline.geometry import (
     transform_points,
     unproject_depth,
 )
+from egosim.stages.state_fusion.carry import Carry, carried_objects
 from egosim.stages.state_fusion.config import StateFusionConfig
 from egosim.stages.state_fusion.segmenters import Segmenter
 
@@ -118,6 +119,10 @@ class Observation:
     reference_world_from_cam: np.ndarray | None = None
     # True when depth was estimated (plane sweep: every stride-th frame, consistency-checked)
     depth_estimated: bool = False
+    # (T, 2, 21, 3) hand joints in the frame of world_from_cam (0 = left, 1 = right) and
+    # (T, 2) bool valid: carried objects follow them (carry.py); None = not carried
+    hand_joints: np.ndarray | None = None
+    hand_valid: np.ndarray | None = None
 
 
 # ---------------------------------------------------------------- registration
@@ -701,11 +706,16 @@ def _objects_and_background(
     poses: np.ndarray,
     config: StateFusionConfig,
     segmenter: Segmenter | None,
-) -> tuple[list[Track], np.ndarray, np.ndarray, _Points, np.ndarray]:
-    """Steps 2-3: object tracks, the interaction test, and the clip's own points.
+    previous: State | None = None,
+    joints: np.ndarray | None = None,
+) -> tuple[list[Track], np.ndarray, np.ndarray, _Points, np.ndarray, np.ndarray]:
+    """Steps 2-3: object tracks, the interaction test, carried objects, the clip's own points.
 
-    Returns ``(tracks, status (M, T), gap (M, T), points, geometry frame (M,))``; the points'
-    labels are track index + 1 (0 = background).
+    ``joints`` (``(T, 2, 21, 3)`` in the state's frame, with ``obs.hand_valid``) carry the
+    ``previous`` state's objects a hand held (:func:`_carried_tracks`).
+    Returns ``(tracks, status (M, T), gap (M, T), points, geometry frame (M,), dropped (N,))``;
+    the points' labels are track index + 1 (0 = background); ``dropped`` marks the previous
+    state's points a hand carried away (empty without a previous state).
     """
     t, h, w = depth.shape
     intrinsics = np.asarray(obs.intrinsics, dtype=np.float64)
@@ -727,6 +737,25 @@ def _objects_and_background(
 
     tracks = track_objects((frame_points(k) for k in range(t)), plane, config, masks_of)
     status, gap = interaction_test(tracks, obs, config)
+    dropped = np.zeros(len(previous.points) if previous is not None else 0, bool)
+    carried: list[Carry] = []
+    if config.carry_held and previous is not None and joints is not None:
+        carried = _carried(joints, obs, previous, plane, tracks, status, config)
+    for c in carried:  # each carry is one more track, interacting from grasp to release
+        source = previous.points[c.source]
+        tracks.append(
+            Track(
+                {c.grasp: np.zeros(0, np.int64), c.release: np.zeros(0, np.int64)},
+                {c.grasp: source, c.release: transform_points(c.moved, source)},
+                set(),
+                transform_points(c.moved, source).mean(0),
+            )
+        )
+        row = np.zeros((1, t), bool)
+        row[0, c.grasp : c.release + 1] = True
+        status = np.concatenate([status, row])
+        gap = np.concatenate([gap, np.full((1, t), np.nan, np.float32)])
+        dropped[c.source] = True
     interactive = status.any(axis=1)  # (M,)
 
     # Background (and untouched objects) by TSDF, without hands and interacted objects.
@@ -755,7 +784,19 @@ def _objects_and_background(
         )
     ]
     geo_frame = np.full(len(tracks), -1, np.int64)
-    for m in np.flatnonzero(interactive):
+    first_carried = len(tracks) - len(carried)
+    for i, c in enumerate(carried):  # the carried object: its points before the grasp, moved
+        geo_frame[first_carried + i] = c.release
+        parts.append(
+            _Points(
+                tracks[first_carried + i].points[c.release].astype(np.float32),
+                previous.colours[c.source],
+                previous.point_size[c.source],
+                np.full(len(c.source), first_carried + i + 1, np.int32),
+                np.full(len(c.source), SOURCE_LAST_OBSERVED, np.uint8),
+            )
+        )
+    for m in np.flatnonzero(interactive[:first_carried]):
         k = geo_frame[m] = geometry_frame(tracks[m], config.settled_distance_m)
         pix = tracks[m].pixels[k]
         obj_pts = tracks[m].points[k].astype(np.float32)
@@ -783,7 +824,37 @@ def _objects_and_background(
                 np.full(len(pix), SOURCE_LAST_OBSERVED, np.uint8),
             )
         )
-    return tracks, status, gap, _Points.concat(parts), geo_frame
+    return tracks, status, gap, _Points.concat(parts), geo_frame, dropped
+
+
+def _carried(
+    joints: np.ndarray,
+    obs: Observation,
+    previous: State,
+    plane: SupportPlane,
+    tracks: list[Track],
+    status: np.ndarray,
+    config: StateFusionConfig,
+) -> list[Carry]:
+    """The previous state's objects the hands carried (:func:`carry.carried_objects`), less
+    those an interacting track already saw: where a track the interaction test flagged starts
+    on the carried object (``instance_match_fraction`` of its first points within
+    ``instance_match_m`` of it), the observed geometry wins over the carried one."""
+    valid = obs.hand_valid if obs.hand_valid is not None else np.ones(joints.shape[:2], bool)
+    carries = carried_objects(
+        joints, np.asarray(valid, bool), previous.points, previous.instance, plane, config
+    )
+    kept = []
+    for c in carries:
+        tree = cKDTree(previous.points[c.source])
+        seen = False
+        for m in np.flatnonzero(status.any(axis=1)):
+            first = tracks[m].points[min(tracks[m].pixels)]
+            dist, _ = tree.query(first, distance_upper_bound=config.instance_match_m)
+            seen |= float(np.isfinite(dist).mean()) >= config.instance_match_fraction
+        if not seen:
+            kept.append(c)
+    return kept
 
 
 def _instance_ids(
@@ -822,9 +893,11 @@ def _merge_previous(
     valid: np.ndarray,
     poses: np.ndarray,
     config: StateFusionConfig,
+    carried: np.ndarray | None = None,
 ) -> _Points:
     """Step 5: the previous state's points the clip does not contradict (and not of a moved
-    instance), then the new points that add something (labels: instance ids)."""
+    instance, nor ``carried (N,)`` away by a hand), then the new points that add something
+    (labels: instance ids)."""
     intrinsics = np.asarray(obs.intrinsics, dtype=np.float64)
     seen, contradicted = compare_with_observation(
         previous.points, previous.colours, depth, obs.frames, valid, poses, intrinsics, config
@@ -836,6 +909,8 @@ def _merge_previous(
             f"{n_seen} of its {len(previous.points)} points, need {config.min_seen_points}"
         )
     in_moved = np.isin(previous.instance, moved_ids) & (previous.instance > 0)
+    if carried is not None and len(carried):
+        in_moved |= carried
     background_seen = seen & ~in_moved
     agree = 1.0 - contradicted[background_seen].mean() if background_seen.any() else 0.0
     if agree < config.min_agreement:
@@ -951,8 +1026,11 @@ def fuse_state(
         _check_overlap(poses, previous, config)
 
     # 2-3. Object tracks, the interaction test, background by TSDF, interacted objects.
-    tracks, status, gap, cloud, geo_frame = _objects_and_background(
-        obs, depth, valid, poses, config, segmenter
+    joints = None
+    if obs.hand_joints is not None:  # into the state's frame, as the cameras
+        joints = np.asarray(obs.hand_joints, np.float64) @ sim3[:3, :3].T + sim3[:3, 3]
+    tracks, status, gap, cloud, geo_frame, dropped = _objects_and_background(
+        obs, depth, valid, poses, config, segmenter, previous, joints
     )
 
     # 4. Instance ids: tracks that match a previous instance keep its id.
@@ -962,7 +1040,9 @@ def fuse_state(
     # 5. Merge with the previous state.
     if previous is not None:
         moved_ids = ids[1:][status.any(axis=1)]
-        cloud = _merge_previous(cloud, previous, moved_ids, obs, depth, valid, poses, config)
+        cloud = _merge_previous(
+            cloud, previous, moved_ids, obs, depth, valid, poses, config, dropped
+        )
 
     # 6. Cleaning, then the instance table.
     cloud = cloud.select(remove_outliers(cloud.pts, config))

@@ -183,6 +183,8 @@ def observation_from_rows(
         world_from_cam=world_from_cam,
         reference_world_from_cam=reference,
         depth_estimated=estimate,
+        hand_joints=joints,
+        hand_valid=valid,
     )
 
 
@@ -233,7 +235,9 @@ class StateFusionStage(ClipStage):
         "scene_cloud": SCENE_CLOUD,  # the initial state when there is no previous_state
     }
     output = STATE
-    version = 2  # 2: a clip without per-frame depth is fused from a plane sweep (was rejected)
+    # 2: a clip without per-frame depth is fused from a plane sweep (was rejected);
+    # 3: objects a closed hand lifts and puts down are carried by its motion (carry.py)
+    version = 3
     backends = ("geometric", "grounded_sam")
     # What process reads (the executor decodes nothing else): the clip's frames, depth and
     # camera, the cleaned joints, the hand masks; the state roles are read whole.
