@@ -508,6 +508,22 @@ def test_synthetic_world_3d_against_true_joints(mediapipe: object) -> None:
     assert old["orientation_deg"] > 45.0, old  # the axis slip the palm PnP removes
 
 
+def test_aligned_mpjpe_ignores_a_rigid_turn_and_shift() -> None:
+    """A hand turned 40 degrees and moved 5 cm: wrist-relative MPJPE counts the turn, the
+    aligned MPJPE is 0; a 3 mm bump on one joint shows in the aligned figure: 0.33 mm measured
+    (the least-squares fit spreads it over all joints: more than its 3/21 mm unaligned)."""
+    from egosim.stages.hands.metrics import aligned_mpjpe_mm
+
+    truth = _template_hand(True) + np.array([0.0, 0.1, 0.45])  # (21, 3)
+    turn = cv2.Rodrigues(np.radians([0.0, 40.0, 0.0]))[0]  # (3, 3)
+    moved = truth @ turn.T + np.array([0.05, 0.0, 0.0])
+    assert aligned_mpjpe_mm(moved, truth) < 1e-9
+    assert wrist_relative_mpjpe_mm(moved, truth) > 30.0
+    bumped = truth.copy()
+    bumped[8, 2] += 0.003
+    assert 0.1 < aligned_mpjpe_mm(bumped, truth) < 0.5
+
+
 def test_hand_accuracy_depth_ratio_of_a_hand_placed_too_far() -> None:
     """A hand scaled by 1.1 about the camera centre projects where the true one does (2D error
     0, orientation 0) but sits 10% too far: depth ratio 1.1, MPJPE = 10% of the wrist offsets."""
@@ -526,3 +542,8 @@ def test_hand_accuracy_depth_ratio_of_a_hand_placed_too_far() -> None:
     assert acc["recall"] == 1.0 and acc["error_2d_px"] < 1e-9
     np.testing.assert_allclose(acc["depth_ratio_median"], 1.1, rtol=1e-9)
     assert acc["orientation_deg"] < 1e-3
+    # Shape error alone: the 10% larger hand, best rotated and moved, is off by 10% of each
+    # joint's distance from the centroid (the aligned MPJPE leaves scale in, like the MPJPE).
+    hand = truth_cam[0, 1]  # (21, 3)
+    expected = 100.0 * np.linalg.norm(hand - hand.mean(axis=0), axis=1).mean()  # mm: 0.1 * 1000
+    np.testing.assert_allclose(acc["aligned_mpjpe_mm"], expected, rtol=0.02)

@@ -11,7 +11,10 @@ All comparisons are per side (slot 0 = left, 1 = right) in the *camera* frame:
 - **wrist-relative MPJPE**: mean joint distance after subtracting each hand's wrist, millimetres
   (no rotation alignment: a wrong orientation counts in full);
 - **depth ratio**: the method's median joint depth over the true one (1 = the hand sits at the
-  right distance; what places a hand on the surface it touches).
+  right distance; what places a hand on the surface it touches);
+- **aligned MPJPE**: mean joint distance after the rotation and translation that best align the
+  method's joints with the true ones (Procrustes without scale), millimetres: the error of the
+  hand's shape alone, which orientation adds to in the wrist-relative MPJPE.
 """
 
 from __future__ import annotations
@@ -30,6 +33,14 @@ def orientation_error_deg(pred: np.ndarray, truth: np.ndarray) -> float:
     """Angle (degrees) of the best rotation from ``pred (21, 3)`` onto ``truth (21, 3)``."""
     rot = best_rotation(pred, truth)
     return float(np.degrees(np.arccos(np.clip((np.trace(rot) - 1.0) / 2.0, -1.0, 1.0))))
+
+
+def aligned_mpjpe_mm(pred: np.ndarray, truth: np.ndarray) -> float:
+    """Mean joint distance (mm) of ``pred (21, 3)`` and ``truth (21, 3)`` metres after the best
+    rotation and translation of ``pred`` onto ``truth`` (Kabsch about the centroids)."""
+    rot = best_rotation(pred, truth)  # (3, 3)
+    moved = (pred - pred.mean(axis=0)) @ rot.T + truth.mean(axis=0)  # (21, 3)
+    return float(1000.0 * np.linalg.norm(moved - truth, axis=1).mean())
 
 
 def wrist_relative_mpjpe_mm(pred: np.ndarray, truth: np.ndarray) -> float:
@@ -53,6 +64,8 @@ class HandAccuracy:
     mpjpe_mm: list[float]  # per found hand-frame, wrist-relative
     depth_ratio: list[float] = field(default_factory=list)  # per found hand-frame: median
     # joint depth / true median joint depth
+    aligned_mpjpe_mm: list[float] = field(default_factory=list)  # per found hand-frame,
+    # after the best rotation and translation
 
     def summary(self) -> dict[str, float]:
         """Scalar figures: recall, mean 2D error and offset, orientation error, MPJPE."""
@@ -74,6 +87,7 @@ class HandAccuracy:
             if self.orientation_deg
             else float("nan"),
             "mpjpe_mm": mean(self.mpjpe_mm),
+            "aligned_mpjpe_mm": mean(self.aligned_mpjpe_mm),
             "depth_ratio_median": float(np.median(self.depth_ratio))
             if self.depth_ratio
             else float("nan"),
@@ -93,6 +107,7 @@ def combine(parts: list[HandAccuracy]) -> HandAccuracy:
         out.orientation_deg += p.orientation_deg
         out.mpjpe_mm += p.mpjpe_mm
         out.depth_ratio += p.depth_ratio
+        out.aligned_mpjpe_mm += p.aligned_mpjpe_mm
     return out
 
 
@@ -147,6 +162,7 @@ def hand_accuracy(
         acc.offset_2d_px.append(diff.mean(axis=0))
         acc.orientation_deg.append(orientation_error_deg(joints_cam[f, s], truth_cam[f, s]))
         acc.mpjpe_mm.append(wrist_relative_mpjpe_mm(joints_cam[f, s], truth_cam[f, s]))
+        acc.aligned_mpjpe_mm.append(aligned_mpjpe_mm(joints_cam[f, s], truth_cam[f, s]))
         acc.depth_ratio.append(
             float(np.median(joints_cam[f, s, :, 2]) / np.median(truth_cam[f, s, :, 2]))
         )
