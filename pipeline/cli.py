@@ -137,11 +137,35 @@ def run(
     set_: Annotated[
         list[str] | None, typer.Option("--set", help="Override a parameter: step.param=value.")
     ] = None,
+    input_shard: Annotated[
+        list[str] | None,
+        typer.Option(
+            "--input-shard",
+            help="A workflow input's shards: NAME=PATH (a shard, a folder, a run's step); "
+            "repeat for several.",
+        ),
+    ] = None,
+    chain: Annotated[
+        str | None,
+        typer.Option("--chain", help="Run once per shard of this input, in order (needs --feed)."),
+    ] = None,
+    feed: Annotated[
+        str | None,
+        typer.Option(
+            "--feed", help="--chain: INPUT=STEP: each run's STEP output is the next's INPUT."
+        ),
+    ] = None,
 ) -> None:
     """Run a workflow on a Dask cluster (local by default); skips finished shards.
 
     Ends with a summary per step (clips in, out, rejected, top reject reasons),
     also written to OUT/summary.json.
+
+    --input-shard NAME=PATH gives the shards of the workflow's declared inputs. With
+    --chain NAME --feed INPUT=STEP the workflow runs once per shard of input NAME, in order,
+    into OUT/link-KK; each link's INPUT is the previous link's STEP output keyed by its own
+    clips (the closed loop: --chain segment --feed state=fuse). The exit code is the last
+    link's.
 
     Exit codes:
     0  every final step has clips (some clips may have been rejected)
@@ -154,15 +178,22 @@ def run(
     try:
         run_out = storage.location(out)
         wf = load_workflow(workflow, set_ or [])
-        # Live progress per step on a terminal (stderr), plain lines otherwise.
-        summary = run_workflow(
-            wf,
-            run_out,
-            source=input,
-            scheduler=scheduler,
-            n_workers=workers,
-            observer=ConsoleObserver(),
-        )
+        given = _input_shards(input_shard or [], wf.inputs)
+        if (chain is None) != (feed is None):
+            raise StageError("--chain and --feed go together")
+        if chain is not None and feed is not None:
+            summary = _run_chained(wf, run_out, given, chain, feed, scheduler, workers)
+        else:
+            # Live progress per step on a terminal (stderr), plain lines otherwise.
+            summary = run_workflow(
+                wf,
+                run_out,
+                source=input,
+                scheduler=scheduler,
+                n_workers=workers,
+                observer=ConsoleObserver(),
+                inputs=given or None,
+            )
     except USER_ERRORS as exc:
         if isinstance(exc, RunError) and exc.report is not None:
             typer.echo(format_report(exc.report))
@@ -174,6 +205,49 @@ def run(
         f"{log_path(storage.scratch_dir(run_out))}"
     )
     _finish_with_report(summary.report)
+
+
+def _input_shards(items: list[str], declared: dict[str, str]) -> dict[str, list]:
+    """``--input-shard NAME=PATH`` values: each input's shard files, in the order given
+    (folders expand to their shards, sorted); every bad item is listed at once."""
+    from egosim.pipeline.shards import find_shards
+
+    given: dict[str, list] = {}
+    problems = []
+    for item in items:
+        name, sep, path = item.partition("=")
+        if not sep or not name or not path:
+            problems.append(f"--input-shard takes NAME=PATH, got {item!r}")
+            continue
+        if name not in declared:
+            problems.append(f"--input-shard {name!r}: the workflow's inputs are {sorted(declared)}")
+            continue
+        try:
+            given.setdefault(name, []).extend(find_shards([path], name))
+        except FileNotFoundError as exc:
+            problems.append(f"--input-shard {item!r}: {exc}")
+    if problems:
+        raise StageError("; ".join(problems))
+    return given
+
+
+def _run_chained(wf, out, given: dict, chain: str, feed: str, scheduler, workers):
+    """``run --chain NAME --feed INPUT=STEP``: one run per shard of NAME
+    (:func:`egosim.pipeline.chain.run_chain`); returns the last link's summary."""
+    from egosim.pipeline.chain import run_chain
+    from egosim.pipeline.observe import ConsoleObserver
+
+    name, sep, step = feed.partition("=")
+    if not sep or not name or not step:
+        raise StageError(f"--feed takes INPUT=STEP, got {feed!r}")
+    summaries = run_chain(wf, out, given, chain, name, step, scheduler, workers, ConsoleObserver())
+    for k, summ in enumerate(summaries, 1):
+        skipped = sum(r.skipped for r in summ.results)
+        typer.echo(
+            f"link {k}: {summ.out}: {len(summ.results)} shard tasks ({skipped} skipped), "
+            f"{summ.rejected} clips rejected"
+        )
+    return summaries[-1]
 
 
 @app.command()
