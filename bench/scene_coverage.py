@@ -229,7 +229,7 @@ def sheet_row(
 ) -> np.ndarray:
     """``real | render t=0 | visible t=0 (white; hands red; holes black) | render end``."""
     vis = np.repeat(visible[..., None].astype(np.uint8) * 255, 3, axis=2)  # (H, W, 3)
-    vis[hand] = (vis[hand] * 0.4 + np.array([160, 0, 0])).astype(np.uint8)
+    vis[hand] = np.clip(vis[hand] * 0.4 + np.array([150, 0, 0]), 0, 255).astype(np.uint8)
     return np.concatenate([real, first, vis, last], axis=1)
 
 

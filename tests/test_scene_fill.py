@@ -180,3 +180,26 @@ def test_render_coverage_with_estimated_depth(
     err = (video.astype(float) - truth.astype(float)) ** 2
     value = 10 * np.log10(255.0**2 / err[sel].mean())
     assert value >= min_psnr, value
+
+
+def test_coverage_figures_without_truth() -> None:
+    """bench.scene_coverage on a clip without a static truth: coverage of the non-hand pixels
+    counted by hand (dB NaN), and the contact sheet paints hands without wrapping uint8."""
+    from bench.scene_coverage import coverage_figures, sheet_row
+
+    t, h, w = 2, 4, 5
+    scene = np.zeros((t, h, w, 3), np.uint8)
+    visible = np.ones((t, h, w), bool)
+    visible[1, 0, :] = False  # frame 1: 5 invisible pixels, 2 of them under the hand
+    hand = np.zeros((t, h, w), bool)
+    hand[:, 0, :2] = True  # 2 hand pixels per frame: 18 free pixels
+    fig = coverage_figures(scene, visible, None, hand)
+    assert fig["cov0"] == 1.0
+    assert fig["covN"] == pytest.approx(15 / 18)
+    assert fig["cov"] == pytest.approx((1.0 + 15 / 18) / 2)
+    assert np.isnan(fig["dB0"]) and np.isnan(fig["dB"])
+    strip = sheet_row(scene[0], scene[0], visible[0], hand[0], scene[1])
+    assert strip.shape == (h, 4 * w, 3)
+    vis = strip[:, 2 * w : 3 * w]  # (H, W, 3) the visibility panel
+    assert vis[0, 0].tolist() == [252, 102, 102]  # white visible pixel under a hand: red tint
+    assert vis[1, 1].tolist() == [255, 255, 255]
