@@ -144,6 +144,37 @@ def test_aligned_fill_skips_a_frame_that_does_not_match_round_the_hole() -> None
     assert rms < 3.0, f"RMS {rms:.2f}"
 
 
+def test_aligned_fill_uses_a_homography_only_where_it_holds_near_the_hole() -> None:
+    """A later frame matches frame 0 except a patch right of x=100 by the hole that shows another
+    scene (a homography that holds on one side of the hole only; the ring round the hole still
+    matches overall, so the frame passes the whole-ring check). With the local check it fills
+    the left of the hole (to within 3 grey levels RMS) and not the right; without it, it pastes
+    the other scene there."""
+    from egosim.stages.inpaint.aligned_fill import aligned_fill
+
+    rng = np.random.default_rng(5)
+    scene = cv2.GaussianBlur(rng.integers(0, 255, (120, 180, 3), dtype=np.uint8), (3, 3), 0)
+    other = cv2.GaussianBlur(rng.integers(0, 255, (120, 180, 3), dtype=np.uint8), (3, 3), 0)
+    frames = np.stack([scene, scene])  # (2, 120, 180, 3)
+    frames[1, 20:100, 100:140] = other[20:100, 100:140]
+    clean = scene.copy()
+    masks = np.zeros(frames.shape[:3], np.uint8)
+    masks[0, 40:80, 60:110] = 1
+    frames[0, 40:80, 60:110] = (220, 170, 140)  # the hand
+    hole = masks[0] > 0
+    left, right = hole.copy(), hole.copy()
+    left[:, 86:] = False
+    right[:, :104] = False
+    kwargs = {"dilate_px": 0, "candidates": 1}
+    plain = aligned_fill(frames, masks, **kwargs, local_residual=0.0)
+    checked = aligned_fill(frames, masks, **kwargs, local_residual=15.0)
+    assert np.all(plain.fill_source[right] == 1)  # the wrong scene pasted: what the check stops
+    assert np.all(checked.fill_source[left] == 1)
+    assert np.all(checked.fill_source[right] == 2)
+    rms = np.sqrt(np.mean((checked.image[left].astype(float) - clean[left]) ** 2))
+    assert rms < 3.0, f"RMS {rms:.2f}"
+
+
 def test_a_sleeve_that_other_masks_missed_leaves_no_ghost() -> None:
     """Still camera; a sleeve stays over the hole in 3 of 5 later frames, unmasked there: the
     plain median pastes it, the hand-colour test does not (the table comes back exactly)."""

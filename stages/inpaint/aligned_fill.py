@@ -10,6 +10,8 @@ hand that one frame's mask missed. A fitted homography is checked where it matte
 hole (a ring of ``ring_px`` outside frame 0's mask, off both frames' hands) the aligned frame
 must match frame 0 to within ``max_residual`` grey levels (median absolute difference), else
 the frame is not used (a plane's homography does not align a 3D scene seen from far apart).
+The same check is also made near each hole pixel (``local_residual``, :func:`local_residual_map`):
+a homography that holds on one side of the hole and not on the other fills that side only.
 What no frame sees goes to :func:`unseen_fill`.
 """
 
@@ -23,6 +25,7 @@ from egosim.stages.inpaint.reproject_fill import (
     FillResult,
     OccluderColours,
     dilate,
+    pushpull_fill,
     slot_median,
     unseen_fill,
 )
@@ -60,6 +63,23 @@ def homography_to_first(
     return hom
 
 
+def local_residual_map(
+    diff: np.ndarray, known: np.ndarray, hole: np.ndarray, window: int = 15
+) -> np.ndarray:
+    """``(H, W)`` float32: the alignment residual ``diff`` near each pixel, carried into ``hole``.
+
+    ``diff (H, W)``: absolute grey difference of an aligned frame and frame 0, trusted on
+    ``known (H, W)`` (the ring round the hole); its mean over a ``window`` box of known pixels
+    is spread into the ``hole (H, W)`` (and wherever no known pixel is near) by
+    :func:`~egosim.stages.inpaint.reproject_fill.pushpull_fill`.
+    """
+    k = known.astype(np.float32)
+    num = cv2.boxFilter(diff.astype(np.float32) * k, -1, (window, window), normalize=False)
+    den = cv2.boxFilter(k, -1, (window, window), normalize=False)
+    local = np.where(den > 0.5, num / np.maximum(den, 1e-6), 0).astype(np.float32)  # (H, W)
+    return pushpull_fill(local, (den <= 0.5) | (hole > 0))  # (H, W)
+
+
 def aligned_fill(
     frames: np.ndarray,
     hand_mask: np.ndarray,
@@ -71,6 +91,7 @@ def aligned_fill(
     max_residual: float = 10.0,
     occluder_ratio: float = 0.0,
     ring_px: int = 15,
+    local_residual: float = 0.0,
 ) -> FillResult:
     """Remove the hand from ``frames[0]``; see the module docstring.
 
@@ -80,6 +101,8 @@ def aligned_fill(
     check of fitted homographies (see the module docstring).
     ``occluder_ratio``: samples that look like frame 0's hands are not used (see
     :class:`~egosim.stages.inpaint.reproject_fill.OccluderColours`; 0: off).
+    ``local_residual``: a fitted homography fills only the hole pixels whose nearby ring matches
+    frame 0 within this many grey levels (mean absolute difference; 0: off).
     """
     t, h, w = frames.shape[:3]
     masks = dilate(hand_mask > 0, dilate_px)  # (T, H, W)
@@ -120,6 +143,9 @@ def aligned_fill(
             if float(np.median(np.abs(grey[check] - grey0[check]))) > max_residual:
                 continue
         ok = free[ys, xs] & (count < candidates)  # (M,)
+        if local_residual > 0 and not static_camera:
+            near = local_residual_map(np.abs(grey - grey0), check, target)  # (H, W)
+            ok &= near[ys, xs] <= local_residual
         if not ok.any():
             continue
         idx = np.nonzero(ok)[0]

@@ -82,6 +82,35 @@ def unseen_fill(
     return cv2.cvtColor(out, cv2.COLOR_BGR2RGB)
 
 
+def pushpull_fill(image: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """``image (H, W[, C])`` with the ``mask (H, W)`` pixels from a pyramid of masked averages.
+
+    Pull: each level halves the image, averaging only known pixels (weights carried along);
+    push: from the coarsest level down, a pixel takes its own average where its weight is full
+    and the upsampled coarser level for the rest, in proportion to the missing weight.
+    """
+    hole = mask > 0
+    weight = (~hole).astype(np.float32)  # (H, W)
+    colour = image.astype(np.float32).reshape(*hole.shape, -1) * weight[..., None]  # (H, W, C)
+    levels = [(colour, weight)]
+    while min(levels[-1][1].shape) > 2 and levels[-1][1].min() < 1e-3:
+        c, wt = levels[-1]
+        down = cv2.pyrDown(c)
+        levels.append((down.reshape(*down.shape[:2], -1), cv2.pyrDown(wt)))
+    c, wt = levels[-1]
+    filled = c / np.maximum(wt, 1e-6)[..., None]
+    for c, wt in reversed(levels[:-1]):
+        up = cv2.pyrUp(filled, dstsize=(wt.shape[1], wt.shape[0])).reshape(c.shape)
+        alpha = np.clip(wt, 0, 1)[..., None]  # (h, w, 1) how much of its own average is known
+        filled = alpha * (c / np.maximum(wt, 1e-6)[..., None]) + (1 - alpha) * up
+    out = image.copy()
+    got = filled.reshape(image.shape)[hole]
+    if np.issubdtype(image.dtype, np.integer):
+        got = np.clip(np.round(got), 0, 255)
+    out[hole] = got.astype(image.dtype)
+    return out
+
+
 class OccluderColours:
     """Tells samples that look like frame 0's hands and arms from ones that look like background.
 

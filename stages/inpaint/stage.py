@@ -81,6 +81,8 @@ class InpaintConfig(StageConfig):
     unseen_method: str = "telea"  # OpenCV method for pixels no frame sees: "telea" or "ns"
     occluder_ratio: float = 0.8  # a sample nearer frame 0's hand colours than this times its
     # nearest background colour is another frame's missed hand or arm, not used (0: off)
+    local_residual: float = 15.0  # image-aligned fill: a homography fills only the hole pixels
+    # whose nearby ring matches frame 0 within this many grey levels (mean; 0: off)
     model_path: str = ""  # local folder of a diffusers inpainting pipeline (backend diffusers)
     device: str = "cpu"  # torch device of the diffusers pipeline
     prompt: str = "empty table, no hands"  # text prompt of the diffusers pipeline
@@ -98,6 +100,8 @@ class InpaintConfig(StageConfig):
             problems.append(f"depth_tolerance must be in [0, 1], got {self.depth_tolerance}")
         if not 0.0 < self.inpaint_radius <= 100.0:
             problems.append(f"inpaint_radius must be in (0, 100], got {self.inpaint_radius}")
+        if not 0.0 <= self.local_residual <= 255.0:
+            problems.append(f"local_residual must be in [0, 255], got {self.local_residual}")
         if not 0.0 <= self.occluder_ratio <= 1.0:
             problems.append(f"occluder_ratio must be in [0, 1], got {self.occluder_ratio}")
         if not 1 <= self.candidates <= 32:
@@ -118,9 +122,10 @@ class InpaintStage(ClipStage):
     """Remove hands from the first frame: reprojected later frames, then OpenCV inpainting."""
 
     name = "inpaint"
-    version = 6  # 3: median of several frames; clips without depth aligned in the image. 4: more
+    version = 7  # 3: median of several frames; clips without depth aligned in the image. 4: more
     # frames in the median, dilation with the image size. 5: hand-coloured samples not used.
-    # 6: large holes no longer rejected (chunked sampling)
+    # 6: large holes no longer rejected (chunked sampling). 7: the image-aligned fill checks
+    # each homography near every hole pixel (local_residual)
 
     description = "remove hands from the first frame (reprojected frames + OpenCV inpainting)"
     config_class = InpaintConfig
@@ -187,6 +192,7 @@ class InpaintStage(ClipStage):
                 inpaint_radius=cfg.inpaint_radius,
                 unseen_method=cfg.unseen_method,
                 occluder_ratio=cfg.occluder_ratio,
+                local_residual=cfg.local_residual,
             )
         try:
             return reproject_fill(
