@@ -62,6 +62,8 @@ def window_figures(
     return {
         "ate_per_window": float(np.mean(per_window)),
         "ate_per_source": ate_after_sim3(est, truth),
+        # metric scale error of each window's (metric) poses: estimate / truth - 1
+        "scale_error": [1.0 / umeyama(e[:, :3, 3], t[:, :3, 3])[0] - 1.0 for e, t in windows],
     }
 
 

@@ -31,6 +31,7 @@ from egosim.schemas.depth_camera import POSED_BY_INTERPOLATION
 from egosim.stages.depth_camera.sfm import (
     SfmError,
     SfmOptions,
+    SfmResult,
     fill_unregistered,
     keyframe_indices,
     run_sfm,
@@ -236,7 +237,7 @@ def estimate_track(
     keyframe_stride: int,
     tracking: TrackingParams,
     worker_command: list[str] | None = None,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict[int, np.ndarray], object]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict[int, np.ndarray], SfmResult]:
     """SfM on keyframes of ``frames (N, H, W, 3)`` then PnP tracking of the rest.
 
     Returns ``(intrinsics (4,), cam_from_world (N, 4, 4), posed_by (N,), frame_points, sfm)``;

@@ -675,6 +675,18 @@ def build_source_track(
         config.tracking_params(),
     )
     posed = posed_by != POSED_BY_INTERPOLATION
+    log.info(
+        "source %s, chunk %d: %d track frames; SfM (%s mapper, f %.0f px, features %.0f s, "
+        "mapping %.0f s) and PnP posed %d",
+        req.uri,
+        chunk,
+        len(frames),
+        sfm.mapper,
+        intrinsics[0],
+        sfm.seconds_features,
+        sfm.seconds_mapping,
+        int(posed.sum()),
+    )
     depths: dict[int, tuple[np.ndarray, np.ndarray, tuple[int, ...]]] = {}
     segments = []
     for start in range(0, len(frames), segment):
