@@ -13,10 +13,12 @@ both names carry them.
   that run's ``ingest``, ``cameras``, ``poses`` and ``inpaint`` shards (:func:`rerender`;
   ``--workflow-render`` measures the run's own render instead), and the render is compared with
   ``videos_static`` (the true static scene along the true trajectory). Hand pixels are
-  ``videos_hands`` dilated by ``HAND_DILATE_PX``. The scene steps as they were before the depth
-  fill (scene_cloud v4, scene_render v1) are reproduced by ``--cloud min_confidence=0 --cloud
-  fill=false --cloud speckle_px=0 --render max_crack_px=0 --render max_crack_width=0`` (checked:
-  the same figures as the old stages' own render).
+  ``videos_hands`` dilated by ``HAND_DILATE_PX``; the truth is first registered to the real frame 0
+  (:func:`bench.real_video.truth_shift`, as ``bench.real_video`` does), so ``dB`` is its "scene
+  dB". The scene steps as they were before the depth fill (scene_cloud v4, scene_render v1) are
+  reproduced by ``--cloud min_confidence=0 --cloud fill=false --cloud speckle_px=0 --render
+  max_crack_px=0 --render max_crack_width=0`` (checked: the same figures as the old stages' own
+  render).
 - **Real without truth** (EgoDex, the fixed-camera videos, HOT3D's RGB view: every window):
   the same re-render; hand pixels are the run's own ``hand_mask`` dilated by ``HAND_DILATE_PX``;
   no ``dB``. ``--runs DIR --no-run`` reads runs made elsewhere (``bench.real_video --out DIR``)
@@ -55,9 +57,11 @@ from bench.real_video import (
     RealCase,
     _fit,
     _psnr,
+    _shift,
     _video_frames,
     read_step,
     run_case,
+    truth_shift,
 )
 from egosim.pipeline import media
 from egosim.stages.inpaint.reproject_fill import dilate
@@ -73,19 +77,25 @@ SYN_H, SYN_W, SYN_T = 192, 336, 17  # small synthetic clips
 
 
 def coverage_figures(
-    scene: np.ndarray, visible: np.ndarray, truth: np.ndarray | None, hand: np.ndarray
+    scene: np.ndarray,
+    visible: np.ndarray,
+    truth: np.ndarray | None,
+    hand: np.ndarray,
+    truth_valid: np.ndarray | None = None,
 ) -> dict[str, float]:
     """Coverage and PSNR of a render ``scene (T, H, W, 3)`` with ``visible (T, H, W)`` bool.
 
     ``truth (T, H, W, 3)`` the static scene (None: unknown, ``dB`` NaN), ``hand (T, H, W)``
-    bool pixels left out of every figure.
+    bool pixels left out of every figure, ``truth_valid (H, W)`` bool pixels where the truth is
+    defined (None: all; a registered truth has no pixels where its shift pulled in the border).
     """
     free = ~hand  # (T, H, W)
     cov = (visible & free).reshape(len(scene), -1).sum(1) / np.maximum(
         free.reshape(len(scene), -1).sum(1), 1
     )  # (T,)
+    valid = np.ones(scene.shape[1:3], bool) if truth_valid is None else truth_valid  # (H, W)
     psnrs = [
-        float("nan") if truth is None else _psnr(scene[t], truth[t], visible[t] & free[t])
+        float("nan") if truth is None else _psnr(scene[t], truth[t], visible[t] & free[t] & valid)
         for t in range(len(scene))
     ]
     return {
@@ -209,15 +219,19 @@ def real_case(
             truth = _fit(_video_frames(data / case.static_truth), indices, (h, w))
             hands = _fit(_video_frames(data / case.hands_truth), indices, (h, w))
             hand = hands.max(axis=3) > HAND_RENDER_THRESHOLD  # (T, H, W)
+            # registered like bench.real_video: videos_static is offset by its principal point
+            dx, dy = truth_shift(real[0], truth[0])
+            truth = np.stack([_shift(f, dx, dy) for f in truth])  # (T, H, W, 3)
+            inside = _shift(np.full((h, w), 255, np.uint8), dx, dy) == 255  # (H, W)
         elif cid in masks:
             mask = media.decode_lossless_video(masks[cid]["hand_mask"], f"{cid} hand_mask")
-            hand, truth = mask > 0, None  # (T, H, W)
+            hand, truth, inside = mask > 0, None, None  # (T, H, W)
         else:
             out.append(({"case": case.name, "clip": cid, "error": "no hand_mask row"}, real[0]))
             continue
         hand = dilate(hand, HAND_DILATE_PX) > 0  # (T, H, W)
         row = {"case": case.name, "clip": cid, **_cloud_figures(cloud_rows.get(cid), (h, w))}
-        row.update(coverage_figures(video, visible, truth, hand))
+        row.update(coverage_figures(video, visible, truth, hand, inside))
         out.append((row, sheet_row(real[0], video[0], visible[0], hand[0], video[-1])))
     if not out:
         return [({"case": case.name, "error": "no scene_render output"}, None)]
