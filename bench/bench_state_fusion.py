@@ -475,6 +475,85 @@ def bench_state_fusion_estimated_depth() -> list[dict[str, Any]]:
     return out
 
 
+def measure_scene_cloud_start(config: WorldConfig, fusion: StateFusionConfig) -> dict[str, Any]:
+    """The dataset path with estimated depth: the clip's ``scene_cloud`` (its first frame) is
+    the state before it, the interaction clip is fused from a plane sweep (no depth column
+    read). Returns the moved object's centroid error (its instance in the state after, by
+    :func:`_instance_for`, against the truly visible surface in its geometry frame; inf when no
+    instance covers it), the no-update baseline (the cloud's points of the object, within 1 cm
+    of its true surface before the move, against the same surface), whether that instance was
+    flagged, and the points left standing on the object's old place."""
+    from egosim.stages.scene_cloud.stage import SceneCloudStage
+
+    clip = render_clip(config)
+    rows = clip_rows(clip)
+    cloud = SceneCloudStage().process({"clips": rows["clips"]})
+    state = state_from_row(StateFusionStage(fusion).process({**rows, "scene_cloud": cloud}))
+    n = int(cloud["num_points"])
+    before = np.frombuffer(cloud["points_xyz"], "<f4").reshape(n, 3)
+    truth = scene_truth(config, clip.object_poses[-1], clip.world_from_cam)
+    (oid,) = moved_objects(clip.object_poses)
+    inst, frame = _instance_for(state, truth.object_points(int(oid)))
+    target = visible_object_points(clip, max(frame, 0), int(oid))
+    old = clip.object_poses[0, oid - 1, :3, 3]
+    old_copy = scene_truth(config, clip.object_poses[0], clip.world_from_cam).object_points(
+        int(oid)
+    )
+
+    def at_old_place(points: np.ndarray) -> int:
+        near = np.linalg.norm(points[:, :2] - old[:2], axis=1) < 0.025
+        return int((near & (points[:, 2] > old[2] + 0.015)).sum())
+
+    return {
+        "error": centroid_error(state.instance_points(inst), target) if inst else float("inf"),
+        "baseline_error": centroid_error(
+            before[nearest_distance(before, old_copy) <= 0.01], target
+        ),
+        "flagged": any(i.id == inst and i.interactive for i in state.instances),
+        "old_place": at_old_place(state.points),
+        "old_place_baseline": at_old_place(before),
+    }
+
+
+def bench_state_fusion_scene_cloud_start() -> list[dict[str, Any]]:
+    """From the clip's scene cloud, fused from estimated depth (seeds 0-2, 120x208x17; default
+    world = tuned, alt = held out): points left on the moved object's old place and how many
+    moved objects were flagged, with the hands' carry (``carry_held``) against without it."""
+    out = []
+    for variant in ("default", "alt"):
+        worlds = [WorldConfig(seed=s, variant=variant, **SMALL) for s in (0, 1, 2)]
+        runs = {
+            carry: [
+                measure_scene_cloud_start(
+                    w, StateFusionConfig(depth_source="estimate", carry_held=carry)
+                )
+                for w in worlds
+            ]
+            for carry in (True, False)
+        }
+        out.append(
+            _mm_row(
+                f"scene cloud + estimated depth ({variant}): moved-object centroid error",
+                [r["error"] for r in runs[True]],
+                [r["baseline_error"] for r in runs[True]],
+            )
+        )
+        for key, label, unit in (
+            ("old_place", "points left on the old place", "points"),
+            ("flagged", "moved objects flagged", "fraction"),
+        ):
+            out.append(
+                {
+                    "name": f"scene cloud + estimated depth ({variant}): {label}",
+                    "value": float(np.mean([r[key] for r in runs[True]])),
+                    "unit": unit,
+                    "baseline": "carry_held off",
+                    "baseline_value": float(np.mean([r[key] for r in runs[False]])),
+                }
+            )
+    return out
+
+
 def bench_state_fusion_full_size() -> list[dict[str, Any]]:
     """Seconds per state update of one 61-frame 480x832 clip (issue 13's target: under 30 s on
     2 cores), against the first state of the same clip, and the moved object's error there."""
