@@ -50,10 +50,10 @@ def test_mean_iou_on_synthetic_world() -> None:
     per_seed = {seed: mean_iou(stage.masks_for_clip(world_clip(seed)), world_clip(seed).hand_mask)
                 for seed in SEEDS}  # fmt: skip
     mean = float(np.mean(list(per_seed.values())))
-    # Image-space arms (no world axis), at 96x160 x 12 frames. Measured (hand_mask v9): seed 0
-    # 0.761, 1 0.734, 2 0.749, 3 0.836 (mean 0.770; v7: 0.739); tuned on this world. Tolerance
-    # 0.65 (issue 9's goal: 0.8).
-    assert mean >= 0.65, f"mean IoU {mean:.3f} per seed {per_seed}"
+    # Image-space arms (no world axis), at 96x160 x 12 frames. Measured (hand_mask v10): seed 0
+    # 0.910, 1 0.794, 2 0.874, 3 0.911 (mean 0.872; v9: 0.770); tuned on this world. Tolerance
+    # 0.8 (issue 9's goal; was 0.65 before v10).
+    assert mean >= 0.8, f"mean IoU {mean:.3f} per seed {per_seed}"
 
 
 def test_colour_model_beats_capsules_alone() -> None:
@@ -176,6 +176,83 @@ def test_arm_direction_turn_cost(monkeypatch: pytest.MonkeyPatch) -> None:
     assert seen["radius"] == pytest.approx(0.027 * scale)  # FOREARM_RADIUS_M[0] at the wrist
 
 
+def _hand_keypoints(wrist: np.ndarray, up: np.ndarray, length: float, span: float) -> np.ndarray:
+    """Keypoints ``(21, 2)`` of a flat hand: knuckles ``length`` px from ``wrist`` along the unit
+    ``up`` (wrist to knuckles), ``span`` px apart across it, fingers on along ``up``."""
+    across = np.array([-up[1], up[0]])
+    kp = np.full((21, 2), np.nan)
+    kp[0] = wrist
+    for j, offset in zip((5, 9, 13, 17), (-1.5, -0.5, 0.5, 1.5), strict=True):
+        base = wrist + length * up + offset * span / 3.0 * across
+        kp[j : j + 4] = [base + i * 6.0 * up for i in range(4)]
+    kp[1:5] = [wrist - 0.6 * span * across + i * 5.0 * up for i in range(4)]
+    return kp
+
+
+def _sleeve_frame(h: int, w: int, wrist: np.ndarray, d: np.ndarray, seed: int) -> np.ndarray:
+    """A busy table ``(H, W, 3)`` with a purple sleeve 17 px wide from ``wrist`` along ``d``."""
+    rng = np.random.default_rng(seed)
+    image = np.clip(rng.normal(120, 40, (h, w, 3)), 0, 255).astype(np.uint8)
+    image = cv2.GaussianBlur(image, (5, 5), 0)
+    end = wrist + 400 * d
+    cv2.line(image, tuple(int(v) for v in wrist), tuple(int(v) for v in end), (150, 40, 160), 17)
+    return image
+
+
+def _sleeve_pixels(h: int, w: int, wrist: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """The sleeve's core ``(H, W)`` bool from 25 px past the wrist on, 9 px wide."""
+    core = np.zeros((h, w), np.uint8)
+    a, b = wrist + 25 * d, wrist + 400 * d
+    cv2.line(core, tuple(int(v) for v in a), tuple(int(v) for v in b), 1, 9)
+    return core > 0
+
+
+def test_arm_of_a_foreshortened_hand_is_found() -> None:
+    """A hand pointing into the view (knuckles 4 px from the wrist in the image, a normal
+    knuckle span) still gets its sleeve: lengths along the arm come from the hand's scale
+    (hand_mask v10), not its projected length, which put the whole arm strip inside the hand."""
+    from egosim.stages.hand_mask.arm_region import ArmParams, hand_arm_mask
+
+    h, w = 160, 200
+    wrist, down = np.array([100.5, 40.5]), np.array([0.0, 1.0])
+    image = _sleeve_frame(h, w, wrist, down, 2)
+    kp = _hand_keypoints(wrist, -down, 4.0, 16.0)  # (21, 2) foreshortened: 4 px wrist-knuckle
+    sleeve = _sleeve_pixels(h, w, wrist, down)
+    found = hand_arm_mask(image, kp[None], np.array([True]), CapsuleParams(), ArmParams()) > 0
+    assert found[sleeve].mean() > 0.9, f"sleeve covered {found[sleeve].mean():.2f}"
+    off = np.ones((h, w), bool)
+    off[:, 70:131] = False
+    assert found[off].mean() < 0.01, f"table masked {found[off].mean():.3f}"
+    short = ArmParams(unforeshortened=False)
+    old = hand_arm_mask(image, kp[None], np.array([True]), CapsuleParams(), short) > 0
+    assert old[sleeve].mean() < 0.5, "the projected length alone should miss this arm"
+
+
+def test_no_sideways_arm_for_a_hand_at_the_border() -> None:
+    """A hand entering from the bottom border (its arm below the image): no arm band is drawn
+    sideways along the table, though a sleeve-coloured bar runs there (hand_mask v10); a hand
+    in the middle of the image still finds that bar 60 degrees off its own direction."""
+    from egosim.stages.hand_mask.arm_region import ArmParams, hand_arm_mask
+
+    h, w = 160, 240
+    side = np.array([np.cos(np.radians(200.0)), np.sin(np.radians(200.0))])  # left, a bit up
+    kp_low = _hand_keypoints(np.array([120.5, 154.5]), np.array([0.0, -1.0]), 30.0, 20.0)
+    image = _sleeve_frame(h, w, np.array([120.5, 154.5]), side, 4)
+    bar = _sleeve_pixels(h, w, np.array([120.5, 154.5]), side)
+    found = hand_arm_mask(image, kp_low[None], np.array([True]), CapsuleParams(), ArmParams()) > 0
+    assert found[bar].mean() < 0.1, f"sideways band covered {found[bar].mean():.2f} of the bar"
+    always = ArmParams(out_of_view=0.0)
+    old = hand_arm_mask(image, kp_low[None], np.array([True]), CapsuleParams(), always) > 0
+    assert old[bar].mean() > 0.5, "without the rule the search follows the bar"
+    wrist = np.array([120.5, 60.5])
+    kp_mid = _hand_keypoints(wrist, np.array([0.0, -1.0]), 30.0, 20.0)  # arm 60 deg off down
+    down = np.array([np.cos(np.radians(150.0)), np.sin(np.radians(150.0))])
+    image = _sleeve_frame(h, w, wrist, down, 5)
+    bar = _sleeve_pixels(h, w, wrist, down)
+    found = hand_arm_mask(image, kp_mid[None], np.array([True]), CapsuleParams(), ArmParams()) > 0
+    assert found[bar].mean() > 0.9, f"mid-image arm covered {found[bar].mean():.2f}"
+
+
 def test_region_direction_of_a_ray_and_of_a_blob() -> None:
     """A ray from the wrist gives its direction (to 2 degrees); a round patch gives none."""
     from egosim.stages.hand_mask.arm_region import region_direction
@@ -203,10 +280,10 @@ def test_mean_iou_on_held_out_world() -> None:
         )
         per_case[(mode, seed)] = mean_iou(stage.masks_for_clip(clip), clip.hand_mask)
     mean = float(np.mean(list(per_case.values())))
-    # Measured at 96x160 x 8 frames (hand_mask v9): tabletop 1 0.356, wild 2 0.392 (mean 0.374;
-    # v7: 0.377): the alt arms' sleeves and upper arms are found only in part at this size.
-    # Tolerance 0.3 (issue 9's goal: 0.8).
-    assert mean >= 0.3, f"held-out mean IoU {mean:.3f} per case {per_case}"
+    # Measured at 96x160 x 8 frames (hand_mask v10): tabletop 1 0.498, wild 2 0.848 (mean
+    # 0.673; v9: 0.374): the alt arms' sleeves and upper arms are found only in part at this
+    # size. Tolerance 0.55 (was 0.3 before v10; issue 9's goal: 0.8).
+    assert mean >= 0.55, f"held-out mean IoU {mean:.3f} per case {per_case}"
 
 
 def test_backward_propagation_masks_an_arm_before_its_keypoints() -> None:

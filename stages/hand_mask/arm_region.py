@@ -7,7 +7,10 @@ hand with 2D keypoints (MANO order, pixels, pixel centres at integer + 0.5):
 - the hand's own direction is the wrist minus the middle knuckle (mean of the knuckles when
   that one is unknown); the arm's direction ``d`` is searched within ``max_turn_deg`` of it for
   the strip whose colour is most uniform and most unlike the strips beside it
-  (:func:`arm_direction`);
+  (:func:`arm_direction`); lengths along the arm are in hand lengths, at least the palm's
+  average length at the hand's scale (a hand pointing into the view is short in the image,
+  its arm often is not); when the hand's own direction leaves the image within
+  ``out_of_view`` hand lengths, its arm is out of view and the direction is not searched;
 - a thin strip beyond the wrist along ``d`` (``seed_start``..``seed_end`` hand lengths) is
   certainly arm, extended by a walk along ``d`` while the colour holds and still stands out from
   the sides (:func:`arm_extent`); where the strip does not stand out from either side there is
@@ -49,6 +52,7 @@ from egosim.stages.hand_mask.capsules import (
 )
 
 MIDDLE_KNUCKLE = 9  # MANO index of the middle finger's MCP joint
+PALM_LENGTH_M = 0.092  # wrist to middle knuckle, average adult, metres
 
 
 @dataclass(frozen=True)
@@ -71,6 +75,11 @@ class ArmParams:
     refine_direction: bool = True  # re-aim the arm along the arm-coloured region's main axis
     refine_half_angle_deg: float = 60.0  # that region is looked for this far either side
     region_probable: bool = True  # that region is probably arm (else background off the band)
+    unforeshortened: bool = True  # lengths along the arm from the hand's scale, not its image
+    # length, when that is longer (a hand pointing into the view is short; its arm often not)
+    out_of_view: float = 0.5  # no direction search when the hand's own direction leaves the
+    # image within this many hand lengths of the wrist: its arm is out of view, and a search
+    # sideways would follow the table (0: always search)
     hand_ring: float = 0.03  # probably-background ring round the hand (GrabCut may grow the
     # hand into it), times its scale in px per metre: 3 cm at the hand's depth (0: none)
 
@@ -265,6 +274,20 @@ def arm_extent(
     return last, ref_colour
 
 
+def _exit_distance(point: np.ndarray, d: np.ndarray, width: int, height: int) -> float:
+    """Distance in pixels from ``point (2,)`` along the unit ``d (2,)`` to the image border (0
+    when ``point`` is outside the image)."""
+    if not (0.0 <= point[0] <= width and 0.0 <= point[1] <= height):
+        return 0.0
+    ts = []
+    for p, v, size in ((point[0], d[0], width), (point[1], d[1], height)):
+        if v > 1e-9:
+            ts.append((size - p) / v)
+        elif v < -1e-9:
+            ts.append(-p / v)
+    return float(min(ts)) if ts else float("inf")
+
+
 def _rotate(v: np.ndarray, degrees: float) -> np.ndarray:
     a = np.radians(degrees)
     return np.array([np.cos(a) * v[0] - np.sin(a) * v[1], np.sin(a) * v[0] + np.cos(a) * v[1]])
@@ -296,8 +319,13 @@ def draw_arm_labels(
     found = hand_direction(keypoints)
     if capsule.forearm and found is not None:
         wrist, d, hand_len = found
+        if arm.unforeshortened:
+            # A hand pointing into the view is short in the image, its arm often is not: lengths
+            # along the arm come from the hand's scale (its least foreshortened palm bone).
+            hand_len = max(hand_len, PALM_LENGTH_M * scale * capsule.radius_scale)
         r_wrist = FOREARM_RADIUS_M[0] * scale * capsule.radius_scale
-        if lab is not None and arm.max_turn_deg > 0:
+        leaves = _exit_distance(wrist, d, *labels.shape[::-1]) < arm.out_of_view * hand_len
+        if lab is not None and arm.max_turn_deg > 0 and not leaves:
             d = arm_direction(
                 lab,
                 wrist,

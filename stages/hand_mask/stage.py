@@ -203,14 +203,16 @@ class HandMaskStage(ClipStage):
     # cleaned joints and a replacement camera (see the module docstring)
     optional_inputs: ClassVar[Mapping[str, ShardSchema]] = {**CAMERA_ROLES, "hands": HANDS}
     output = HAND_MASK
-    version = 9  # 2: image-space arm masks (no world axis). 3: arm found by a colour walk, masks
+    version = 10  # 2: image-space arm masks (no world axis). 3: arm found by a colour walk, masks
     # carried into frames whose hands were missed. 4: arm re-aimed along its colour region.
     # 5: that region is probably arm wherever it runs. 6: each hand carried into the frames that
     # missed it, and only its certain seeds (skeleton, arm strip) carried with confidence.
     # 7: a robot clip's embodiment_mask (URDF arm) added. 8: probable-background fan 25 -> 55
     # degrees either side of the arm (GrabCut may take an arm bent at the wrist or widened by
     # perspective). 9: the arm direction search's turn cost is its own parameter (the forearm's
-    # half-width was passed in its place: a cost of 15-40 per radian, scale-dependent), now 3
+    # half-width was passed in its place: a cost of 15-40 per radian, scale-dependent), now 3.
+    # 10: lengths along the arm at least the palm's length at the hand's scale (a foreshortened
+    # hand's arm strip lay inside the hand); no direction search when the hand points out of view
     backends = ("keypoints", "sam")
     # What process reads (the executor decodes nothing else): the frames, joints and camera
     # of the clip, the robot arm's mask, the cleaned joints.
