@@ -292,3 +292,25 @@ def test_chained_run_refuses_bad_flags_before_running(loop_inputs, tmp_path: Pat
     assert "--input-shard takes NAME=PATH, got 'state'" in result.output
     assert "--input-shard 'pack': the workflow's inputs are ['segment', 'state']" in result.output
     assert not (tmp_path / "run").exists()
+
+
+def test_a_rejected_link_stops_the_chain_with_the_reason(loop_inputs, tmp_path: Path) -> None:
+    """Segment 1 from another world frame (cameras 10 m away): its fuse step rejects it, so
+    link 2 has no state; the chain stops naming the link and the reason (never the old state
+    passed on)."""
+    clip, seg2 = loop_inputs["clip"], loop_inputs["seg2"]
+    far = dataclasses.replace(clip, world_from_cam=translated(clip.world_from_cam, [10.0, 0, 0]))
+    write_clips(tmp_path / "seg1.parquet", [far])
+    write_clips(tmp_path / "seg2.parquet", [seg2])
+    with ShardWriter(tmp_path / "state.parquet", STATE, stage="test") as writer:
+        writer.write_row(state_for_clip(loop_inputs["row0"], clip.clip_id))
+    out = tmp_path / "run"
+    args = ["--out", str(out), "--scheduler", "here", "--chain", "segment"]
+    args += ["--feed", "state=fuse", "--input-shard", f"state={tmp_path / 'state.parquet'}"]
+    for seg in ("seg1", "seg2"):
+        args += ["--input-shard", f"segment={tmp_path / f'{seg}.parquet'}"]
+    result = _run(*args)
+    assert result.exit_code == 2, result.output
+    assert "link 1" in result.output and "wrote no row to feed link 2" in result.output
+    assert "no overlap in camera poses" in result.output
+    assert not (out / "link-02").exists()
