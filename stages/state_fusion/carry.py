@@ -3,23 +3,25 @@
 Fusion from an estimated depth (a plane sweep) sees almost nothing of a flat-coloured object:
 no texture, no match, no depth, so no object track and no interaction test. The hands row has
 what the sweep lacks: 3D joints in the world for every frame. An object a hand holds moves
-rigidly with it, so :func:`carried_objects` predicts where it went:
+rigidly with it, so :func:`carried_objects` predicts where it went, per hand:
 
-1. the object: the previous state's points above the support plane (between
-   ``object_min_height_m`` and ``object_max_height_m``, inside its footprint), clustered by
-   DBSCAN (``cluster_eps_m``); a cluster whose points belong to a previous instance is that
-   whole instance;
-2. contact: frames where the hand's grip point (between the thumb tip and the index and middle
-   tips) lies within ``carry_contact_m`` of the cluster;
-3. the grasp frame ``g``: of the contact frames, the one where the palm moves least (the hand
-   stops to take hold);
-4. the palm's rigid motion from ``g`` to each later frame ``k`` (Kabsch on the wrist and the
-   four knuckles, joints 0, 5, 9, 13 and 17, which finger closure does not move) carries the
-   object; it must leave the support (its lowest points more than ``carry_lift_m`` above their
-   height at ``g``) and come back to rest (within ``carry_rest_m`` of it): the release frame
-   ``r`` is the frame of that first rest where the object sits lowest. After the release the
-   hand lifts off and the carried copy would rise again; so a hand that only touches or
-   pushes an object never moves it, and neither does a hand that never puts it down;
+1. closed frames: the hand's finger spread (:func:`closure`) is at least ``carry_close_drop``
+   below its most open over the clip (:func:`closed_frames`);
+2. the grasp frame ``g``: of the closed frames whose grip point (between the thumb tip and the
+   index and middle tips) lies within ``carry_contact_m`` of a previous-state point resting on
+   the support plane (between ``object_min_height_m`` and ``object_max_height_m`` above it,
+   inside its footprint), the one where the palm moves least (:func:`grasp_frame`);
+3. the object: the DBSCAN clusters (``cluster_eps_m``) of those resting points that the grip
+   touches at ``g`` (an object seen in parts is several clusters), their lowest centimetre,
+   and the whole of any previous instance they mostly hold;
+4. the palm's rigid motion from ``g`` to each later closed frame ``k`` (Kabsch on the wrist
+   and the four knuckles, joints 0, 5, 9, 13 and 17, which finger closure does not move)
+   carries the object; it must leave the support (its lowest points more than
+   ``carry_lift_m`` above their height at ``g``) and come back to rest (within
+   ``carry_rest_m``): the release frame ``r`` is the frame of that first rest where it sits
+   lowest (:func:`release_frame`). After the release the hand lifts off or opens, so a hand
+   that only touches or pushes an object never moves it, nor does one that never puts it
+   down;
 5. the object's points at ``r`` are its points before the grasp (the previous state's: its
    last observed geometry) moved by the palm's motion ``g -> r``: the retrospective update of
    the paper, with the geometry carried instead of observed.
@@ -30,11 +32,17 @@ A carry is kept when the object moved by more than ``settled_distance_m``.
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
+from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy.spatial import cKDTree
 
 from egosim.pipeline.geometry import make_se3, transform_points, umeyama
+from egosim.stages.state_fusion.config import StateFusionConfig
+
+if TYPE_CHECKING:  # fusion imports this module
+    from egosim.stages.state_fusion.fusion import SupportPlane
 
 PALM_JOINTS = (0, 5, 9, 13, 17)  # wrist and the four knuckles: rigid in the hand
 GRIP_JOINTS = (4, 8, 12)  # thumb, index and middle tips: the grip point lies between them
@@ -77,7 +85,6 @@ def closure(joints: np.ndarray) -> np.ndarray:
 def _speed(centres: np.ndarray, frames: np.ndarray) -> np.ndarray:
     """Palm speed ``(len(frames),)`` per frame by central differences over ``centres (T, 3)``
     (NaN rows: hand not seen; the nearest seen neighbours are used)."""
-    t = len(centres)
     seen = np.flatnonzero(np.all(np.isfinite(centres), axis=1))
     out = np.full(len(frames), np.inf)
     for i, k in enumerate(frames):
@@ -85,7 +92,7 @@ def _speed(centres: np.ndarray, frames: np.ndarray) -> np.ndarray:
         after = seen[seen > k]
         a = before[-1] if len(before) else k
         b = after[0] if len(after) else k
-        if b > a and b - a <= max(2, t):
+        if b > a:
             out[i] = float(np.linalg.norm(centres[b] - centres[a])) / (b - a)
     return out
 
@@ -113,7 +120,7 @@ def release_frame(
     closed: np.ndarray,
     grasp: int,
     points: np.ndarray,
-    height,
+    height: Callable[[np.ndarray], np.ndarray],
     lift_m: float,
     rest_m: float,
 ) -> tuple[int, np.ndarray] | None:
@@ -161,8 +168,8 @@ def carried_objects(
     valid: np.ndarray,
     points: np.ndarray,
     instance: np.ndarray,
-    plane,
-    config,
+    plane: SupportPlane,
+    config: StateFusionConfig,
 ) -> list[Carry]:
     """Every object of a previous state (``points (N, 3)``, ``instance (N,)``) that a hand of
     ``joints (T, 2, 21, 3)`` (``valid (T, 2)``) carried, on the support ``plane`` (a
