@@ -195,6 +195,8 @@ class TrackParams:
     max_coast: int = 3  # frames a lost hand's landmarks are carried by the flow alone
     reacquire_presence: float = 0.5  # presence needed to take a hand up again after carrying it
     max_gain: float = 4.0  # dark, flat crops get their contrast stretched by up to this gain
+    carry_to_edge: bool = True  # a hand lost at the clip's first/last frame, found next to it,
+    # is carried there by the optical flow (no later frame could take it up again)
 
 
 def flow_shift(prev_gray: np.ndarray, next_gray: np.ndarray, points: np.ndarray) -> np.ndarray:
@@ -237,7 +239,11 @@ def track_through_misses(
     again that way needs ``reacquire_presence`` (nothing vouches for it but the flow: on the
     synthetic world, accepting it at ``min_presence`` raised recall 0.60 -> 0.68 but the mean
     orientation error 13.5 -> 22.5 degrees), and the frames crossed stay empty (the sides step
-    bridges them). Returns ``tracked (T, K)`` bool: the slots filled here.
+    bridges them). A hand lost at the clip's first or last frame, found on the frame next to it,
+    is carried onto it by the flow (``carry_to_edge``: no frame beyond could take it up again,
+    and no bridge reaches an end). A hand already in a frame that is a fit to the followed
+    hand's fingers alone (:func:`_partial_fits`) does not stop it: the whole hand replaces it.
+    Returns ``tracked (T, K)`` bool: the slots filled here.
     """
     params = params or TrackParams()
     t = present.shape[0]
@@ -251,25 +257,43 @@ def track_through_misses(
             g = f + direction
             if not 0 <= g < t:
                 continue
-            sources = [(uv[f, k], 0, int(steps[f, k])) for k in np.flatnonzero(present[f])]
-            for src, coast, step in sources + coasting.pop(f, []):
+            sources = [(uv[f, k], 0, int(steps[f, k]), k) for k in np.flatnonzero(present[f])]
+            for src, coast, step, k in sources + coasting.pop(f, []):
                 if step >= params.max_steps:
                     continue
                 size = _size(src)
-                if _near_any(src.mean(axis=0), size, uv[g], present[g], params.duplicate_distance):
+                whole = present[g] & ~_partial_fits(src, uv[g], present[g], params)  # (K,)
+                if _near_any(src.mean(axis=0), size, uv[g], whole, params.duplicate_distance):
                     continue
-                if not (~present[g]).any():
+                if not (~whole).any():
                     continue
                 move = flow_shift(grey[f], grey[g], src) if params.flow else np.zeros(2)  # (2,)
                 res = _search(model, frames[g], src, move, params)
                 need = params.min_presence if coast == 0 else params.reacquire_presence
+                partial = present[g] & _partial_fits(res.uv, uv[g], present[g], params)  # (K,)
+                whole = present[g] & ~partial
                 if not _plausible(res, src, need, params) or _near_any(
-                    res.uv.mean(axis=0), _size(res.uv), uv[g], present[g], params.duplicate_distance
+                    res.uv.mean(axis=0), _size(res.uv), uv[g], whole, params.duplicate_distance
                 ):  # lost here (or it slid onto a hand already there)
                     if coast < params.max_coast and 0 <= g + direction < t:
-                        coasting.setdefault(g, []).append((src + move, coast + 1, step + 1))
+                        coasting.setdefault(g, []).append((src + move, coast + 1, step + 1, -1))
+                    elif params.carry_to_edge and coast == 0 and g in (0, t - 1):
+                        # g is the clip's first or last frame: no later frame can take the hand
+                        # up again, so the flow carries the hand found next to it onto it
+                        carried = src + move  # (21, 2)
+                        if not (~present[g]).any() or _near_any(
+                            carried.mean(axis=0), size, uv[g], present[g], params.duplicate_distance
+                        ):
+                            continue
+                        s = int(np.flatnonzero(~present[g])[0])
+                        uv[g, s], world[g, s] = carried, world[f, k]
+                        label_right[g, s] = label_right[f, k]
+                        present[g, s], tracked[g, s], steps[g, s] = True, True, step + 1
                     continue
-                s = int(np.flatnonzero(~present[g])[0])
+                free = np.flatnonzero(partial | ~present[g])  # a partial fit of it is replaced
+                if not free.size:
+                    continue
+                s = int(free[np.argmax(partial[free])])
                 uv[g, s], world[g, s], label_right[g, s] = res.uv, res.world, res.right
                 present[g, s], tracked[g, s] = True, True
                 steps[g, s] = step + 1
@@ -328,6 +352,27 @@ def _search(
         if again.presence >= best.presence:
             best = again
     return best
+
+
+def _partial_fits(
+    hand: np.ndarray, uv: np.ndarray, present: np.ndarray, params: TrackParams
+) -> np.ndarray:
+    """``(K,)`` bool: present hands of ``uv (K, 21, 2)`` that look like a part of ``hand (21, 2)``
+    (its fingers alone): smaller by more than ``max_size_change`` and with centres nearer than
+    ``duplicate_distance`` of its size (the rule that makes two answers one hand).
+
+    The landmark model sometimes fits a whole hand to a grasping hand's fingers (HOT3D window 0:
+    a 40-50 px "hand" on the fingertips of a 150-190 px hand reaching for a toy house, found by
+    the palm detector at frames 12-13 and followed back to frame 3); such a fit must not stop
+    the whole hand, followed from where it is found whole, from taking those frames.
+    """
+    out = np.zeros(len(uv), dtype=bool)
+    size = _size(hand)
+    centre = hand.mean(axis=0)  # (2,)
+    for k in np.flatnonzero(present):
+        near = np.linalg.norm(uv[k].mean(axis=0) - centre) <= params.duplicate_distance * size
+        out[k] = bool(near) and _size(uv[k]) * params.max_size_change < size
+    return out
 
 
 def _near_any(
