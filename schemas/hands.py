@@ -17,6 +17,40 @@ from egosim.schemas.base import Column, ShardSchema
 from egosim.schemas.clips import HAND_JOINTS_PER_FRAME
 from egosim.schemas.invariants import frame_count_problems
 
+MANO_COLUMNS = ("mano_global_orient", "mano_hand_pose", "mano_transl", "mano_betas")
+MANO_WIDTHS = {"mano_global_orient": 3, "mano_hand_pose": 45, "mano_transl": 3}  # per hand
+
+
+def _check_mano(row: Mapping[str, Any], valid: np.ndarray) -> list[str]:
+    """The ``mano_*`` columns: all null or all set, ``T`` rows of two hands' values, NaN where
+    the hand is not valid, and each hand-frame's four groups all finite or all NaN."""
+    given = [name for name in MANO_COLUMNS if row.get(name) is not None]
+    if not given:
+        return []
+    if len(given) != len(MANO_COLUMNS):
+        missing = sorted(set(MANO_COLUMNS) - set(given))
+        return [f"mano columns must be all set or all null, missing {missing}"]
+    t = len(valid)
+    parts = []
+    for name in MANO_COLUMNS:
+        value = row[name]
+        widths = {len(frame) for frame in value}
+        if len(value) != t or len(widths) != 1:
+            return [f"{name} must have {t} rows of one width, got {len(value)} rows {widths}"]
+        width = widths.pop()
+        want = 2 * MANO_WIDTHS.get(name, width // 2)
+        if width != want or width == 0:
+            return [f"{name} rows must hold 2 x {want // 2} values, got {width}"]
+        parts.append(np.asarray(value, dtype=np.float64).reshape(t, 2, -1))
+    params = np.concatenate(parts, axis=2)  # (T, 2, 51 + B)
+    problems = []
+    if np.any(np.isfinite(params[~valid])):
+        problems.append("invalid hands must have NaN mano parameters")
+    finite = np.isfinite(params)
+    if np.any(finite.any(axis=2) != finite.all(axis=2)):
+        problems.append("a hand-frame's mano parameters must be all finite or all NaN")
+    return problems
+
 
 def _check_hands(row: Mapping[str, Any]) -> list[str]:
     problems = frame_count_problems(row, ("hand_joints", "hand_valid", "hand_confidence"))
@@ -35,12 +69,21 @@ def _check_hands(row: Mapping[str, Any]) -> list[str]:
     for name in ("num_duplicates_removed", "num_outliers_removed"):
         if row[name] < 0:
             problems.append(f"{name} must be >= 0, got {row[name]}")
-    return problems
+    return problems + _check_mano(row, valid)
+
+
+MANO_DOC = (
+    " World frame, per hand (0 left, 1 right); hand_joints = hand_joints_from_params(...) "
+    "(egosim.stages.hands.mano): right hand MANO(...) + transl, left hand the mirrored model "
+    "(rotation vectors flipped (x, -y, -z), joints mirrored in x). Null when the backend fits "
+    "no MANO (given, mediapipe, hamer, regressor head joints); NaN where the hand has no fit."
+)
 
 
 HANDS = ShardSchema(
     name="hands",
-    version=1,
+    # 2: optional MANO fits (mano_global_orient, mano_hand_pose, mano_transl, mano_betas)
+    version=2,
     doc="Per-frame 3D hand joints after de-duplication and temporal outlier removal.",
     columns=(
         Column("clip_id", pa.string(), "Clip id, joins with the clips shard."),
@@ -71,6 +114,31 @@ HANDS = ShardSchema(
             "num_outliers_removed",
             pa.int32(),
             "Hand-frames dropped as temporal outliers (both velocities above the threshold).",
+        ),
+        Column(
+            "mano_global_orient",
+            pa.list_(pa.list_(pa.float32(), 6)),
+            "(T, 2*3) float32 MANO wrist rotation vectors, radians." + MANO_DOC,
+            nullable=True,
+        ),
+        Column(
+            "mano_hand_pose",
+            pa.list_(pa.list_(pa.float32(), 90)),
+            "(T, 2*45) float32 MANO finger rotation vectors (15 joints, parent-relative, from "
+            "the flat hand), radians." + MANO_DOC,
+            nullable=True,
+        ),
+        Column(
+            "mano_transl",
+            pa.list_(pa.list_(pa.float32(), 6)),
+            "(T, 2*3) float32 MANO translation, world metres." + MANO_DOC,
+            nullable=True,
+        ),
+        Column(
+            "mano_betas",
+            pa.list_(pa.list_(pa.float32())),
+            "(T, 2*B) float32 MANO shape coefficients (B = 10 for MANO's file)." + MANO_DOC,
+            nullable=True,
         ),
     ),
     validators=(_check_hands,),

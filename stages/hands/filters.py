@@ -18,7 +18,7 @@ more frames is not caught by this test.
 from __future__ import annotations
 
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -37,6 +37,10 @@ class Detections:
     side: np.ndarray  # (T, K) int 0 = left, 1 = right
     confidence: np.ndarray  # (T, K, 21) float per-joint confidence in [0, 1]
     present: np.ndarray  # (T, K) bool slot holds a detection
+    # (T, K, 51 + B) world MANO fit per slot: global_orient (3) and hand_pose (45) rotation
+    # vectors, transl (3), betas (B) (:func:`egosim.stages.hands.mano.hand_joints_from_params`);
+    # NaN where a slot has none; None: the backend fits no MANO
+    mano: np.ndarray | None = None
 
     def check(self, num_frames: int) -> None:
         """Raise :class:`HandFilterError` when the arrays disagree with each other."""
@@ -48,6 +52,8 @@ class Detections:
             problems.append(f"joints shape {self.joints.shape} != ({t}, {k}, 21, 3)")
         if self.side.shape != (t, k) or self.confidence.shape != (t, k, 21):
             problems.append(f"side {self.side.shape} / confidence {self.confidence.shape} bad")
+        if self.mano is not None and (self.mano.ndim != 3 or self.mano.shape[:2] != (t, k)):
+            problems.append(f"mano shape {self.mano.shape} != ({t}, {k}, 51 + B)")
         if problems:
             raise HandFilterError("; ".join(problems))
 
@@ -125,7 +131,7 @@ def deduplicate(
         for i in idx:
             present[t, i] = i in keep
     removed = int(det.present.sum() - present.sum())
-    return Detections(det.joints, det.side, det.confidence, present), removed
+    return replace(det, present=present), removed
 
 
 def _linked(a: np.ndarray, b: np.ndarray, threshold: float) -> bool:
@@ -154,6 +160,18 @@ def to_hands(det: Detections) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
             det.confidence[f, k],
         )
     return joints, valid, conf
+
+
+def mano_to_sides(det: Detections) -> np.ndarray | None:
+    """The MANO fits of :func:`to_hands`'s hands: ``(T, 2, 51 + B)`` by side, NaN where a side
+    has no detection or its detection no fit; None when the backend fits no MANO."""
+    if det.mano is None:
+        return None
+    t = det.present.shape[0]
+    out = np.full((t, 2, det.mano.shape[2]), np.nan)
+    for f, k in zip(*np.nonzero(det.present), strict=True):
+        out[f, int(det.side[f, k])] = det.mano[f, k]
+    return out
 
 
 def palm_rotations(joints: np.ndarray) -> np.ndarray:

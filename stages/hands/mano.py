@@ -257,3 +257,71 @@ class ManoLayer(nn.Module):
 def load_mano_layer(path: str | Path, dtype: torch.dtype = torch.float32) -> ManoLayer:
     """A :class:`ManoLayer` (buffers in ``dtype``) from a MANO safetensors file."""
     return ManoLayer(load_mano_arrays(path), dtype)
+
+
+MIRROR_X = np.diag([-1.0, 1.0, 1.0])  # (3, 3) a left hand is a right hand mirrored across x
+FLIP_AXIS_ANGLE = np.array([1.0, -1.0, -1.0])  # M R(w) M = R(w * FLIP_AXIS_ANGLE), M = MIRROR_X
+
+
+def place_mano_parameters(
+    rotations_cam: np.ndarray,
+    root_cam: np.ndarray,
+    translation_cam: np.ndarray,
+    world_from_cam: np.ndarray,
+    left: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A regressed MANO fit as world parameters ``(global_orient (N, 3), hand_pose (N, 45),
+    transl (N, 3))`` (rotation vectors, radians; metres) for :func:`hand_joints_from_params`.
+
+    The network fits the right-hand model to a crop, mirrored for a left hand, in the camera's
+    axes: camera joints ``J_c = M_s MANO(R, betas) + T`` with ``M_s`` = :data:`MIRROR_X` for a left
+    hand, else I; ``rotations_cam (N, 16, 3, 3)`` are ``R``, ``root_cam (N, 3)`` is ``M_s J0``
+    (MANO's root joint, which no rotation moves) and ``translation_cam (N, 3)`` is ``T``. With
+    ``MANO(R0, ...) = R0 (MANO(I, ...) - J0) + J0`` and ``world_from_cam (N, 4, 4) = [Rwc | twc]``
+    the world joints are ``M_s MANO(R0', R1..15', betas) + transl`` for ``R0' = M_s Rwc M_s R0``,
+    ``Rj' = Rj``, ``transl = Rwc (M_s J0 + T) + twc - M_s J0``; a left hand's parameters are then
+    stored in the mirrored (left) model's convention, each rotation ``M_s R M_s`` (HaMeR's
+    ``(x, -y, -z)`` flip of a rotation vector)."""
+    from scipy.spatial.transform import Rotation
+
+    rot = np.asarray(rotations_cam, dtype=np.float64)  # (N, 16, 3, 3)
+    n = rot.shape[0]
+    mirror = np.where(np.asarray(left, dtype=bool)[:, None, None], MIRROR_X, np.eye(3))  # (N,3,3)
+    r_wc = np.asarray(world_from_cam, dtype=np.float64)[:, :3, :3]  # (N, 3, 3)
+    t_wc = np.asarray(world_from_cam, dtype=np.float64)[:, :3, 3]  # (N, 3)
+    world = rot.copy()  # (N, 16, 3, 3) in the stored (side's own) convention
+    world[:, 0] = r_wc @ mirror @ rot[:, 0] @ mirror  # = M_s R0' M_s
+    world[:, 1:] = mirror[:, None] @ rot[:, 1:] @ mirror[:, None]
+    vectors = Rotation.from_matrix(world.reshape(-1, 3, 3)).as_rotvec().reshape(n, 16, 3)
+    root = np.asarray(root_cam, dtype=np.float64)  # (N, 3)
+    transl = (r_wc @ (root + np.asarray(translation_cam, np.float64))[..., None])[..., 0]
+    transl = transl + t_wc - root  # (N, 3)
+    return vectors[:, 0], vectors[:, 1:].reshape(n, 45), transl
+
+
+def hand_joints_from_params(
+    layer: ManoLayer,
+    global_orient: np.ndarray,
+    hand_pose: np.ndarray,
+    betas: np.ndarray,
+    transl: np.ndarray,
+    left: np.ndarray,
+) -> np.ndarray:
+    """The 21 joints ``(N, 21, 3)`` (egosim order) of MANO parameters as the ``hands`` shard
+    stores them: ``global_orient (N, 3)`` and ``hand_pose (N, 45)`` rotation vectors, ``betas
+    (N, B)``, ``transl (N, 3)``, ``left (N,)``. A right hand is ``MANO(...) + transl``; a left
+    hand is the mirrored model, ``MIRROR_X MANO(flip(global_orient), flip(hand_pose), betas) +
+    transl`` with ``flip`` = :data:`FLIP_AXIS_ANGLE` per rotation vector."""
+    left = np.asarray(left, dtype=bool)  # (N,)
+    flip = np.where(left[:, None], FLIP_AXIS_ANGLE, 1.0)  # (N, 3)
+    orient = np.asarray(global_orient, np.float64) * flip  # (N, 3)
+    pose = np.asarray(hand_pose, np.float64).reshape(-1, 15, 3) * flip[:, None]  # (N, 15, 3)
+    dtype = layer.v_template.dtype
+    rotations = layer.rotations_from_axis_angle(
+        torch.as_tensor(orient, dtype=dtype), torch.as_tensor(pose.reshape(-1, 45), dtype=dtype)
+    )  # (N, 16, 3, 3)
+    with torch.no_grad():
+        _, joints = layer(rotations, torch.as_tensor(np.asarray(betas, np.float64), dtype=dtype))
+    joints = joints.double().cpu().numpy()  # (N, 21, 3)
+    joints[left, :, 0] *= -1.0
+    return joints + np.asarray(transl, np.float64)[:, None]

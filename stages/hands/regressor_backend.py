@@ -75,6 +75,7 @@ from egosim.stages.hands.mano import (
     NUM_MANO_JOINTS,
     ManoLayer,
     load_mano_layer,
+    place_mano_parameters,
     rotation_6d_to_matrix,
 )
 from egosim.stages.hands.mediapipe_backend import (
@@ -603,20 +604,42 @@ def regress_hands(
     model: HandRegressor, crops: np.ndarray, device: str = "cpu"
 ) -> tuple[np.ndarray, np.ndarray]:
     """Run ``model`` on ``crops (N, S, S, 3)`` uint8 RGB: ``(joints (N, 21, 3), cam (N, 3))``."""
+    joints, cams, _ = regress_hands_with_mano(model, crops, device)
+    return joints, cams
+
+
+def regress_hands_with_mano(
+    model: HandRegressor, crops: np.ndarray, device: str = "cpu"
+) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, np.ndarray] | None]:
+    """:func:`regress_hands` plus, for head ``mano``, the fit it came from: ``(rotations (N,
+    16, 3, 3), betas (N, B))`` in the crop's (right-hand) model; None for head ``joints``."""
     spec = model.spec
     mean = torch.tensor(spec.image_mean, dtype=torch.float32).view(1, 3, 1, 1)
     std = torch.tensor(spec.image_std, dtype=torch.float32).view(1, 3, 1, 1)
-    joints, cams = [], []
+    joints, cams, rotations, betas = [], [], [], []
     with torch.inference_mode():
         for i in range(0, len(crops), BATCH_SIZE):
             x = torch.from_numpy(crops[i : i + BATCH_SIZE]).permute(0, 3, 1, 2)  # (B, 3, S, S)
-            x = (x.float() / 255.0 - mean) / std  # (B, 3, S, S)
-            j, c = model(x.to(device))  # (B, 21, 3), (B, 3)
+            x = ((x.float() / 255.0 - mean) / std).to(device)  # (B, 3, S, S)
+            if spec.head == "mano" and model.mano is not None:
+                r, b, c = model.forward_mano(x)  # (B, 16, 3, 3), (B, K), (B, 3)
+                _, j = model.mano(r, b)  # (B, 21, 3): what forward returns
+                rotations.append(r.double().cpu().numpy())
+                betas.append(b.double().cpu().numpy())
+            else:
+                j, c = model(x)  # (B, 21, 3), (B, 3)
             joints.append(j.double().cpu().numpy())
             cams.append(c.double().cpu().numpy())
+    mano = None
+    if spec.head == "mano":
+        mano = (
+            (np.concatenate(rotations), np.concatenate(betas))
+            if rotations
+            else (np.zeros((0, 16, 3, 3)), np.zeros((0, spec.num_betas)))
+        )
     if not joints:
-        return np.zeros((0, NUM_HAND_JOINTS, 3)), np.zeros((0, 3))
-    return np.concatenate(joints), np.concatenate(cams)
+        return np.zeros((0, NUM_HAND_JOINTS, 3)), np.zeros((0, 3)), mano
+    return np.concatenate(joints), np.concatenate(cams), mano
 
 
 def regressor_detections(clip: Clip, params: RegressorParams) -> Detections:
@@ -637,7 +660,7 @@ def regressor_detections(clip: Clip, params: RegressorParams) -> Detections:
         items.append((f, s, centre, side))
         crops.append(crop_hand(clip.frames[f], centre, side, size, mirror=(s == LEFT)))
     stacked = np.stack(crops) if crops else np.zeros((0, size, size, 3), np.uint8)
-    shapes, cams = regress_hands(model, stacked, params.device)  # (N, 21, 3), (N, 3)
+    shapes, cams, fit = regress_hands_with_mano(model, stacked, params.device)  # (N, 21, 3)...
     left = np.array([s == LEFT for _, s, _, _ in items], dtype=bool)  # (N,)
     shapes[left, :, 0] *= -1.0  # a mirrored crop: mirror the hand back
     cams[left, 1] *= -1.0  # and its horizontal offset
@@ -661,4 +684,37 @@ def regressor_detections(clip: Clip, params: RegressorParams) -> Detections:
         conf[f, s] = float(np.clip(det_conf[f, s], 0.0, 1.0))
         present[f, s] = True
     side = np.tile(np.array([LEFT, RIGHT]), (t, 1))  # (T, 2)
-    return Detections(joints=joints, side=side, confidence=conf, present=present)
+    mano = None if fit is None else _mano_per_slot(fit, items, shapes, roots, clip, present)
+    return Detections(joints=joints, side=side, confidence=conf, present=present, mano=mano)
+
+
+def _mano_per_slot(
+    fit: tuple[np.ndarray, np.ndarray],
+    items: list,
+    shapes: np.ndarray,
+    roots: np.ndarray,
+    clip: Clip,
+    present: np.ndarray,
+) -> np.ndarray:
+    """``(T, 2, 51 + B)`` world MANO parameters per frame and side (the layout of
+    :data:`Detections.mano`) of the kept fits, NaN elsewhere (:func:`place_mano_parameters`;
+    ``shapes (N, 21, 3)`` are already mirrored back for left hands, so ``shapes[:, 0]`` is the
+    side's root joint)."""
+    rotations, betas = fit  # (N, 16, 3, 3), (N, B)
+    t = clip.num_frames
+    out = np.full((t, 2, 51 + betas.shape[1]), np.nan)
+    if not items:
+        return out
+    frames = np.array([f for f, _, _, _ in items])  # (N,)
+    left = np.array([s == LEFT for _, s, _, _ in items], dtype=bool)  # (N,)
+    poses = (
+        np.tile(np.eye(4), (len(items), 1, 1))
+        if clip.world_from_cam is None
+        else np.asarray(clip.world_from_cam, dtype=np.float64)[frames]
+    )  # (N, 4, 4)
+    with np.errstate(invalid="ignore"):
+        orient, pose, transl = place_mano_parameters(rotations, shapes[:, 0], roots, poses, left)
+    for n, (f, s, _, _) in enumerate(items):
+        if present[f, s]:
+            out[f, s] = np.concatenate([orient[n], pose[n], transl[n], betas[n]])
+    return out

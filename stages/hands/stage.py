@@ -30,12 +30,13 @@ from egosim.pipeline.geometry import se3_problems
 from egosim.pipeline.records import ClipsRecord, require_camera_poses
 from egosim.pipeline.stage import ClipRejected, ClipStage, ConfigError, StageConfig, join_columns
 from egosim.schemas import CLIPS, ShardSchema
-from egosim.schemas.hands import HANDS
+from egosim.schemas.hands import HANDS, MANO_COLUMNS
 from egosim.stages.common.cameras import CAMERA_COLUMNS, CAMERA_ROLES, Cameras, resolve_cameras
 from egosim.stages.hands.filters import (
     Detections,
     HandFilterError,
     deduplicate,
+    mano_to_sides,
     temporal_outliers,
     to_hands,
 )
@@ -132,6 +133,16 @@ def clean_hands(
     Returns ``(joints (T, 2, 21, 3), valid (T, 2), confidence (T, 2, 21), duplicates removed,
     outliers removed)``; raises :class:`ClipRejected` naming the clip when it cannot.
     """
+    *cleaned, _ = clean_hands_with_mano(row, config, cameras)
+    return tuple(cleaned)  # type: ignore[return-value]
+
+
+def clean_hands_with_mano(
+    row: Mapping[str, Any], config: HandsConfig, cameras: Cameras | None = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, int, int, np.ndarray | None]:
+    """:func:`clean_hands` plus the kept hands' MANO fits ``(T, 2, 51 + B)`` (NaN where a hand
+    is not valid; :data:`~egosim.stages.hands.filters.Detections.mano`'s layout), or None when
+    the backend fits no MANO."""
     clip = ClipsRecord.of(row)
     cid, t = clip.clip_id, clip.num_frames
     cams = cameras if cameras is not None else resolve_cameras({"clips": clip})
@@ -145,6 +156,7 @@ def clean_hands(
         det.check(t)
         det, dups = deduplicate(det, poses, intrinsics, config.iou_threshold)
         joints, valid, conf = to_hands(det)
+        mano = mano_to_sides(det)  # (T, 2, 51 + B) or None
         outliers = 0
         if config.despike:
             spikes = temporal_outliers(
@@ -154,9 +166,11 @@ def clean_hands(
             joints[spikes] = np.nan
             conf[spikes] = 0.0
             outliers = int(spikes.sum())
+        if mano is not None:
+            mano[~valid] = np.nan
     except (NoHandLabelsError, HandFilterError, HamerFileError) as exc:
         raise ClipRejected(f"clip {cid!r}: {exc}") from exc
-    return joints, valid, conf, dups, outliers
+    return joints, valid, conf, dups, outliers, mano
 
 
 class HandsStage(ClipStage):
@@ -170,7 +184,9 @@ class HandsStage(ClipStage):
     # crops (dark, sleeved hands of head-mounted video); a palm seen edge-on (no palm PnP) is
     # posed like the nearest frame instead of in MediaPipe's own axes.
     # 5: the palm lift re-estimates finger joint depths from bone lengths (hand_lift).
-    version = 5
+    # 6: a followed hand replaces a small fit on its own fingers, and a hand lost at the clip's
+    # first/last frame is carried there by the flow (mediapipe); MANO fits stored (regressor).
+    version = 6
     description = "3D hand joints per frame from the clip's labels, de-duplicated and de-spiked"
     config_class = HandsConfig
     inputs: ClassVar[Mapping[str, ShardSchema]] = {"clips": CLIPS}
@@ -201,7 +217,9 @@ class HandsStage(ClipStage):
         """Clean the joints of one clip."""
         row = ClipsRecord.of(rows["clips"])
         t = row.num_frames
-        joints, valid, conf, dups, outliers = clean_hands(row, self.config, resolve_cameras(rows))
+        joints, valid, conf, dups, outliers, mano = clean_hands_with_mano(
+            row, self.config, resolve_cameras(rows)
+        )
         return {
             "clip_id": row["clip_id"],
             "num_frames": t,
@@ -211,4 +229,19 @@ class HandsStage(ClipStage):
             "hand_confidence": conf.astype(np.float32).reshape(t, -1).tolist(),
             "num_duplicates_removed": dups,
             "num_outliers_removed": outliers,
+            **mano_columns(mano, t),
         }
+
+
+def mano_columns(mano: np.ndarray | None, t: int) -> dict[str, Any]:
+    """The ``hands`` schema's ``mano_*`` columns from fits ``(T, 2, 51 + B)`` (all null for
+    None: a backend without MANO)."""
+    if mano is None:
+        return dict.fromkeys(MANO_COLUMNS)
+    m = mano.astype(np.float32)  # (T, 2, 51 + B)
+    return {
+        "mano_global_orient": m[..., 0:3].reshape(t, -1).tolist(),
+        "mano_hand_pose": m[..., 3:48].reshape(t, -1).tolist(),
+        "mano_transl": m[..., 48:51].reshape(t, -1).tolist(),
+        "mano_betas": m[..., 51:].reshape(t, -1).tolist(),
+    }
