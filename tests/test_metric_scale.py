@@ -34,6 +34,7 @@ from egosim.stages.depth_camera.metric_scale import (
     MetricScaleParams,
     MetricScaleParamsError,
     estimate_metric_scale,
+    pooled_metric_scale,
     scale_from_landmarks,
     splat_depth,
     surface_depth,
@@ -356,3 +357,30 @@ if __name__ == "__main__":
         config = WorldConfig(seed=int(seed), mode=mode, variant=name)
         for line in world_scale_errors(config):
             print(config.variant, line, flush=True)
+
+
+@pytest.mark.parametrize("factor", [0.37, 2.9])
+def test_pooled_scale_of_two_segments_recovers_the_scale(small_world: Clip, factor: float) -> None:
+    """The source track's scale (depth_camera v9): two segments of one reconstruction, each with
+    its own first-frame depth, pooled into one scale."""
+    world_from_cam, _ = sfm_units(small_world, factor)
+    marks = oracle_landmarks(small_world)
+    segments, landmarks = [], []
+    for start, end in ((0, 9), (8, 17)):
+        hands = cv2.dilate(small_world.hand_mask[start], np.ones((17, 17), np.uint8)) > 0
+        depth = np.where(hands, 0.0, small_world.depth[start].astype(np.float64)) * factor
+        segments.append((small_world.frames[start:end], world_from_cam[start:end], depth, None))
+        landmarks.append(
+            RawLandmarks(
+                uv=marks.uv[start:end],
+                world=marks.world[start:end],
+                label_right=marks.label_right[start:end],
+                present=marks.present[start:end],
+            )
+        )
+    est = pooled_metric_scale(segments, small_world.intrinsics, landmarks=landmarks)
+    assert est.scale is not None, est.reason
+    # The issue's goal (10%); measured +6.4% (oracle landmarks with the palm lift: -6% to +7%).
+    assert est.scale * factor == pytest.approx(1.0, abs=0.10)
+    one = pooled_metric_scale(segments[:1], small_world.intrinsics, landmarks=landmarks[:1])
+    assert est.num_samples > one.num_samples  # both segments gave detections

@@ -492,6 +492,7 @@ def pooled_metric_scale(
     segments: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]],
     intrinsics: np.ndarray,
     params: MetricScaleParams | None = None,
+    landmarks: list[RawLandmarks] | None = None,
 ) -> ScaleEstimate:
     """One scale for several segments of one reconstruction (a source's track, depth_camera v9).
 
@@ -499,20 +500,24 @@ def pooled_metric_scale(
     confidence0 (H, W) or None)`` with ``depth0`` the depth of the segment's first frame, all in
     the same reconstruction units. Hands are detected per segment as in
     :func:`estimate_metric_scale`; the per-detection samples of every segment are pooled and the
-    contact rule (steps 4-6: strict window, else wide) applied once.
+    contact rule (steps 4-6: strict window, else wide) applied once. ``landmarks``, one per
+    segment, replaces the detector (an oracle's, in tests).
     """
     params = params or MetricScaleParams()
     prepared = []
-    for frames, poses, depth0, confidence0 in segments:
+    for i, (frames, poses, depth0, confidence0) in enumerate(segments):
         depth = np.asarray(depth0, dtype=np.float64)
         if confidence0 is not None:
             depth = np.where(np.asarray(confidence0) >= params.min_confidence, depth, 0.0)
         if not np.any(np.isfinite(depth) & (depth > 0)):
             continue
-        found = detect_hand_landmarks(frames, params.detector)
-        landmarks = drop_overlapping(found, params.detector.duplicate_distance)
-        if landmarks.present.any():
-            prepared.append((landmarks, frames, intrinsics, poses, depth, params))
+        if landmarks is not None:
+            found = landmarks[i]
+        else:
+            found = detect_hand_landmarks(frames, params.detector)
+            found = drop_overlapping(found, params.detector.duplicate_distance)
+        if found.present.any():
+            prepared.append((found, frames, intrinsics, poses, depth, params))
     if not prepared:
         return ScaleEstimate(None, None, 0, reason="no segment with depth and a hand detected")
     strict = scale_from_samples([s for args in prepared for s in detection_samples(*args)], params)
