@@ -314,3 +314,24 @@ def test_a_rejected_link_stops_the_chain_with_the_reason(loop_inputs, tmp_path: 
     assert "link 1" in result.output and "wrote no row to feed link 2" in result.output
     assert "no overlap in camera poses" in result.output
     assert not (out / "link-02").exists()
+
+
+def test_oracle_video_generator_returns_only_the_video(loop_inputs) -> None:
+    """The perfect-model generator: the segment's frames, no ground-truth column, and a hand
+    mask made from its frames and joints that covers the true hand mask's pixels mostly."""
+    from egosim.pipeline import media
+    from egosim.stages.state_fusion.closed_loop import (
+        GROUND_TRUTH_COLUMNS,
+        oracle_video_generator,
+    )
+
+    clip = loop_inputs["clip"]
+    segment = row_from_clip(clip)
+    out = oracle_video_generator(segment, {})
+    assert out["video"] == segment["video"] and out["clip_id"] == clip.clip_id
+    assert all(out[c] is None for c in GROUND_TRUTH_COLUMNS if c != "hand_mask")
+    t, h, w = clip.num_frames, clip.height, clip.width
+    mask = media.decode_lossless_video(out["hand_mask"]) > 0  # (T, H, W)
+    truth = clip.hand_mask > 0
+    assert mask.shape == (t, h, w)
+    assert (mask & truth).sum() > 0.5 * truth.sum()

@@ -147,6 +147,19 @@ class ModelGenerator:
         return clip
 
 
+def oracle_video_generator(segment: Mapping[str, Any], render: Mapping[str, Any]) -> dict[str, Any]:
+    """A perfect model: the segment's own video and nothing else of the world's ground truth
+    (:data:`GROUND_TRUTH_COLUMNS` cleared, ``hand_mask`` from the registered ``hand_mask``
+    stage on the frames and joints, as for a generated clip), so fusion estimates depth as it
+    would for the model's clip. ``render`` is not used."""
+    if segment.get("video") is None:
+        raise ClosedLoopError(f"segment {segment['clip_id']!r}: no video to return")
+    clip = {**segment, **dict.fromkeys(GROUND_TRUTH_COLUMNS)}
+    mask = get_stage("hand_mask")().process({"clips": clip, "hands": hands_row(segment)})
+    clip["hand_mask"] = mask["hand_mask"]
+    return clip
+
+
 def build_generator(config: ClosedLoopConfig) -> Generator:
     """The clip generator ``config.generator`` names (:data:`GENERATORS`)."""
     return GENERATORS[config.generator](config)
@@ -155,6 +168,7 @@ def build_generator(config: ClosedLoopConfig) -> Generator:
 # name -> factory of the clip generator from the loop's config
 GENERATORS: dict[str, Callable[[ClosedLoopConfig], Generator]] = {
     "oracle": lambda config: oracle_generator,
+    "oracle_video": lambda config: oracle_video_generator,
     "model": ModelGenerator,
 }
 
@@ -164,7 +178,8 @@ class ClosedLoopConfig(StageConfig):
     """Parameters of the closed loop (``egosim simulate --continuous N``)."""
 
     num_segments: int = 1  # N: action segments the loop must be given, in order
-    generator: str = "oracle"  # clip generator: "oracle" (the ground-truth clip) or "model"
+    generator: str = "oracle"  # clip generator: "oracle" (the ground-truth clip), "model", or
+    # "oracle_video" (the ground-truth video only: fusion estimates depth, as for "model")
     checkpoint: str = ""  # model: run dir or .safetensors checkpoint ("" = untrained preset)
     preset: str = ""  # model: expected preset ("" = the checkpoint's, "tiny" without one)
     steps: int = 50  # model: Euler steps of the flow sampler (EgoSim: 50)
