@@ -507,7 +507,11 @@ def simulate(
         typer.Option("--segments", help="--continuous: clips shards of the segments, in order."),
     ] = None,
     generator: Annotated[
-        str, typer.Option("--generator", help="--continuous: clip generator (oracle, model).")
+        str,
+        typer.Option(
+            "--generator",
+            help="--continuous: clip generator (oracle, oracle_video, model).",
+        ),
     ] = "oracle",
 ) -> None:
     """Generate every packed clip: runs workflows/simulate.yaml, then writes the videos.
