@@ -36,6 +36,7 @@ from egosim.pipeline import media
 from egosim.pipeline.clip_io import row_from_clip
 from egosim.pipeline.geometry import project_world_points, transform_points, unproject_depth
 from egosim.pipeline.records import Clip
+from egosim.schemas.hands import MANO_COLUMNS
 from egosim.schemas.state import state_for_clip
 from egosim.stages.state_fusion.config import StateFusionConfig
 from egosim.stages.state_fusion.fusion import State
@@ -93,6 +94,7 @@ def clip_rows(clip: Clip, static: bool = False) -> dict[str, dict[str, Any]]:
         .tolist(),
         "num_duplicates_removed": 0,
         "num_outliers_removed": 0,
+        **dict.fromkeys(MANO_COLUMNS),  # no MANO fit: the joints are given
     }
     mask = {
         "clip_id": clip.clip_id,

@@ -33,6 +33,7 @@ from egosim.pipeline.records import ClipsRecord, HandMaskRecord
 from egosim.pipeline.shards import ShardReader, ShardWriter, shard_file_name
 from egosim.pipeline.stage import ClipRejected, ConfigError, StageConfig, get_stage
 from egosim.schemas import CLIPS
+from egosim.schemas.hands import MANO_COLUMNS
 from egosim.schemas.ids import path_under, validate_id
 from egosim.schemas.scene import SCENE_CLOUD, SCENE_RENDER
 from egosim.schemas.state import STATE, state_for_clip
@@ -287,6 +288,7 @@ def hands_row(clip: Mapping[str, Any]) -> dict[str, Any]:
         "hand_confidence": np.asarray(conf, np.float32).reshape(t, 42).tolist(),
         "num_duplicates_removed": 0,
         "num_outliers_removed": 0,
+        **dict.fromkeys(MANO_COLUMNS),  # no MANO fit: the joints are given
     }
 
 
