@@ -17,10 +17,11 @@ state passed on unchanged. Each link is an ordinary run, so a re-run skips finis
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 
 from egosim.pipeline import storage
+from egosim.pipeline.observe import RunObserver
 from egosim.pipeline.runner import RunError, RunSummary, run_workflow
 from egosim.pipeline.shards import ShardReader, ShardWriter, find_shards
 from egosim.pipeline.workflow import Workflow
@@ -90,10 +91,11 @@ def run_chain(
     feed_step: str,
     scheduler: str | None = None,
     n_workers: int | None = None,
-    observer=None,
+    observer: Callable[[], RunObserver] | None = None,
 ) -> list[RunSummary]:
     """Run ``workflow`` once per shard of input ``over`` (see the module docstring); returns
-    each link's :class:`RunSummary` in order."""
+    each link's :class:`RunSummary` in order. ``observer`` makes each link's observer (a
+    progress display counts one run's tasks)."""
     check_chain(workflow, inputs, over, feed, feed_step)
     out = Path(out)
     schema = get_schema(workflow.inputs[feed])
@@ -132,7 +134,7 @@ def run_chain(
                 scheduler=scheduler,
                 n_workers=n_workers,
                 inputs=given,
-                observer=observer,
+                observer=observer() if observer is not None else None,
             )
         )
     return summaries

@@ -240,7 +240,7 @@ def _run_chained(wf, out, given: dict, chain: str, feed: str, scheduler, workers
     name, sep, step = feed.partition("=")
     if not sep or not name or not step:
         raise StageError(f"--feed takes INPUT=STEP, got {feed!r}")
-    summaries = run_chain(wf, out, given, chain, name, step, scheduler, workers, ConsoleObserver())
+    summaries = run_chain(wf, out, given, chain, name, step, scheduler, workers, ConsoleObserver)
     for k, summ in enumerate(summaries, 1):
         skipped = sum(r.skipped for r in summ.results)
         typer.echo(
