@@ -18,7 +18,7 @@ from egosim.pipeline.records import Clip
 from egosim.pipeline.shards import ShardReader, ShardWriter
 from egosim.pipeline.stage import ClipRejected, ConfigError
 from egosim.schemas.hand_mask import HAND_MASK
-from egosim.schemas.hands import HANDS
+from egosim.schemas.hands import HANDS, MANO_COLUMNS
 from egosim.stages.hand_mask.capsules import CapsuleParams, draw_hand, hand_scale_px
 from egosim.stages.hand_mask.sam import build_prompts, mask_box
 from egosim.stages.hand_mask.stage import HandMaskConfig, HandMaskStage
@@ -458,6 +458,7 @@ def test_stage_uses_connected_hands_and_poses(tmp_path: Path) -> None:
         "hand_confidence": valid.repeat(21, axis=1).astype(np.float32).tolist(),  # (T, 42)
         "num_duplicates_removed": 0,
         "num_outliers_removed": 0,
+        **dict.fromkeys(MANO_COLUMNS),  # no MANO fit: the joints are given
     }
     hands = tmp_path / "hands.parquet"
     with ShardWriter(hands, HANDS, stage="test") as writer:
