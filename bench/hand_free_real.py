@@ -61,7 +61,7 @@ import importlib.util
 import json
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import cv2
 import numpy as np
@@ -212,8 +212,18 @@ def allowed_region(hands: np.ndarray) -> np.ndarray:
     return dilate(allowed, FAR_PX) > 0
 
 
-def dwm_case(cid: str, data: Path, out: Path) -> dict:
-    """Figures of one real DWM clip (see the module docstring)."""
+class DwmTruth(NamedTuple):
+    """One real DWM clip and its truth."""
+
+    video: np.ndarray  # (T, H, W, 3) uint8: the real video
+    static: np.ndarray  # (T, H, W, 3) uint8: videos_static registered onto the real frames
+    inside: np.ndarray  # (H, W) bool: pixels the registered static video covers
+    hands: np.ndarray  # (T, H, W) bool: the videos_hands render's hand pixels
+    shift: tuple[float, float]  # (dx, dy) px that registered videos_static
+
+
+def dwm_truth(cid: str, data: Path) -> DwmTruth:
+    """Read DWM clip ``cid`` with its static-scene video (registered) and hand renders."""
     folder = data / DWM
     video, _ = media.read_video_file(folder / "videos" / f"{cid}.mp4")
     static, _ = media.read_video_file(folder / "videos_static" / f"{cid}.mp4")
@@ -226,6 +236,12 @@ def dwm_case(cid: str, data: Path, out: Path) -> dict:
     static = np.stack([_shift(f, dx, dy) for f in static])
     inside = _shift(np.full(video.shape[1:3], 255, np.uint8), dx, dy) == 255  # (H, W)
     hands = hands_video.max(axis=3) > HAND_RENDER_THRESHOLD  # (T, H, W)
+    return DwmTruth(video, static, inside, hands, (dx, dy))
+
+
+def dwm_case(cid: str, data: Path, out: Path) -> dict:
+    """Figures of one real DWM clip (see the module docstring)."""
+    video, static, inside, hands, (dx, dy) = dwm_truth(cid, data)
     start = time.perf_counter()
     uv, present = mediapipe_keypoints(video)
     masks = masks_from_keypoints(video, uv, present, HandMaskConfig()) > 0  # (T, H, W)

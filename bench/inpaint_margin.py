@@ -36,17 +36,19 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.hand_free_real import DWM, MIN_HAND_FRACTION, contact_sheet, mediapipe_keypoints
+from bench.hand_free_real import (
+    DWM,
+    MIN_HAND_FRACTION,
+    contact_sheet,
+    dwm_truth,
+    mediapipe_keypoints,
+)
 from bench.real_video import (
     DEFAULT_DATA,
     HAND_DILATE_PX,
-    HAND_RENDER_THRESHOLD,
     ROOT,
     _psnr,
-    _shift,
-    truth_shift,
 )
-from egosim.pipeline import media
 from egosim.stages.hand_mask.stage import HandMaskConfig, HandMaskStage, masks_from_keypoints
 from egosim.stages.inpaint.reproject_fill import dilate, opencv_fill
 from egosim.stages.inpaint.stage import InpaintConfig, InpaintStage
@@ -118,14 +120,7 @@ def world_rows(case: str, configs, size, frames, out: Path, aligned: bool = Fals
 
 def dwm_rows(cid: str, configs, data: Path, out: Path) -> list[dict]:
     """Figures of one real DWM clip under every config (see the module docstring)."""
-    folder = data / DWM
-    video, _ = media.read_video_file(folder / "videos" / f"{cid}.mp4")
-    static, _ = media.read_video_file(folder / "videos_static" / f"{cid}.mp4")
-    hands_video, _ = media.read_video_file(folder / "videos_hands" / f"{cid}.mp4")
-    dx, dy = truth_shift(video[0], static[0])
-    static = np.stack([_shift(f, dx, dy) for f in static])
-    inside = _shift(np.full(video.shape[1:3], 255, np.uint8), dx, dy) == 255  # (H, W)
-    hands = hands_video.max(axis=3) > HAND_RENDER_THRESHOLD  # (T, H, W)
+    video, static, inside, hands, _ = dwm_truth(cid, data)
     path = out / "cache" / f"dwm_{cid}.npz"
     if path.exists():
         masks = np.load(path)["masks"]
