@@ -234,20 +234,27 @@ def _run(*args: str):
     return CliRunner().invoke(app, ["run", str(REPO / "workflows" / "closed_loop.yaml"), *args])
 
 
+def _chain_args(loop_inputs, tmp_path: Path, seg1) -> list[str]:
+    """Write segment 1 (``seg1``), the test's segment 2 and state 0 (keyed by the clip); the
+    `egosim run` arguments of the two-link chain over them into ``tmp_path / "run"``."""
+    write_clips(tmp_path / "seg1.parquet", [seg1])
+    write_clips(tmp_path / "seg2.parquet", [loop_inputs["seg2"]])
+    with ShardWriter(tmp_path / "state.parquet", STATE, stage="test") as writer:
+        writer.write_row(state_for_clip(loop_inputs["row0"], loop_inputs["clip"].clip_id))
+    args = ["--out", str(tmp_path / "run"), "--scheduler", "here", "--chain", "segment"]
+    args += ["--feed", "state=fuse", "--input-shard", f"state={tmp_path / 'state.parquet'}"]
+    for seg in ("seg1", "seg2"):
+        args += ["--input-shard", f"segment={tmp_path / f'{seg}.parquet'}"]
+    return args
+
+
 def test_two_segments_chained_through_the_runner(loop_inputs, tmp_path: Path) -> None:
     """`egosim run closed_loop.yaml --chain segment --feed state=fuse`: one run per segment,
     each fed the previous run's state; the box stays at its new place after segment 2 (the
     same figure as the in-process loop, under 1 cm; no update: 10+ cm)."""
     clip, seg2 = loop_inputs["clip"], loop_inputs["seg2"]
-    write_clips(tmp_path / "seg1.parquet", [clip])
-    write_clips(tmp_path / "seg2.parquet", [seg2])
-    with ShardWriter(tmp_path / "state.parquet", STATE, stage="test") as writer:
-        writer.write_row(state_for_clip(loop_inputs["row0"], clip.clip_id))
     out = tmp_path / "run"
-    args = ["--out", str(out), "--scheduler", "here", "--chain", "segment"]
-    args += ["--feed", "state=fuse", "--input-shard", f"state={tmp_path / 'state.parquet'}"]
-    for seg in ("seg1", "seg2"):
-        args += ["--input-shard", f"segment={tmp_path / f'{seg}.parquet'}"]
+    args = _chain_args(loop_inputs, tmp_path, clip)
     result = _run(*args)
     assert result.exit_code == 0, result.output
     assert len(re.findall(r"link \d: .*: 4 shard tasks \(0 skipped\)", result.output)) == 2
@@ -298,18 +305,10 @@ def test_a_rejected_link_stops_the_chain_with_the_reason(loop_inputs, tmp_path: 
     """Segment 1 from another world frame (cameras 10 m away): its fuse step rejects it, so
     link 2 has no state; the chain stops naming the link and the reason (never the old state
     passed on)."""
-    clip, seg2 = loop_inputs["clip"], loop_inputs["seg2"]
+    clip = loop_inputs["clip"]
     far = dataclasses.replace(clip, world_from_cam=translated(clip.world_from_cam, [10.0, 0, 0]))
-    write_clips(tmp_path / "seg1.parquet", [far])
-    write_clips(tmp_path / "seg2.parquet", [seg2])
-    with ShardWriter(tmp_path / "state.parquet", STATE, stage="test") as writer:
-        writer.write_row(state_for_clip(loop_inputs["row0"], clip.clip_id))
     out = tmp_path / "run"
-    args = ["--out", str(out), "--scheduler", "here", "--chain", "segment"]
-    args += ["--feed", "state=fuse", "--input-shard", f"state={tmp_path / 'state.parquet'}"]
-    for seg in ("seg1", "seg2"):
-        args += ["--input-shard", f"segment={tmp_path / f'{seg}.parquet'}"]
-    result = _run(*args)
+    result = _run(*_chain_args(loop_inputs, tmp_path, far))
     assert result.exit_code == 2, result.output
     assert "link 1" in result.output and "wrote no row to feed link 2" in result.output
     assert "no overlap in camera poses" in result.output
