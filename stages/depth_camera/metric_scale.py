@@ -445,20 +445,7 @@ def scale_from_landmarks(
         return ScaleEstimate(None, None, 0, reason="frame-0 depth has no known pixel")
     if not landmarks.present.any():
         return ScaleEstimate(None, None, 0, reason="no hand detected")
-    args = (landmarks, frames, intrinsics, world_from_cam, depth0, params)
-    strict = scale_from_samples(detection_samples(*args), params)
-    if strict.scale is not None or params.wide_window_px == 0:
-        return strict
-    wide = scale_from_samples(detection_samples(*args, wide=True), params, SOURCE_HAND_SIZE_WIDE)
-    if wide.scale is not None:
-        return wide
-    return ScaleEstimate(
-        None,
-        None,
-        wide.num_samples,
-        source=SOURCE_HAND_SIZE_WIDE,
-        reason=f"strict window: {strict.reason}; wide window: {wide.reason}",
-    )
+    return window_cascade([(landmarks, frames, intrinsics, world_from_cam, depth0, params)], params)
 
 
 def estimate_metric_scale(
@@ -520,6 +507,13 @@ def pooled_metric_scale(
             prepared.append((found, frames, intrinsics, poses, depth, params))
     if not prepared:
         return ScaleEstimate(None, None, 0, reason="no segment with depth and a hand detected")
+    return window_cascade(prepared, params)
+
+
+def window_cascade(prepared: list[tuple], params: MetricScaleParams) -> ScaleEstimate:
+    """Steps 4-6 on the pooled samples of ``prepared`` (:func:`detection_samples` argument
+    tuples, one per segment): the strict window, else the wide one; both failing gives no
+    scale with both reasons."""
     strict = scale_from_samples([s for args in prepared for s in detection_samples(*args)], params)
     if strict.scale is not None or params.wide_window_px == 0:
         return strict
