@@ -17,8 +17,9 @@ from egosim.stages.depth_camera.source_track import (
     SourceTrack,
     rate_picks,
     read_track_frames,
+    thumbnail,
 )
-from egosim.stages.depth_camera.stage import track_request
+from egosim.stages.depth_camera.stage import DepthCameraConfig, estimate_from_track, track_request
 from egosim.stages.ingest.stage import IngestConfig
 from egosim.stages.ingest.standardise import WindowPolicy, plan_resize, resample_windows
 from egosim.stages.ingest.video_source import read_video_clips
@@ -162,3 +163,33 @@ def test_one_track_puts_the_windows_of_a_synthetic_video_in_one_world(tmp_path: 
     assert auto["ate_per_source"] < 0.005  # metres
     assert auto["ate_per_window"] < 0.005
     assert off["ate_per_source"] > 10 * auto["ate_per_source"]
+
+
+def test_a_window_from_a_changed_source_is_not_given_its_cameras(tmp_path: Path) -> None:
+    """The track keeps grey thumbnails of the frames it read: a window whose frame 0 is not the
+    re-read source's frame (the file was replaced after ingest) takes the per-window path, with
+    the reason; the window's own frames pass (ingest's H.264 round trip differs by < 2 levels)."""
+    path = _small_video(tmp_path)
+    clip = _ingest(path)[1]
+    record = ClipsRecord.of(row_from_clip(clip))  # the video as the stage decodes it
+    req = track_request(record)
+    picks, frames = read_track_frames("video", str(path), 16.0, 30.0, (32, 48), 0, 1000)
+    n = len(frames)
+    track = SourceTrack(
+        picks=picks,
+        first=0,
+        intrinsics=np.array(clip.intrinsics, dtype=np.float64),
+        cam_from_world=np.tile(np.eye(4), (n, 1, 1)),
+        posed_by=np.zeros(n, np.int8),
+        frame_points={},
+        reprojection_error_px=0.0,
+        num_points3d=0,
+        mapper="incremental",
+        thumbnails=np.stack([thumbnail(f) for f in frames]),
+    )
+    pos = track.positions(req.source_indices, req.first_target)
+    assert track.frame_difference(int(pos[0]), record.frames[0]) < 2.0
+    other = np.random.default_rng(9).integers(0, 255, clip.frames.shape, dtype=np.uint8)
+    est, why = estimate_from_track(track, req, other, None, DepthCameraConfig())
+    assert est is None
+    assert "no longer shows this window's frame 0" in why and "changed since ingest" in why

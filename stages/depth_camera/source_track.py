@@ -189,6 +189,15 @@ def read_track_frames(
     return np.asarray(picks, dtype=np.int64), np.stack(kept)
 
 
+THUMBNAIL_SIZE = (64, 36)  # (W, H) of the grey thumbnails a track keeps of its frames
+
+
+def thumbnail(frame: np.ndarray) -> np.ndarray:
+    """``(36, 64)`` float32 grey thumbnail of an ``(H, W, 3)`` uint8 RGB frame (area average)."""
+    grey = cv2.cvtColor(np.ascontiguousarray(frame), cv2.COLOR_RGB2GRAY)
+    return cv2.resize(grey, THUMBNAIL_SIZE, interpolation=cv2.INTER_AREA).astype(np.float32)
+
+
 @dataclass(frozen=True)
 class SourceTrack:
     """Cameras of one chunk of a source's track frames, in one SfM frame and scale (unscaled)."""
@@ -209,6 +218,14 @@ class SourceTrack:
     depths: dict[int, tuple[np.ndarray, np.ndarray, tuple[int, ...]]] = dataclasses.field(
         default_factory=dict
     )  # chunk frame of a segment start -> (depth (H, W), confidence (H, W), chunk sources)
+    thumbnails: np.ndarray | None = None  # (M, 36, 64) float32 grey of the chunk's frames
+
+    def frame_difference(self, position: int, frame: np.ndarray) -> float:
+        """Mean absolute grey difference (0-255) between chunk frame ``position`` as the track
+        read it and ``frame`` ``(H, W, 3)`` uint8 (the window's own); 0 without thumbnails."""
+        if self.thumbnails is None:
+            return 0.0
+        return float(np.abs(thumbnail(frame) - self.thumbnails[position]).mean())
 
     def positions(self, source_indices: np.ndarray, first_target: int) -> np.ndarray | None:
         """``(T,)`` chunk frames of a window's ``source_indices``, or None when they are not

@@ -88,6 +88,7 @@ from egosim.stages.depth_camera.source_track import (
     SourceTrackError,
     estimate_track,
     read_track_frames,
+    thumbnail,
 )
 from egosim.stages.depth_camera.static_camera import check_motion
 from egosim.stages.depth_camera.tracking import NOT_POSED, TrackingParams, register_missing_frames
@@ -593,6 +594,10 @@ def estimate_sfm(
 
 TRACK_SOURCES = ("video", "frames")  # clip sources whose source_uri the track can read again
 TRACK_CLIP_KINDS = ("full", "tail")  # clip_policy kinds cut from a source longer than a clip
+# A window whose frame 0 differs from the re-read source's frame by more than this mean grey
+# level (0-255, on 64x36 thumbnails) is not from that source any more (ingest's H.264 encode
+# differs by well under 2): the window takes the per-window path.
+TRACK_FRAME_MAX_DIFF = 8.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -709,6 +714,7 @@ def build_source_track(
             (frames[start:end], invert_se3(cam_from_world[start:end]), depth[0], depth[1])
         )
     track = SourceTrack(
+        thumbnails=np.stack([thumbnail(f) for f in frames]),
         picks=picks,
         first=chunk * length,
         intrinsics=intrinsics,
@@ -741,6 +747,12 @@ def estimate_from_track(
     pos = track.positions(req.source_indices, req.first_target)
     if pos is None:
         return None, "the window's frames are not consecutive frames of the track's chunk"
+    diff = track.frame_difference(int(pos[0]), frames[0])
+    if diff > TRACK_FRAME_MAX_DIFF:
+        return None, (
+            f"the source {req.uri!r} no longer shows this window's frame 0 (mean grey difference "
+            f"{diff:.1f} > {TRACK_FRAME_MAX_DIFF}): it changed since ingest"
+        )
     posed_by = track.posed_by[pos].copy()  # (T,)
     posed = posed_by != POSED_BY_INTERPOLATION
     frac = float(posed.mean())
