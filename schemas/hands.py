@@ -80,6 +80,15 @@ MANO_DOC = (
 )
 
 
+def _mano_column(name: str, what: str) -> Column:
+    """A nullable ``mano_*`` column: ``(T, 2 * width)`` float32 rows, the width per hand from
+    :data:`MANO_WIDTHS` (``B``, any width, for the betas), so type and validator agree."""
+    width = MANO_WIDTHS.get(name)
+    row = pa.list_(pa.float32(), 2 * width) if width else pa.list_(pa.float32())
+    shape = f"(T, 2*{width or 'B'})"
+    return Column(name, pa.list_(row), f"{shape} float32 MANO {what}" + MANO_DOC, nullable=True)
+
+
 HANDS = ShardSchema(
     name="hands",
     # 2: optional MANO fits (mano_global_orient, mano_hand_pose, mano_transl, mano_betas)
@@ -115,31 +124,13 @@ HANDS = ShardSchema(
             pa.int32(),
             "Hand-frames dropped as temporal outliers (both velocities above the threshold).",
         ),
-        Column(
-            "mano_global_orient",
-            pa.list_(pa.list_(pa.float32(), 6)),
-            "(T, 2*3) float32 MANO wrist rotation vectors, radians." + MANO_DOC,
-            nullable=True,
-        ),
-        Column(
+        _mano_column("mano_global_orient", "wrist rotation vectors, radians."),
+        _mano_column(
             "mano_hand_pose",
-            pa.list_(pa.list_(pa.float32(), 90)),
-            "(T, 2*45) float32 MANO finger rotation vectors (15 joints, parent-relative, from "
-            "the flat hand), radians." + MANO_DOC,
-            nullable=True,
+            "finger rotation vectors (15 joints, parent-relative, from the flat hand), radians.",
         ),
-        Column(
-            "mano_transl",
-            pa.list_(pa.list_(pa.float32(), 6)),
-            "(T, 2*3) float32 MANO translation, world metres." + MANO_DOC,
-            nullable=True,
-        ),
-        Column(
-            "mano_betas",
-            pa.list_(pa.list_(pa.float32())),
-            "(T, 2*B) float32 MANO shape coefficients (B = 10 for MANO's file)." + MANO_DOC,
-            nullable=True,
-        ),
+        _mano_column("mano_transl", "translation, world metres."),
+        _mano_column("mano_betas", "shape coefficients (B = 10 for MANO's file)."),
     ),
     validators=(_check_hands,),
 )
