@@ -140,11 +140,12 @@ def aligned_fill(
             if check.sum() < 20:
                 continue
             grey = cv2.cvtColor(warped, cv2.COLOR_RGB2GRAY).astype(np.int16)
-            if float(np.median(np.abs(grey[check] - grey0[check]))) > max_residual:
+            diff = np.abs(grey - grey0)  # (H, W) alignment residual
+            if float(np.median(diff[check])) > max_residual:
                 continue
         ok = free[ys, xs] & (count < candidates)  # (M,)
         if local_residual > 0 and not static_camera:
-            near = local_residual_map(np.abs(grey - grey0), check, target)  # (H, W)
+            near = local_residual_map(diff, check, target)  # (H, W)
             ok &= near[ys, xs] <= local_residual
         if not ok.any():
             continue
