@@ -39,12 +39,12 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from egosim.pipeline.geometry import make_se3, transform_points, umeyama
+from egosim.stages.common.hand_lift import PALM_JOINTS  # wrist and knuckles: rigid in the hand
 from egosim.stages.state_fusion.config import StateFusionConfig
 
 if TYPE_CHECKING:  # fusion imports this module
     from egosim.stages.state_fusion.fusion import SupportPlane
 
-PALM_JOINTS = (0, 5, 9, 13, 17)  # wrist and the four knuckles: rigid in the hand
 GRIP_JOINTS = (4, 8, 12)  # thumb, index and middle tips: the grip point lies between them
 
 
@@ -63,7 +63,8 @@ class Carry:
 def grip_points(joints: np.ndarray) -> np.ndarray:
     """Grip point ``(..., 3)`` of hands ``(..., 21, 3)``: half the thumb tip, a quarter each
     of the index and middle tips."""
-    return 0.5 * joints[..., 4, :] + 0.25 * (joints[..., 8, :] + joints[..., 12, :])
+    thumb, index, middle = GRIP_JOINTS
+    return 0.5 * joints[..., thumb, :] + 0.25 * (joints[..., index, :] + joints[..., middle, :])
 
 
 def palm_motion(palm_from: np.ndarray, palm_to: np.ndarray) -> np.ndarray:
@@ -191,6 +192,8 @@ def carried_objects(
         return []
     labels = cluster_points(points[idx], config.cluster_eps_m)
     idx, labels = idx[labels >= 0], labels[labels >= 0]
+    # the objects' lowest centimetres (below object_min_height_m, above the plane's inlier band)
+    low = np.flatnonzero((h > config.plane_distance_m) & (h <= config.object_min_height_m))
     carries: list[Carry] = []
     taken = np.zeros(len(points), bool)
     for hand in range(joints.shape[1]):
@@ -202,8 +205,6 @@ def carried_objects(
         grip = grip_points(joints[grasp, hand])
         near = np.linalg.norm(points[idx] - grip, axis=1) <= config.carry_contact_m
         members = idx[np.isin(labels, labels[near])]
-        # its lowest centimetres (below object_min_height_m, above the plane's inlier band)
-        low = np.flatnonzero((h > config.plane_distance_m) & (h <= config.object_min_height_m))
         if len(low) and len(members):
             dist, _ = cKDTree(points[members]).query(points[low])
             members = np.union1d(members, low[dist <= config.cluster_eps_m])
