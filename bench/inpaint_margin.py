@@ -64,13 +64,13 @@ SETS = {
 def parse_config(text: str) -> tuple[str, InpaintConfig]:
     """``name:key=value,...`` -> (name, InpaintConfig with those fields); ``name``: default."""
     name, _, body = text.partition(":")
-    fields = {f.name: f.type for f in dataclasses.fields(InpaintConfig)}
+    fields = {f.name for f in dataclasses.fields(InpaintConfig)}
     kwargs: dict = {}
     for item in filter(None, body.split(",")):
         key, _, value = item.partition("=")
-        default = getattr(InpaintConfig(), key)
         if key not in fields:
             raise SystemExit(f"unknown InpaintConfig field {key!r}")
+        default = getattr(InpaintConfig(), key)
         kwargs[key] = type(default)(value) if not isinstance(default, bool) else value == "true"
     return name, InpaintConfig(**kwargs)
 
