@@ -263,6 +263,28 @@ def _hamer_clip(num_frames: int = 4) -> tuple[Clip, np.ndarray]:
     return clip, joints
 
 
+def test_drop_overlapping_keeps_the_detection_nearer_its_neighbours() -> None:
+    """Frame 1 holds one hand twice (slot 1 at 10 px of slot 0, 100 px hands); frames 0 and 2
+    hold it at slot 1's place only, and another hand 400 px away. Slot 0 of frame 1 is dropped
+    (farther from the neighbours' detections), every other detection stays, and ``tracked``
+    comes through unchanged."""
+    from egosim.stages.common.hand_landmarks import RawLandmarks, drop_overlapping
+
+    shape = np.random.default_rng(0).uniform(0.0, 100.0, (21, 2))  # (21, 2) px, box ~100 px
+    uv = np.full((3, 2, 21, 2), np.nan)
+    uv[[0, 2], 0] = shape + np.array([210.0, 200.0])
+    uv[[0, 2], 1] = shape + np.array([600.0, 200.0])
+    uv[1, 0] = shape + np.array([200.0, 200.0])
+    uv[1, 1] = shape + np.array([210.0, 200.0])
+    present = np.ones((3, 2), dtype=bool)
+    tracked = np.array([[False, True], [True, False], [False, False]])
+    raw = RawLandmarks(uv, np.zeros((3, 2, 21, 3)), np.full((3, 2), 0.5), present, tracked)
+    kept = drop_overlapping(raw, 0.5)
+    assert kept.present.tolist() == [[True, True], [False, True], [True, True]]
+    assert raw.present.all()  # the input is not changed
+    assert kept.tracked is not None and np.array_equal(kept.tracked, tracked)
+
+
 def test_hamer_outputs_are_imported(tmp_path: Path) -> None:
     clip, joints = _hamer_clip()
     # What HaMeR would write for images twice the clip's size: the model-frame keypoints (a left

@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import itertools
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
@@ -230,7 +230,7 @@ def drop_overlapping(raw: RawLandmarks, duplicate_distance: float) -> RawLandmar
 
             cost = [_nearest(centre[f, k], near) for k in (a, b)]
             present[f, b if cost[0] <= cost[1] else a] = False
-    return RawLandmarks(raw.uv, raw.world, raw.label_right, present)
+    return replace(raw, present=present)  # keeps ``tracked``
 
 
 def _nearest(point: np.ndarray, others: list[np.ndarray]) -> float:
