@@ -368,6 +368,20 @@ def test_config_rejects_bad_values() -> None:
         HandMaskConfig(fan_half_angle_deg=120.0)
 
 
+def test_arm_params_reject_bad_values_all_at_once() -> None:
+    """A negative turn cost would reward turning, a negative ring or out-of-view length would
+    silently mean 0: every bad field is named in one message, with its value."""
+    from egosim.stages.hand_mask.arm_region import ArmParams
+
+    with pytest.raises(ValueError) as info:
+        ArmParams(turn_cost=-1.0, out_of_view=-0.5, hand_ring=-0.03, max_turn_deg=200.0)
+    message = str(info.value)
+    for text in ("turn_cost", "got -1.0", "out_of_view", "got -0.5", "hand_ring", "got -0.03",
+                 "max_turn_deg", "got 200.0"):  # fmt: skip
+        assert text in message, message
+    ArmParams(turn_cost=0.0, out_of_view=0.0, hand_ring=0.0, max_turn_deg=0.0)  # all off: valid
+
+
 def test_stage_through_shard_task(tmp_path: Path) -> None:
     clips = tmp_path / "clips.parquet"
     write_clips(clips, [world_clip(0)])

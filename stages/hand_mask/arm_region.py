@@ -103,6 +103,11 @@ class ArmParams:
             )
         if not 0.0 <= self.walk_gap <= 20.0:
             problems.append(f"walk_gap must be in [0, 20], got {self.walk_gap}")
+        if not 0.0 <= self.max_turn_deg <= 180.0:
+            problems.append(f"max_turn_deg must be in [0, 180], got {self.max_turn_deg}")
+        for name in ("turn_cost", "out_of_view", "hand_ring"):
+            if not 0.0 <= getattr(self, name) <= 100.0:
+                problems.append(f"{name} must be in [0, 100], got {getattr(self, name)}")
         if problems:
             raise ValueError("; ".join(problems))
 
