@@ -76,7 +76,13 @@ from bench.real_video import (
     truth_shift,
 )
 from egosim.pipeline import media
-from egosim.stages.hand_mask.stage import HandMaskConfig, HandMaskStage, masks_from_keypoints
+from egosim.stages.hand_mask.capsules import CapsuleParams, draw_hands
+from egosim.stages.hand_mask.stage import (
+    HandMaskConfig,
+    HandMaskStage,
+    masks_from_keypoints,
+    project_keypoints,
+)
 from egosim.stages.inpaint.reproject_fill import dilate, opencv_fill
 from egosim.stages.inpaint.stage import InpaintStage
 from egosim.world import WorldConfig, render_clip
@@ -167,9 +173,6 @@ def mask_breakdown(masks: np.ndarray, truth: np.ndarray, clip: Any) -> dict[str,
     without a forearm), ``fn_arm`` (missed elsewhere: arm and sleeve), ``fp_near`` (false,
     within 10 px of the truth: fat edges, a held object), ``fp_far`` (false, farther: bands).
     """
-    from egosim.stages.hand_mask.capsules import CapsuleParams, draw_hands
-    from egosim.stages.hand_mask.stage import project_keypoints
-
     kp = project_keypoints(clip)  # (T, 2, 21, 2)
     valid = np.ones(kp.shape[:2], bool) if clip.hand_valid is None else clip.hand_valid
     h, w = truth.shape[1:]
