@@ -160,8 +160,7 @@ def refine_by_bone_lengths(
     Measured on the synthetic world (seeds 11, 13; wrist-relative MPJPE, default / held-out alt):
     26.6 -> 26.1 mm / 32.3 -> 30.4 mm; the bone depth alone (``w = 1``) gave 29.9 / 25.5 (worse
     on the default world, whose 2D landmarks are off by 11 px)."""
-    fx, fy, cx, cy = np.asarray(intrinsics, dtype=np.float64)
-    rays = np.stack([(uv[:, 0] - cx) / fx, (uv[:, 1] - cy) / fy, np.ones(len(uv))], axis=1)
+    rays = on_rays(uv, np.ones(len(uv)), intrinsics)  # (21, 3) at depth 1
     rays /= np.linalg.norm(rays, axis=1, keepdims=True)  # (21, 3) unit rays
     out = np.array(points, dtype=np.float64)  # (21, 3)
     for chain in FINGER_CHAINS:
