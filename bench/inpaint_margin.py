@@ -181,13 +181,14 @@ def main() -> int:
             for row in dwm_rows(cid, configs, args.data, args.out):
                 rows.append(row)
                 print(_line(row), flush=True)
+    groups = {  # case -> in the group: default-world cases, alt cases, DWM clips
+        "tuned": lambda case: not case.startswith(("alt:", "dwm:")),
+        "held": lambda case: case.startswith("alt:"),
+        "dwm": lambda case: case.startswith("dwm:"),
+    }
     for name, _ in configs:
-        for group, keep in (("tuned", "alt:"), ("held", "alt:"), ("dwm", "dwm:")):
-            sel = [r for r in rows if r["config"] == name]
-            if group == "tuned":
-                sel = [r for r in sel if not r["case"].startswith(("alt:", "dwm:"))]
-            else:
-                sel = [r for r in sel if r["case"].startswith(keep)]
+        for group, member in groups.items():
+            sel = [r for r in rows if r["config"] == name and member(r["case"])]
             if sel:
                 margin = np.nanmean([r["pred"] - r["telea"] for r in sel])
                 extra = ""
