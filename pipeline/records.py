@@ -319,11 +319,10 @@ class FramedRecord(Record):
             if data is None:
                 return None
             t, h, w = self.size
-            depth = media.decode_depth_video(data, self["depth_unit_m"], self.what(column))
+            what = self.what(column)
+            depth = media.decode_depth_video(data, self["depth_unit_m"], what)
             if depth.shape != (t, h, w):
-                raise InputsDisagree(
-                    f"{self.what(column)} decodes to {depth.shape}, expected {(t, h, w)}"
-                )
+                raise InputsDisagree(f"{what} decodes to {depth.shape}, expected {(t, h, w)}")
             return depth
 
         return self._once(f"depth:{column}", parse)
