@@ -37,7 +37,7 @@ from egosim.stages.depth_camera.sfm import (
     run_sfm,
     spread_to_frames,
 )
-from egosim.stages.depth_camera.tracking import NOT_POSED, TrackingParams, register_missing_frames
+from egosim.stages.depth_camera.tracking import NOT_POSED, TrackingParams, register_from_sfm
 
 RATE_TOLERANCE = 1e-6  # relative: as ingest's (a source this close to the clip rate is at it)
 TIME_TOLERANCE_S = 1e-6  # as ingest's: a target this much after a frame's time still reaches it
@@ -268,20 +268,7 @@ def estimate_track(
     except SfmError as exc:
         raise SourceTrackError(f"SfM on the source's {len(key)} keyframes: {exc}") from exc
     sfm = spread_to_frames(sfm, key, n)
-    reg = np.asarray(sfm.registered, dtype=bool)
-    tracked = register_missing_frames(
-        frames,
-        None,
-        sfm.intrinsics,
-        sfm.cam_from_world,
-        reg,
-        sfm.all_points3d,
-        sfm.all_point_ids,
-        sfm.obs_frame,
-        sfm.obs_uv,
-        sfm.obs_point_id,
-        tracking,
-    )
+    tracked = register_from_sfm(frames, None, sfm, tracking)
     posed_by = tracked.posed_by.copy()
     posed = posed_by != NOT_POSED
     if not posed.any():

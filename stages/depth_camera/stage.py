@@ -91,7 +91,7 @@ from egosim.stages.depth_camera.source_track import (
     thumbnail,
 )
 from egosim.stages.depth_camera.static_camera import check_motion
-from egosim.stages.depth_camera.tracking import NOT_POSED, TrackingParams, register_missing_frames
+from egosim.stages.depth_camera.tracking import NOT_POSED, TrackingParams, register_from_sfm
 
 Backend = Literal["sfm", "given", "da3", "auto"]
 log = logging.getLogger(__name__)
@@ -439,19 +439,7 @@ def sfm_camera(
     cam_from_world = sfm.cam_from_world
     points0 = sfm.points3d  # (P, 3) model points seen in frame 0
     if not reg.all() and len(sfm.all_points3d):
-        tracked = register_missing_frames(
-            frames,
-            usable,
-            sfm.intrinsics,
-            sfm.cam_from_world,
-            reg,
-            sfm.all_points3d,
-            sfm.all_point_ids,
-            sfm.obs_frame,
-            sfm.obs_uv,
-            sfm.obs_point_id,
-            config.tracking_params(),
-        )
+        tracked = register_from_sfm(frames, usable, sfm, config.tracking_params())
         posed_by, cam_from_world = tracked.posed_by.copy(), tracked.cam_from_world
         if not reg[0] and 0 in tracked.frame_points:
             points0 = tracked.frame_points[0]

@@ -12,12 +12,16 @@ long as the points stay in view). Frame 0 gets posed this way too when the mappe
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
 
 from egosim.pipeline.geometry import intrinsics_matrix
 from egosim.schemas.depth_camera import POSED_BY_MAPPER, POSED_BY_PNP
+
+if TYPE_CHECKING:
+    from egosim.stages.depth_camera.sfm import SfmResult
 
 NOT_POSED = -1  # internal: nothing posed the frame yet (the schema's codes are 0..4)
 
@@ -203,4 +207,24 @@ def register_missing_frames(
         posed_by=posed_by,
         num_inliers=num_inliers,
         frame_points={k: v[1] for k, v in obs.items()},
+    )
+
+
+def register_from_sfm(
+    frames: np.ndarray, usable: np.ndarray | None, sfm: SfmResult, params: TrackingParams
+) -> TrackingResult:
+    """:func:`register_missing_frames` with the model of ``sfm`` (an :class:`SfmResult` spread
+    to all ``frames (T, H, W, 3)``): its poses, registered frames, points and observations."""
+    return register_missing_frames(
+        frames,
+        usable,
+        sfm.intrinsics,
+        sfm.cam_from_world,
+        np.asarray(sfm.registered, dtype=bool),
+        sfm.all_points3d,
+        sfm.all_point_ids,
+        sfm.obs_frame,
+        sfm.obs_uv,
+        sfm.obs_point_id,
+        params,
     )
