@@ -190,8 +190,8 @@ def rerender(
 
 def real_case(
     case: RealCase, data: Path, run: Path, scene: Path | None = None
-) -> list[tuple[dict[str, Any], np.ndarray]]:
-    """Figures of every clip of one real video, each with its contact-sheet row.
+) -> list[tuple[dict[str, Any], np.ndarray | None]]:
+    """Figures of every clip of one real video, each with its contact-sheet row (None: none).
 
     The render is the run's own ``scene_render`` step, or ``scene/scene_render.parquet`` when
     ``scene`` is given (see :func:`rerender`). Hand pixels: the case's ``videos_hands`` (DWM
@@ -206,7 +206,7 @@ def real_case(
         renders = _rows(scene / "scene_render.parquet")
         cloud_rows = _rows(scene / "scene_cloud.parquet")
     masks = {} if case.static_truth else read_step(run, "hand_mask")
-    out: list[tuple[dict[str, Any], np.ndarray]] = []
+    out: list[tuple[dict[str, Any], np.ndarray | None]] = []
     for cid in sorted(renders):
         render, clip = renders[cid], clips[cid]
         h, w = int(render["height"]), int(render["width"])
@@ -227,7 +227,7 @@ def real_case(
             mask = media.decode_lossless_video(masks[cid]["hand_mask"], f"{cid} hand_mask")
             hand, truth, inside = mask > 0, None, None  # (T, H, W)
         else:
-            out.append(({"case": case.name, "clip": cid, "error": "no hand_mask row"}, real[0]))
+            out.append(({"case": case.name, "clip": cid, "error": "no hand_mask row"}, None))
             continue
         hand = dilate(hand, HAND_DILATE_PX) > 0  # (T, H, W)
         row = {"case": case.name, "clip": cid, **_cloud_figures(cloud_rows.get(cid), (h, w))}
@@ -381,7 +381,11 @@ def main() -> int:
         path = args.out / f"contact_sheet{tag.removeprefix('scene_bench')}.png"
         width = max(s.shape[1] for s in sheet)
         sheet = [
-            cv2.resize(s, (width, round(s.shape[0] * width / s.shape[1])), cv2.INTER_AREA)
+            cv2.resize(
+                s,
+                (width, round(s.shape[0] * width / s.shape[1])),
+                interpolation=cv2.INTER_AREA,
+            )
             for s in sheet
         ]  # one width for clips of different sizes
         cv2.imwrite(str(path), cv2.cvtColor(np.concatenate(sheet, axis=0), cv2.COLOR_RGB2BGR))
