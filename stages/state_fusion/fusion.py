@@ -490,12 +490,12 @@ def _integrate_tsdf(
     world_from_cam: np.ndarray,
     intrinsics: np.ndarray,
     config: StateFusionConfig,
-    min_weight: float = 3.0,
+    min_weight: float,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Fuse ``depth (T, H, W)`` (0 = skip) by TSDF; returns points ``(N, 3)`` and RGB ``(N, 3)``.
 
-    Surface points come from voxels observed in at least ``min_weight`` frames (open3d's
-    default 3)."""
+    Surface points come from voxels observed in at least ``min_weight`` frames
+    (``config.tsdf_min_weight`` or ``tsdf_min_weight_estimated``)."""
     k_mat = o3c.Tensor(intrinsics_matrix(intrinsics), o3c.float64)  # (3, 3)
     grid = o3d.t.geometry.VoxelBlockGrid(
         attr_names=("tsdf", "weight", "color"),
@@ -742,13 +742,14 @@ def _objects_and_background(
     if config.carry_held and previous is not None and joints is not None:
         carried = _carried(joints, obs, previous, plane, tracks, status, config)
     for c in carried:  # each carry is one more track, interacting from grasp to release
-        source = previous.points[c.source]
+        source = previous.points[c.source]  # (n, 3)
+        placed = transform_points(c.moved, source)  # (n, 3) at the release
         tracks.append(
             Track(
                 {c.grasp: np.zeros(0, np.int64), c.release: np.zeros(0, np.int64)},
-                {c.grasp: source, c.release: transform_points(c.moved, source)},
+                {c.grasp: source, c.release: placed},
                 set(),
-                transform_points(c.moved, source).mean(0),
+                placed.mean(0),
             )
         )
         row = np.zeros((1, t), bool)
