@@ -13,7 +13,6 @@ from egosim.pipeline import media
 from egosim.pipeline.clip_io import row_from_clip
 from egosim.pipeline.records import ClipsRecord
 from egosim.stages.depth_camera.source_track import (
-    CoverCrop,
     SourceTrack,
     rate_picks,
     read_track_frames,
@@ -21,7 +20,7 @@ from egosim.stages.depth_camera.source_track import (
 )
 from egosim.stages.depth_camera.stage import DepthCameraConfig, estimate_from_track, track_request
 from egosim.stages.ingest.stage import IngestConfig
-from egosim.stages.ingest.standardise import WindowPolicy, plan_resize, resample_windows
+from egosim.stages.ingest.standardise import WindowPolicy, resample_windows
 from egosim.stages.ingest.video_source import read_video_clips
 
 
@@ -41,24 +40,6 @@ def test_rate_picks_are_the_indices_of_ingests_windows(
     for w in windows:
         k0 = w.index * (stride or 61)
         assert np.array_equal(picks[k0 : k0 + len(w.source_indices)], w.source_indices)
-
-
-@pytest.mark.parametrize(
-    "src, dst", [((1280, 610), (832, 480)), ((426, 610), (832, 480)), ((1920, 1080), (720, 480))]
-)
-def test_cover_crop_is_ingests_resize_plan(src: tuple[int, int], dst: tuple[int, int]) -> None:
-    ours = CoverCrop.plan(src[0], src[1], dst[0], dst[1])
-    theirs = plan_resize(src[0], src[1], dst[0], dst[1])
-    assert (ours.scaled_width, ours.scaled_height, ours.crop_x, ours.crop_y) == (
-        theirs.scaled_width,
-        theirs.scaled_height,
-        theirs.crop_x,
-        theirs.crop_y,
-    )
-    frame = np.random.default_rng(0).integers(0, 255, (src[1], src[0], 3), dtype=np.uint8)
-    assert np.array_equal(ours.apply(frame), theirs.apply(frame))
-    k = np.array([500.0, 500.0, src[0] / 2, src[1] / 2])
-    assert np.allclose(ours.intrinsics(k, src[0], src[1]), theirs.intrinsics(k))
 
 
 def _small_video(tmp_path: Path, n: int = 45, fps: float = 30.0) -> Path:

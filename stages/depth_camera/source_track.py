@@ -25,7 +25,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from egosim.pipeline.geometry import crop_intrinsics, invert_se3, scale_intrinsics
+from egosim.pipeline.geometry import invert_se3
 from egosim.pipeline.media import MediaError, iter_video_file
 from egosim.schemas.depth_camera import POSED_BY_INTERPOLATION
 from egosim.stages.depth_camera.sfm import (
@@ -38,55 +38,17 @@ from egosim.stages.depth_camera.sfm import (
     spread_to_frames,
 )
 from egosim.stages.depth_camera.tracking import NOT_POSED, TrackingParams, register_from_sfm
-
-RATE_TOLERANCE = 1e-6  # relative: as ingest's (a source this close to the clip rate is at it)
-TIME_TOLERANCE_S = 1e-6  # as ingest's: a target this much after a frame's time still reaches it
-IMAGE_SUFFIXES = frozenset({".jpg", ".jpeg", ".png", ".bmp", ".webp"})  # as ingest's frame folders
+from egosim.stages.ingest.frames_source import IMAGE_SUFFIXES
+from egosim.stages.ingest.standardise import (
+    RATE_TOLERANCE,
+    TIME_TOLERANCE_S,
+    ResizePlan,
+    plan_resize,
+)
 
 
 class SourceTrackError(RuntimeError):
     """The source could not be tracked (unreadable, SfM failed, too long); the message says why."""
-
-
-@dataclass(frozen=True)
-class CoverCrop:
-    """Ingest's spatial rule: scale to cover ``width x height``, then centre-crop."""
-
-    scaled_width: int  # width after scaling
-    scaled_height: int  # height after scaling
-    crop_x: int  # left edge of the crop in the scaled image
-    crop_y: int  # top edge of the crop in the scaled image
-    width: int  # target width
-    height: int  # target height
-    shrink: bool  # True when scaling down (INTER_AREA), else INTER_LINEAR
-
-    @classmethod
-    def plan(cls, src_width: int, src_height: int, width: int, height: int) -> CoverCrop:
-        """The same numbers as ``ingest.standardise.plan_resize`` (checked by the tests)."""
-        scale = max(width / src_width, height / src_height)
-        scaled_w = max(width, round(src_width * scale))
-        scaled_h = max(height, round(src_height * scale))
-        return cls(
-            scaled_w, scaled_h, (scaled_w - width) // 2, (scaled_h - height) // 2, width, height,
-            scale < 1,
-        )  # fmt: skip
-
-    def apply(self, frame: np.ndarray) -> np.ndarray:
-        """``frame (h, w, 3)`` resized and cropped to ``(height, width, 3)``."""
-        interp = cv2.INTER_AREA if self.shrink else cv2.INTER_LINEAR
-        scaled = cv2.resize(frame, (self.scaled_width, self.scaled_height), interpolation=interp)
-        return scaled[
-            self.crop_y : self.crop_y + self.height, self.crop_x : self.crop_x + self.width
-        ]
-
-    def intrinsics(
-        self, source_intrinsics: np.ndarray, src_width: int, src_height: int
-    ) -> np.ndarray:
-        """Intrinsics of the output frames given the source frame's."""
-        scaled = scale_intrinsics(
-            source_intrinsics, self.scaled_width / src_width, self.scaled_height / src_height
-        )
-        return crop_intrinsics(scaled, self.crop_x, self.crop_y)
 
 
 def rate_picks(times: np.ndarray, fps: float, source_fps: float | None) -> np.ndarray:
@@ -153,7 +115,7 @@ def read_track_frames(
     height, width = size
     times: list[float] = []
     kept: list[np.ndarray] = []
-    plan: CoverCrop | None = None
+    plan: ResizePlan | None = None
     prev: tuple[float, int, Any] | None = None
     picks: list[int] = []
     keep_rate = source_fps is not None and 0 < source_fps < fps * (1 - RATE_TOLERANCE)
@@ -165,7 +127,7 @@ def read_track_frames(
         if first <= k < first + count:
             rgb = _rgb(frame)
             if plan is None:
-                plan = CoverCrop.plan(rgb.shape[1], rgb.shape[0], width, height)
+                plan = plan_resize(rgb.shape[1], rgb.shape[0], width, height)
             kept.append(plan.apply(rgb))
 
     try:
