@@ -175,6 +175,31 @@ def test_aligned_fill_uses_a_homography_only_where_it_holds_near_the_hole() -> N
     assert rms < 3.0, f"RMS {rms:.2f}"
 
 
+def test_pushpull_fill_against_known_fields() -> None:
+    """The push-pull pyramid (the local residual's spreading) keeps known pixels and dtype, fills
+    a constant colour exactly and a ramp (2 levels per px) across a 25 px wide hole closely.
+    Measured: constant 0 error; ramp max 6.1, mean 2.9 (1.5 px of the ramp)."""
+    from egosim.stages.inpaint.reproject_fill import pushpull_fill
+
+    h, w = 60, 90
+    hole = np.zeros((h, w), np.uint8)
+    hole[20:40, 30:55] = 1
+    flat = np.full((h, w, 3), (40, 120, 200), np.uint8)
+    spoiled = flat.copy()
+    spoiled[hole > 0] = 255
+    out = pushpull_fill(spoiled, hole)
+    assert out.dtype == np.uint8
+    np.testing.assert_array_equal(out, flat)
+    ramp = np.tile(np.linspace(0, 178, w, dtype=np.float32), (h, 1))  # (H, W) 2 per px
+    spoiled = ramp.copy()
+    spoiled[hole > 0] = -1.0
+    out = pushpull_fill(spoiled, hole)
+    assert out.dtype == np.float32
+    np.testing.assert_array_equal(out[hole == 0], ramp[hole == 0])
+    err = np.abs(out - ramp)[hole > 0]
+    assert err.max() <= 8.0 and err.mean() <= 4.0, (err.max(), err.mean())
+
+
 def test_a_sleeve_that_other_masks_missed_leaves_no_ghost() -> None:
     """Still camera; a sleeve stays over the hole in 3 of 5 later frames, unmasked there: the
     plain median pastes it, the hand-colour test does not (the table comes back exactly)."""
