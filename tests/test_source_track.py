@@ -14,32 +14,12 @@ from egosim.pipeline.clip_io import row_from_clip
 from egosim.pipeline.records import ClipsRecord
 from egosim.stages.depth_camera.source_track import (
     SourceTrack,
-    rate_picks,
     read_track_frames,
     thumbnail,
 )
 from egosim.stages.depth_camera.stage import DepthCameraConfig, estimate_from_track, track_request
 from egosim.stages.ingest.stage import IngestConfig
-from egosim.stages.ingest.standardise import WindowPolicy, resample_windows
 from egosim.stages.ingest.video_source import read_video_clips
-
-
-@pytest.mark.parametrize("source_fps", [30.0, 29.97, 25.0, 60.0, 16.0, 10.0])
-@pytest.mark.parametrize("stride", [0, 30])
-@pytest.mark.parametrize("jitter", [0.0, 0.003])
-def test_rate_picks_are_the_indices_of_ingests_windows(
-    source_fps: float, stride: int, jitter: float
-) -> None:
-    rng = np.random.default_rng(int(source_fps * 100) + stride)
-    n = round(source_fps * 10)  # 10 s: two full windows and a tail at 16 fps
-    times = np.sort(np.arange(n) / source_fps + rng.normal(0.0, jitter, n)) + 2.5
-    policy = WindowPolicy(fps=16.0, num_frames=61, min_frames=33, stride=stride)
-    windows = list(resample_windows(((t, np.zeros(1)) for t in times), policy, source_fps))
-    picks = rate_picks(times, 16.0, source_fps)
-    assert len(windows) >= 2
-    for w in windows:
-        k0 = w.index * (stride or 61)
-        assert np.array_equal(picks[k0 : k0 + len(w.source_indices)], w.source_indices)
 
 
 def _small_video(tmp_path: Path, n: int = 45, fps: float = 30.0) -> Path:
@@ -56,18 +36,23 @@ def _ingest(path: Path) -> list:
     return list(read_video_clips(path, cfg))
 
 
-def test_track_frames_are_ingests_window_frames(tmp_path: Path) -> None:
-    path = _small_video(tmp_path)
+@pytest.mark.parametrize("source_fps", [30.0, 25.0, 10.0])
+def test_track_frames_are_ingests_window_frames(tmp_path: Path, source_fps: float) -> None:
+    """At, above and below the clip rate (10 fps: the source keeps its own rate)."""
+    path = _small_video(tmp_path, fps=source_fps)
     clips = _ingest(path)
     assert len(clips) >= 2
-    picks, frames = read_track_frames("video", str(path), 16.0, 30.0, (32, 48), 0, 1000)
+    picks, frames = read_track_frames("video", str(path), 16.0, source_fps, (32, 48), 0, 1000)
     for clip in clips:
-        k0 = round(float(clip.timestamps[0]) * 16.0)
+        if source_fps < 16.0:
+            k0 = int(clip.source_frame_indices[0])
+        else:
+            k0 = round(float(clip.timestamps[0]) * 16.0)
         t = clip.num_frames
         assert np.array_equal(picks[k0 : k0 + t], clip.source_frame_indices)
         assert np.array_equal(frames[k0 : k0 + t], clip.frames)
     # A chunk holds only its own frames, with the same picks.
-    picks2, chunk = read_track_frames("video", str(path), 16.0, 30.0, (32, 48), 9, 9)
+    picks2, chunk = read_track_frames("video", str(path), 16.0, source_fps, (32, 48), 9, 9)
     assert np.array_equal(picks, picks2)
     assert np.array_equal(chunk, frames[9:18])
 

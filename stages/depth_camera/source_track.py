@@ -4,7 +4,7 @@ window (depth_camera v9; ``docs/design.md``, "Cameras per source video").
 Ingest cuts a long source into windows; estimating each window on its own gave every window its
 own world frame, focal and metric scale. Here the source is read again (video file or frame
 folder named by the clip's ``source_uri``), every frame resized to the clip's size by ingest's
-rule, and the frames ingest's rate rule picks (:func:`rate_picks`) become the *track frames*: every
+rule, and the frames ingest's rate rule picks become the *track frames*: every
 window frame is one of them. SfM runs on every ``keyframe_stride``-th track frame and KLT + PnP
 poses the rest (:func:`estimate_track`): one model, one focal, one world frame per source. The
 metric scale is pooled over segments of the track (:func:`pooled_scale`), so every window of a
@@ -41,34 +41,14 @@ from egosim.stages.depth_camera.tracking import NOT_POSED, TrackingParams, regis
 from egosim.stages.ingest.frames_source import IMAGE_SUFFIXES
 from egosim.stages.ingest.standardise import (
     RATE_TOLERANCE,
-    TIME_TOLERANCE_S,
     ResizePlan,
+    _targets_reached,
     plan_resize,
 )
 
 
 class SourceTrackError(RuntimeError):
     """The source could not be tracked (unreadable, SfM failed, too long); the message says why."""
-
-
-def rate_picks(times: np.ndarray, fps: float, source_fps: float | None) -> np.ndarray:
-    """``(N,)`` source frame indices ingest's rate rule makes clip frames of, in clip order.
-
-    ``times (S,)`` seconds of the source frames (increasing). A source slower than ``fps`` keeps
-    every frame; otherwise target ``k`` at ``k / fps`` from the first frame takes the nearest
-    frame in time (the earlier one on a tie), for every target up to the last frame's time. The
-    same indices as ``ingest.standardise.resample_windows`` (checked by the tests).
-    """
-    times = np.asarray(times, dtype=np.float64) - float(times[0])
-    if source_fps is not None and 0 < source_fps < fps * (1 - RATE_TOLERANCE):
-        return np.arange(len(times))
-    last = int(np.floor(times[-1] * fps + TIME_TOLERANCE_S * fps))
-    targets = np.arange(last + 1) / fps  # (N,)
-    cur = np.searchsorted(times, targets - TIME_TOLERANCE_S, side="left")  # first frame reaching
-    cur = np.minimum(cur, len(times) - 1)
-    prev = np.maximum(cur - 1, 0)
-    take_prev = (cur > 0) & (np.abs(times[prev] - targets) <= np.abs(times[cur] - targets))
-    return np.where(take_prev, prev, cur).astype(np.int64)
 
 
 def _frame_files(folder: Path) -> list[Path]:
@@ -109,7 +89,8 @@ def read_track_frames(
     at track positions ``first .. first + count - 1`` (a chunk), resized to ``size = (H, W)``.
 
     ``kind`` is the clip's ``source`` (``video`` or ``frames``), ``uri`` its ``source_uri``.
-    Streams the source (ingest's rule, :func:`rate_picks`, applied online), holding one chunk.
+    Streams the source through ingest's rate rule (``standardise._targets_reached``), holding
+    one chunk.
     Raises :class:`SourceTrackError` for another kind or an unreadable source.
     """
     height, width = size
@@ -137,13 +118,10 @@ def read_track_frames(
             if keep_rate:
                 take(index, frame)
                 continue
-            while len(picks) <= t * fps + TIME_TOLERANCE_S * fps:
-                target = len(picks) / fps
-                if prev is not None and abs(prev[0] - target) <= abs(t - target):
-                    take(prev[1], prev[2])
-                else:
-                    take(index, frame)
-            prev = (t, index, frame)
+            current = (t, index, frame)
+            for _, (_, src_index, src_frame) in _targets_reached(current, prev, len(picks), fps):
+                take(src_index, src_frame)
+            prev = current
     except (MediaError, OSError) as exc:
         raise SourceTrackError(f"cannot read source {uri!r}: {exc}") from exc
     if not kept:
