@@ -526,7 +526,10 @@ def _integrate_tsdf(
         return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint8)
     pts = cloud.point.positions.numpy().astype(np.float32)
     rgb = np.clip(cloud.point.colors.numpy() * 255.0 + 0.5, 0, 255).astype(np.uint8)
-    return pts, rgb
+    # open3d lists the points in its voxel hash map's order, which changes from run to run;
+    # sorted (by z, then y, then x) the same clip fuses to the same state every time
+    order = np.lexsort(pts.T)  # (N,)
+    return pts[order], rgb[order]
 
 
 def _project(
