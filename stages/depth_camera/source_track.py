@@ -85,8 +85,9 @@ def read_track_frames(
     first: int,
     count: int,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """``(picks (N,), frames (M, H, W, 3))``: the source's track frames and the pixels of those
-    at track positions ``first .. first + count - 1`` (a chunk), resized to ``size = (H, W)``.
+    """``(picks (N,), frames (M, H, W, 3))``: the source's track frames up to the chunk's end
+    and the pixels of those at track positions ``first .. first + count - 1`` (the chunk),
+    resized to ``size = (H, W)``. The source is decoded only up to the chunk's last frame.
 
     ``kind`` is the clip's ``source`` (``video`` or ``frames``), ``uri`` its ``source_uri``.
     Streams the source through ingest's rate rule (``standardise._targets_reached``), holding
@@ -117,11 +118,13 @@ def read_track_frames(
             t = time - times[0]
             if keep_rate:
                 take(index, frame)
-                continue
-            current = (t, index, frame)
-            for _, (_, src_index, src_frame) in _targets_reached(current, prev, len(picks), fps):
-                take(src_index, src_frame)
-            prev = current
+            else:
+                current = (t, index, frame)
+                for _, (_, i, img) in _targets_reached(current, prev, len(picks), fps):
+                    take(i, img)
+                prev = current
+            if len(picks) >= first + count:
+                break  # the chunk is complete: the rest of the source is not decoded
     except (MediaError, OSError) as exc:
         raise SourceTrackError(f"cannot read source {uri!r}: {exc}") from exc
     if not kept:
@@ -142,7 +145,7 @@ def thumbnail(frame: np.ndarray) -> np.ndarray:
 class SourceTrack:
     """Cameras of one chunk of a source's track frames, in one SfM frame and scale (unscaled)."""
 
-    picks: np.ndarray  # (N,) source frame index of every track frame of the source
+    picks: np.ndarray  # (N,) source frame index of the source's track frames to the chunk's end
     first: int  # track position of the chunk's first frame
     intrinsics: np.ndarray  # (4,) fx, fy, cx, cy of the clip-size frames
     cam_from_world: np.ndarray  # (M, 4, 4) of the chunk's frames; unposed ones interpolated
