@@ -460,23 +460,39 @@ def sfm_camera(
     depth = window_depth(frames, usable, sfm.intrinsics, cam_from_world, posed, points0, config)
     if isinstance(depth, str):
         return None, f"{what}{depth}"
+    est = sfm_estimate(sfm.intrinsics, cam_from_world, posed, posed_by, depth, sfm, focal_prior_px)
+    return est, what
+
+
+def sfm_estimate(
+    intrinsics: np.ndarray,
+    cam_from_world: np.ndarray,
+    posed: np.ndarray,
+    posed_by: np.ndarray,
+    depth: tuple[np.ndarray, np.ndarray, list[int]],
+    model: SfmResult | SourceTrack,
+    focal_prior_px: float,
+) -> CameraEstimate:
+    """The SfM model's :class:`CameraEstimate` (no scale yet) of a window's ``cam_from_world
+    (T, 4, 4)``, ``posed (T,)``, ``posed_by (T,)`` and frame-0 ``depth`` (:func:`window_depth`);
+    ``model`` gives the reprojection error and point count."""
     depth0, conf0, sources = depth
     return CameraEstimate(
-        intrinsics=sfm.intrinsics,
+        intrinsics=intrinsics,
         world_from_cam=invert_se3(cam_from_world),
         registered=posed,
         static=False,
         depth0=depth0,
         confidence0=conf0,
         backend="sfm",
-        reprojection_error_px=sfm.reprojection_error_px,
-        num_points3d=sfm.num_points3d,
-        sources=tuple(sources),
+        reprojection_error_px=model.reprojection_error_px,
+        num_points3d=model.num_points3d,
+        sources=tuple(int(v) for v in sources),
         camera_model="sfm",
         posed_by=posed_by,
         focal_prior_px=focal_prior_px,
         scale_source="none",
-    ), what
+    )
 
 
 def rotation_camera(rot: RotationEstimate, focal_prior_px: float) -> CameraEstimate:
@@ -752,7 +768,7 @@ def estimate_from_track(
     cam_from_world = track.cam_from_world[pos]  # (T, 4, 4)
     saved = track.depths.get(int(pos[0]))
     if saved is not None and max(saved[2]) < len(pos):
-        depth0, conf0, sources = saved[0], saved[1], list(saved[2])
+        depth = (saved[0], saved[1], list(saved[2]))
     else:
         points0 = track.frame_points.get(int(pos[0]), np.zeros((0, 3)))
         usable = usable_pixels(hand_mask, config.hand_dilate_px)
@@ -761,22 +777,8 @@ def estimate_from_track(
         )
         if isinstance(depth, str):
             return None, f"{what}{depth}"
-        depth0, conf0, sources = depth
-    est = CameraEstimate(
-        intrinsics=track.intrinsics,
-        world_from_cam=invert_se3(cam_from_world),
-        registered=posed,
-        static=False,
-        depth0=depth0,
-        confidence0=conf0,
-        backend="sfm",
-        reprojection_error_px=track.reprojection_error_px,
-        num_points3d=track.num_points3d,
-        sources=tuple(int(v) for v in sources),
-        camera_model="sfm",
-        posed_by=posed_by,
-        focal_prior_px=req.intrinsics[0],
-        scale_source="none",
+    est = sfm_estimate(
+        track.intrinsics, cam_from_world, posed, posed_by, depth, track, req.intrinsics[0]
     )
     if track.metric_scale is not None:
         est = est.with_scale(track.metric_scale, track.scale_source, track.scale_spread)
