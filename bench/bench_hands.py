@@ -15,8 +15,8 @@ import numpy as np
 
 from egosim.pipeline.geometry import intrinsics_from_fov
 from egosim.pipeline.media import read_video_file
+from egosim.stages.common.frame_plan import plan_resize
 from egosim.stages.hands.mediapipe_backend import MediaPipeParams, mediapipe_hands
-from egosim.stages.ingest.standardise import plan_resize
 
 HOT3D = Path(__file__).resolve().parents[2] / "shared" / "data" / "hot3d_video"
 HOT3D_RGB_X = (427, 853)  # the RGB view: middle third of the side-by-side video

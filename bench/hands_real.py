@@ -45,6 +45,7 @@ from egosim.pipeline import media
 from egosim.pipeline.geometry import intrinsics_from_fov
 from egosim.pipeline.media import read_video_file
 from egosim.pipeline.stage import ClipRejected
+from egosim.stages.common.frame_plan import plan_resize
 from egosim.stages.hands.mediapipe_backend import (
     MediaPipeParams,
     detect_landmarks,
@@ -52,7 +53,7 @@ from egosim.stages.hands.mediapipe_backend import (
 )
 from egosim.stages.hands.metrics import combine, hand_accuracy
 from egosim.stages.ingest.stage import CLIP_PRESETS, IngestConfig
-from egosim.stages.ingest.standardise import Window, WindowPolicy, plan_resize, resample_windows
+from egosim.stages.ingest.standardise import Window, WindowPolicy, resample_windows
 
 DEFAULT_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 MIN_RENDER_PIXELS = 150  # a render shows a hand when at least this many pixels have its colour

@@ -223,7 +223,7 @@ def _video_frames(path: Path) -> np.ndarray:
 
 def _fit(frames: np.ndarray, indices: np.ndarray, hw: tuple[int, int]) -> np.ndarray:
     """Source frames at ``indices`` scaled to cover ``hw`` and centre-cropped (ingest's rule)."""
-    from egosim.stages.ingest.standardise import plan_resize
+    from egosim.stages.common.frame_plan import plan_resize
 
     plan = plan_resize(frames.shape[2], frames.shape[1], hw[1], hw[0])
     return np.stack([plan.apply(frames[min(i, len(frames) - 1)]) for i in indices])
@@ -312,7 +312,7 @@ def _fov_deg(fx: float, width: int) -> float:
 
 def _clip_scale(case: RealCase, data: Path, clip: dict[str, Any]) -> float:
     """Pixels of the clip per pixel of the source video (ingest's cover-and-crop rule)."""
-    from egosim.stages.ingest.standardise import plan_resize
+    from egosim.stages.common.frame_plan import plan_resize
 
     info = media.probe_video_file(data / case.video)
     return plan_resize(info.width, info.height, int(clip["width"]), int(clip["height"])).scale

@@ -80,8 +80,8 @@ def egodex() -> tuple[np.ndarray, object]:
     pytest.importorskip("mediapipe")
     pytest.importorskip("ai_edge_litert")
     from egosim.pipeline.media import read_video_file
+    from egosim.stages.common.frame_plan import plan_resize
     from egosim.stages.hands.mediapipe_backend import MediaPipeParams, detect_landmarks
-    from egosim.stages.ingest.standardise import plan_resize
 
     video, _ = read_video_file(shared_data("egodex_sample", "sample.mp4"))
     plan = plan_resize(video.shape[2], video.shape[1], 832, 480)

@@ -10,8 +10,9 @@ import pytest
 from egosim.pipeline.geometry import intrinsics_from_fov, project_points
 from egosim.pipeline.media import write_video_file
 from egosim.pipeline.stage import ClipRejected, ConfigError
+from egosim.stages.common.frame_plan import plan_resize
 from egosim.stages.ingest.stage import IngestConfig, IngestStage
-from egosim.stages.ingest.standardise import WindowPolicy, plan_resize, resample_windows
+from egosim.stages.ingest.standardise import WindowPolicy, resample_windows
 from egosim.stages.ingest.video_source import read_video_clips
 from tests.conftest import shared_data, smooth_frames
 

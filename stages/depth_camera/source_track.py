@@ -28,6 +28,13 @@ import numpy as np
 from egosim.pipeline.geometry import invert_se3
 from egosim.pipeline.media import MediaError, iter_video_file
 from egosim.schemas.depth_camera import POSED_BY_INTERPOLATION
+from egosim.stages.common.frame_plan import (
+    RATE_TOLERANCE,
+    ResizePlan,
+    frame_files,
+    plan_resize,
+    targets_reached,
+)
 from egosim.stages.depth_camera.sfm import (
     SfmError,
     SfmOptions,
@@ -38,21 +45,10 @@ from egosim.stages.depth_camera.sfm import (
     spread_to_frames,
 )
 from egosim.stages.depth_camera.tracking import NOT_POSED, TrackingParams, register_from_sfm
-from egosim.stages.ingest.frames_source import IMAGE_SUFFIXES
-from egosim.stages.ingest.standardise import (
-    RATE_TOLERANCE,
-    ResizePlan,
-    _targets_reached,
-    plan_resize,
-)
 
 
 class SourceTrackError(RuntimeError):
     """The source could not be tracked (unreadable, SfM failed, too long); the message says why."""
-
-
-def _frame_files(folder: Path) -> list[Path]:
-    return sorted(p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES)
 
 
 def _source_frames(kind: str, uri: str, source_fps: float | None) -> Iterator[tuple[float, Any]]:
@@ -61,7 +57,7 @@ def _source_frames(kind: str, uri: str, source_fps: float | None) -> Iterator[tu
     if kind == "video" and path.is_file():
         yield from iter_video_file(path)
     elif kind == "frames" and path.is_dir() and source_fps:
-        for i, file in enumerate(_frame_files(path)):
+        for i, file in enumerate(frame_files(path)):
             yield i / float(source_fps), file
     else:
         raise SourceTrackError(f"source {kind!r} at {uri!r} is not a readable video or folder")
@@ -90,7 +86,7 @@ def read_track_frames(
     resized to ``size = (H, W)``. The source is decoded only up to the chunk's last frame.
 
     ``kind`` is the clip's ``source`` (``video`` or ``frames``), ``uri`` its ``source_uri``.
-    Streams the source through ingest's rate rule (``standardise._targets_reached``), holding
+    Streams the source through ingest's rate rule (``frame_plan.targets_reached``), holding
     one chunk.
     Raises :class:`SourceTrackError` for another kind or an unreadable source.
     """
@@ -120,7 +116,7 @@ def read_track_frames(
                 take(index, frame)
             else:
                 current = (t, index, frame)
-                for _, (_, i, img) in _targets_reached(current, prev, len(picks), fps):
+                for _, (_, i, img) in targets_reached(current, prev, len(picks), fps):
                     take(i, img)
                 prev = current
             if len(picks) >= first + count:

@@ -11,10 +11,9 @@ import numpy as np
 
 from egosim.pipeline.records import Clip
 from egosim.pipeline.stage import ClipRejected
-from egosim.stages.ingest.standardise import plan_resize, resample_windows
+from egosim.stages.common.frame_plan import frame_files, plan_resize
+from egosim.stages.ingest.standardise import resample_windows
 from egosim.stages.ingest.video_source import ClipFormat, source_intrinsics, window_policy
-
-IMAGE_SUFFIXES = frozenset({".jpg", ".jpeg", ".png", ".bmp", ".webp"})
 
 
 class FramesFormat(ClipFormat, Protocol):
@@ -23,17 +22,13 @@ class FramesFormat(ClipFormat, Protocol):
     frames_fps: float
 
 
-def _images(folder: Path) -> list[Path]:
-    return sorted(p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES)
-
-
 def find_frame_folders(path: Path) -> list[Path]:
     """``path`` itself if it holds images, else every sub-folder (recursively) that does."""
     if path.is_file():
         return []
-    if _images(path):
+    if frame_files(path):
         return [path]
-    return sorted(p for p in path.rglob("*") if p.is_dir() and _images(p))
+    return sorted(p for p in path.rglob("*") if p.is_dir() and frame_files(p))
 
 
 def _read_rgb(path: Path) -> np.ndarray:
@@ -47,7 +42,7 @@ def read_frame_clips(folder: Path, cfg: FramesFormat) -> Iterator[Clip]:
     """Cut a folder of frames (taken at ``frames_fps``) into clips by the clip policy."""
     if not cfg.frames_fps > 0:
         raise ClipRejected(f"frame folder {folder}: set frames_fps, the rate the frames were taken")
-    files = _images(folder)
+    files = frame_files(folder)
     if not files:
         raise ClipRejected(f"frame folder {folder} holds no images")
     first = _read_rgb(files[0])

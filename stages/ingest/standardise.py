@@ -30,71 +30,18 @@ from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from typing import Literal
 
-import cv2
 import numpy as np
 
-from egosim.pipeline.geometry import crop_intrinsics, scale_intrinsics
 from egosim.pipeline.stage import ClipRejected
+from egosim.stages.common.frame_plan import (  # shared with depth_camera's source track
+    RATE_TOLERANCE,
+    ClipFrame,
+    targets_reached,
+)
 
 VAE_TEMPORAL_FACTOR = 4  # Wan VAE: latent frame 0 is pixel frame 0, then one per 4 frames
-RATE_TOLERANCE = 1e-6  # relative: a source within this of the target fps counts as at the target
-TIME_TOLERANCE_S = 1e-6  # a target time this much after a frame's timestamp still reaches it
 ClipKind = Literal["full", "short", "tail"]
 TailPolicy = Literal["keep", "drop"]
-
-
-@dataclass(frozen=True)
-class ResizePlan:
-    """How one source size maps onto the target size."""
-
-    scale: float  # uniform scale factor applied first
-    crop_x: int  # left edge of the crop in the scaled image
-    crop_y: int  # top edge of the crop in the scaled image
-    src_width: int  # source width
-    src_height: int  # source height
-    scaled_width: int  # width after scaling
-    scaled_height: int  # height after scaling
-    width: int  # target width
-    height: int  # target height
-
-    def apply(self, frame: np.ndarray, nearest: bool = False) -> np.ndarray:
-        """Resize and crop one ``(h, w[, c])`` image to ``(height, width[, c])``.
-
-        ``nearest`` keeps values exact (masks, labels, depth) instead of interpolating.
-        """
-        size = (self.scaled_width, self.scaled_height)
-        interp = cv2.INTER_AREA if self.scale < 1 else cv2.INTER_LINEAR
-        if nearest:
-            interp = cv2.INTER_NEAREST
-        scaled = cv2.resize(frame, size, interpolation=interp)
-        return scaled[
-            self.crop_y : self.crop_y + self.height, self.crop_x : self.crop_x + self.width
-        ]
-
-    def intrinsics(self, source_intrinsics: np.ndarray) -> np.ndarray:
-        """Intrinsics of the output given those of the source frame."""
-        sx = self.scaled_width / self.src_width
-        sy = self.scaled_height / self.src_height
-        scaled = scale_intrinsics(source_intrinsics, sx, sy)
-        return crop_intrinsics(scaled, self.crop_x, self.crop_y)
-
-
-def plan_resize(src_width: int, src_height: int, width: int, height: int) -> ResizePlan:
-    """Scale to cover ``width x height`` and centre-crop (aspect ratio kept, no padding)."""
-    scale = max(width / src_width, height / src_height)
-    scaled_w = max(width, round(src_width * scale))
-    scaled_h = max(height, round(src_height * scale))
-    return ResizePlan(
-        scale=scale,
-        crop_x=(scaled_w - width) // 2,
-        crop_y=(scaled_h - height) // 2,
-        src_width=src_width,
-        src_height=src_height,
-        scaled_width=scaled_w,
-        scaled_height=scaled_h,
-        width=width,
-        height=height,
-    )
 
 
 def longest_model_clip(available: int) -> int:
@@ -170,11 +117,8 @@ class Window:
     kind: ClipKind  # full: num_frames window; short: whole short source; tail: the remainder
 
 
-_ClipFrame = tuple[float, int, np.ndarray]  # one clip frame: (time, source frame index, frame)
-
-
 def _window(
-    kept: dict[int, _ClipFrame], index: int, start: int, n: int, fps: float, kind: ClipKind
+    kept: dict[int, ClipFrame], index: int, start: int, n: int, fps: float, kind: ClipKind
 ) -> Window:
     """Window ``index``: the ``n`` kept clip frames from clip frame ``start``."""
     picks = [kept[i] for i in range(start, start + n)]
@@ -186,25 +130,6 @@ def _window(
         fps=fps,
         kind=kind,
     )
-
-
-def _targets_reached(
-    current: _ClipFrame, prev: _ClipFrame | None, next_target: int, fps: float
-) -> list[tuple[int, _ClipFrame]]:
-    """The clip frames from ``next_target`` on whose times the ``current`` source frame reaches.
-
-    Each takes whichever of ``prev`` and ``current`` is nearer in time (``prev`` on a tie) and
-    keeps its target time.
-    """
-    time = current[0]
-    picks: list[tuple[int, _ClipFrame]] = []
-    while next_target + len(picks) <= time * fps + TIME_TOLERANCE_S * fps:
-        target_time = (next_target + len(picks)) / fps
-        pick = current
-        if prev is not None and abs(prev[0] - target_time) <= abs(time - target_time):
-            pick = prev
-        picks.append((next_target + len(picks), (target_time, pick[1], pick[2])))
-    return picks
 
 
 def _too_short(
@@ -235,13 +160,13 @@ def resample_windows(
     fps = policy.clip_fps(source_fps)
     keep_rate = fps != policy.fps
     num, stride = policy.num_frames, policy.stride or policy.num_frames
-    kept: dict[int, _ClipFrame] = {}  # clip index -> (time, src idx, frame)
+    kept: dict[int, ClipFrame] = {}  # clip index -> (time, src idx, frame)
     next_target = 0  # the next clip-rate frame index to fill
     window = 0  # windows made so far
     count = 0  # source frames seen
     t0: float | None = None
     last_time = 0.0
-    prev: _ClipFrame | None = None
+    prev: ClipFrame | None = None
 
     for src_index, (time, frame) in enumerate(frames):
         count += 1
@@ -254,7 +179,7 @@ def resample_windows(
         if keep_rate:  # every source frame is a clip frame, at its own time
             picks = [(next_target, current)]
         else:
-            picks = _targets_reached(current, prev, next_target, fps)
+            picks = targets_reached(current, prev, next_target, fps)
         for target, (t, idx, img) in picks:
             if target >= start:
                 kept[target] = (t, idx, img)

@@ -18,7 +18,8 @@ from egosim.pipeline.geometry import intrinsics_from_fov
 from egosim.pipeline.media import MediaError, iter_video_file, probe_video_file
 from egosim.pipeline.records import Clip
 from egosim.pipeline.stage import ClipRejected
-from egosim.stages.ingest.standardise import WindowPolicy, plan_resize, resample_windows
+from egosim.stages.common.frame_plan import plan_resize
+from egosim.stages.ingest.standardise import WindowPolicy, resample_windows
 
 VIDEO_SUFFIXES = frozenset({".mp4", ".mov", ".mkv", ".avi", ".webm", ".m4v"})
 MIN_SOURCE_SIDE = 32  # smallest source width or height accepted, pixels (smaller: rejected)
