@@ -97,6 +97,32 @@ def test_frame_folder_needs_a_rate_and_is_resampled(tmp_path: Path) -> None:
         list(no_rate.process_unit(unit))
 
 
+def test_too_few_frames_are_rejected_naming_the_count_with_or_without_a_rate(
+    tmp_path: Path,
+) -> None:
+    import cv2
+
+    folder = tmp_path / "few"
+    folder.mkdir()
+    for i, frame in enumerate(smooth_frames(8, 40, 60)):
+        cv2.imwrite(str(folder / f"{i:04d}.jpg"), frame[..., ::-1])
+    for cfg in (IngestConfig(), IngestConfig(frames_fps=30.0)):  # egosim preset: 33 at least
+        stage = IngestStage(cfg)
+        (unit,) = stage.list_units(str(folder))
+        with pytest.raises(ClipRejected, match=r"few is shorter than one clip: it holds 8 "):
+            list(stage.process_unit(unit))
+        with pytest.raises(ClipRejected, match=r"minimum is 33 frames \(a full clip 61\)"):
+            list(stage.process_unit(unit))
+
+
+def test_real_epic_frames_with_defaults_are_a_clear_reject() -> None:
+    folder = shared_data("epic_kitchens_frames")
+    stage = IngestStage(IngestConfig())  # no frames_fps: what a new user runs
+    (unit,) = stage.list_units(str(folder))
+    with pytest.raises(ClipRejected, match=r"holds 8 frame\(s\); the minimum is 33"):
+        list(stage.process_unit(unit))
+
+
 def test_real_egocentric_frames(tmp_path: Path) -> None:
     folder = shared_data("epic_kitchens_frames")
     cfg = IngestConfig(height=128, width=224, num_frames=8, fps=12.0, frames_fps=12.0)

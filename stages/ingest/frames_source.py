@@ -39,12 +39,27 @@ def _read_rgb(path: Path) -> np.ndarray:
 
 
 def read_frame_clips(folder: Path, cfg: FramesFormat) -> Iterator[Clip]:
-    """Cut a folder of frames (taken at ``frames_fps``) into clips by the clip policy."""
-    if not cfg.frames_fps > 0:
-        raise ClipRejected(f"frame folder {folder}: set frames_fps, the rate the frames were taken")
+    """Cut a folder of frames (taken at ``frames_fps``) into clips by the clip policy.
+
+    A folder with fewer frames than the shortest clip is rejected naming its frame count and
+    the minimum, whether or not ``frames_fps`` is set (frames are never repeated, so no rate
+    makes a clip of it); a long enough folder without ``frames_fps`` is rejected asking for it.
+    """
     files = frame_files(folder)
     if not files:
         raise ClipRejected(f"frame folder {folder} holds no images")
+    policy = window_policy(cfg)
+    if len(files) < policy.minimum:
+        raise ClipRejected(
+            f"frame folder {folder} is shorter than one clip: it holds {len(files)} frame(s); "
+            f"the minimum is {policy.minimum} frames (a full clip {policy.num_frames}), and "
+            "frames are never repeated to lengthen a clip"
+        )
+    if not cfg.frames_fps > 0:
+        raise ClipRejected(
+            f"frame folder {folder} ({len(files)} frames): set frames_fps, the rate the frames "
+            "were taken (e.g. --set ingest.frames_fps=30)"
+        )
     first = _read_rgb(files[0])
     height, width = first.shape[:2]
     plan = plan_resize(width, height, cfg.width, cfg.height)
@@ -57,7 +72,6 @@ def read_frame_clips(folder: Path, cfg: FramesFormat) -> Iterator[Clip]:
                 raise ClipRejected(f"{f}: size {image.shape[:2]} differs from {(height, width)}")
             yield i / cfg.frames_fps, plan.apply(image)
 
-    policy = window_policy(cfg)
     what = f"frame folder {folder}"
     for window in resample_windows(frames(), policy, cfg.frames_fps, what):
         yield Clip(
