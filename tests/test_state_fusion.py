@@ -37,6 +37,7 @@ from egosim.stages.state_fusion.fusion import (
     apply_sim3_to_poses,
     fuse_state,
     interaction_test,
+    ransac_plane,
     sim3_from_poses,
     sim3_matrix,
 )
@@ -142,6 +143,33 @@ def test_sim3_from_one_pose_fixes_scale_to_one():
 
 
 # ------------------------------------------------------------------ the update, measured
+
+
+def test_ransac_plane_finds_the_table_among_clutter_and_repeats_itself():
+    """A tilted table (6,000 points, 2 mm noise) under 3,000 points of clutter and a wall: the
+    plane comes back within 0.5 degrees and 2 mm, the same indices on every call (open3d's
+    segment_plane gave different planes for the same input)."""
+    rng = np.random.default_rng(3)
+    n_true = np.array([0.1, -0.98, 0.17])
+    n_true /= np.linalg.norm(n_true)
+    e1 = np.cross(n_true, [1.0, 0.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(n_true, e1)
+    uv = rng.uniform(-0.5, 0.5, (6000, 2))
+    table = uv @ np.stack([e1, e2]) + 0.8 * n_true + rng.normal(0, 0.002, (6000, 1)) * n_true
+    wall = np.c_[rng.uniform(-1, 1, 1500), rng.uniform(-1, 1, 1500), np.full(1500, 2.0)]
+    clutter = rng.uniform(-1, 1, (1500, 3))
+    points = rng.permutation(np.concatenate([clutter, table, wall]))
+    normal, offset, inliers = ransac_plane(points, 0.01, 300)
+    if normal @ n_true < 0:
+        normal, offset = -normal, -offset
+    assert np.degrees(np.arccos(min(1.0, normal @ n_true))) < 0.5
+    assert abs(offset + 0.8) < 0.002  # the plane n.x + d = 0 through 0.8 n
+    assert 5800 <= len(inliers) <= 6300  # the table's points, and little clutter
+    again = ransac_plane(points, 0.01, 300)
+    assert np.array_equal(again[2], inliers) and np.array_equal(
+        again[0] * np.sign(again[0] @ n_true), normal
+    )
 
 
 def test_moved_object_lands_within_a_centimetre_baseline_does_not(seed0):

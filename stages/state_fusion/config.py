@@ -53,8 +53,8 @@ class StateFusionConfig(StageConfig):
     hand_box_pad: float = 0.3  # hand keypoint box widened by this fraction of its size (ours)
     hand_dilation_px: int = 4  # hand/arm masks dilated by this many pixels before fusion (ours)
     # Support plane and object instances (geometric backend; ours)
-    plane_distance_m: float = 0.01  # RANSAC inlier distance of the support plane (segment_plane)
-    plane_iterations: int = 500  # RANSAC iterations of segment_plane
+    plane_distance_m: float = 0.01  # RANSAC inlier distance of the support plane (ransac_plane)
+    plane_iterations: int = 500  # RANSAC iterations of the support plane (ransac_plane)
     plane_min_fraction: float = 0.15  # a support plane holds at least this fraction of the points
     plane_max_tilt_deg: float = 70.0  # support plane normal within this of the camera's up (-y)
     object_min_height_m: float = 0.012  # points higher than this above the plane may be objects

@@ -6,8 +6,8 @@ cameras) and an optional previous :class:`State` into the next state:
 1. register the clip's cameras to the previous state's world frame by a Sim3 from overlapping
    camera poses (:func:`sim3_from_poses`: rotation from the orientations, scale and translation
    from the centres, Umeyama's closed form given the rotation);
-2. find object instances without weights: the support plane by RANSAC (open3d
-   ``segment_plane``) on the clip's points, DBSCAN clusters of what rests on it in every frame,
+2. find object instances without weights: the support plane by seeded RANSAC
+   (:func:`ransac_plane`) on the clip's points, DBSCAN clusters of what rests on it in every frame,
    tracked across frames by 3D voxel overlap (:func:`track_objects`);
 3. the paper's interaction test per object and frame: box overlap with a hand box above
    ``hand_box_iou`` and median depth gap below ``depth_gap_m``, with the retrospective update
@@ -214,12 +214,57 @@ class SupportPlane:
         return np.all((uv >= self.lo) & (uv <= self.hi), axis=1)
 
 
+RANSAC_CHUNK = 64  # plane hypotheses scored at once (memory: chunk x points floats)
+
+
+def ransac_plane(
+    points: np.ndarray, threshold: float, iterations: int, seed: int = 0
+) -> tuple[np.ndarray, float, np.ndarray]:
+    """The plane of most inliers among ``points (N, 3)``: ``(unit normal (3,), offset, inliers)``.
+
+    Seeded RANSAC on three-point samples, the best hypothesis refined once by least squares on its
+    inliers (distance <= ``threshold``), inliers as sorted indices. Deterministic for the same
+    input: open3d's ``segment_plane`` is not, even seeded (its parallel loop stops early in
+    whichever thread gets there first; open3d issues #5647 and #7270), and the state fusion
+    built on it changed between runs of the same command.
+    """
+    pts = np.asarray(points, dtype=np.float64)
+    rng = np.random.default_rng(seed)
+    picks = rng.integers(0, len(pts), size=(iterations, 3))
+    a, b, c = pts[picks[:, 0]], pts[picks[:, 1]], pts[picks[:, 2]]
+    normals = np.cross(b - a, c - a)  # (I, 3)
+    norms = np.linalg.norm(normals, axis=1)
+    ok = norms > 1e-12  # three collinear or repeated points give no plane
+    normals = normals[ok] / norms[ok, None]
+    offsets = -np.einsum("ij,ij->i", normals, a[ok])
+    if len(normals) == 0:
+        raise FusionError(f"no plane through {len(pts)} points: every sample is degenerate")
+    counts = np.concatenate(
+        [
+            (
+                np.abs(pts @ normals[i : i + RANSAC_CHUNK].T + offsets[i : i + RANSAC_CHUNK])
+                <= threshold
+            ).sum(0)
+            for i in range(0, len(normals), RANSAC_CHUNK)
+        ]
+    )
+    best = int(np.argmax(counts))  # the first of equals
+    normal, offset = normals[best], float(offsets[best])
+    inliers = np.flatnonzero(np.abs(pts @ normal + offset) <= threshold)
+    centre = pts[inliers].mean(axis=0)
+    refit = np.linalg.svd(pts[inliers] - centre, full_matrices=False)[2][2]  # least-squares normal
+    refit_inliers = np.flatnonzero(np.abs((pts - centre) @ refit) <= threshold)
+    if len(refit_inliers) >= len(inliers):
+        normal, offset, inliers = refit, float(-refit @ centre), refit_inliers
+    return normal, offset, inliers
+
+
 def support_plane(
     points: np.ndarray, cam_up: np.ndarray, cam_centre: np.ndarray, config: StateFusionConfig
 ) -> SupportPlane:
     """The support plane among ``points (N, 3)``: RANSAC planes, nearly horizontal, nearest.
 
-    Up to three planes are peeled off by open3d ``segment_plane``; a candidate holds at least
+    Up to three planes are peeled off by :func:`ransac_plane`; a candidate holds at least
     ``plane_min_fraction`` of the points and its normal is within ``plane_max_tilt_deg`` of
     ``cam_up (3,)``; of those the one nearest ``cam_centre`` wins (a table over the floor).
     """
@@ -232,13 +277,9 @@ def support_plane(
     for _ in range(3):
         if len(rest) < 0.5 * config.plane_min_fraction * len(points) or len(rest) < 50:
             break
-        cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(rest))
-        o3d.utility.random.seed(0)  # RANSAC draws: the same state for the same input
-        model, inliers = cloud.segment_plane(config.plane_distance_m, 3, config.plane_iterations)
-        inliers = np.asarray(inliers)
-        normal = np.asarray(model[:3], dtype=np.float64)
-        norm = float(np.linalg.norm(normal))
-        normal, offset = normal / norm, float(model[3]) / norm
+        normal, offset, inliers = ransac_plane(
+            rest, config.plane_distance_m, config.plane_iterations
+        )
         if normal @ cam_centre + offset < 0:
             normal, offset = -normal, -offset
         dist = float(normal @ cam_centre + offset)

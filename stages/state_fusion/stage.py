@@ -236,8 +236,9 @@ class StateFusionStage(ClipStage):
     }
     output = STATE
     # 2: a clip without per-frame depth is fused from a plane sweep (was rejected);
-    # 3: objects a closed hand lifts and puts down are carried by its motion (carry.py)
-    version = 3
+    # 3: objects a closed hand lifts and puts down are carried by its motion (carry.py);
+    # 4: the support plane by seeded RANSAC (fusion.ransac_plane): the same state on every run
+    version = 4
     backends = ("geometric", "grounded_sam")
     # What process reads (the executor decodes nothing else): the clip's frames, depth and
     # camera, the cleaned joints, the hand masks; the state roles are read whole.
