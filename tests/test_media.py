@@ -80,3 +80,37 @@ def test_video_file_seek_gives_the_same_frames_as_decoding_from_the_start(video_
     assert len(tail) == 15
     np.testing.assert_allclose([t for t, _ in tail], stamps[45:], atol=1e-6)
     np.testing.assert_array_equal(np.stack([f for _, f in tail]), frames[45:])
+
+
+def _write_rotated(path, frames: np.ndarray, rotation: float) -> None:
+    """``frames`` stored as they are, with a display rotation (degrees counterclockwise) on the
+    stream, as phones write portrait video: a player turns them by ``rotation`` to show them."""
+    import av
+
+    with av.open(str(path), mode="w") as container:
+        stream = container.add_stream("libx264", rate=10)
+        stream.width, stream.height = frames.shape[2], frames.shape[1]
+        stream.pix_fmt = "yuv420p"
+        stream.options = {"crf": "10"}
+        stream.set_display_rotation(rotation)
+        for image in frames:
+            container.mux(stream.encode(av.VideoFrame.from_ndarray(image, format="rgb24")))
+        container.mux(stream.encode())
+
+
+@pytest.mark.parametrize("rotation", [-90, 90, 180])
+def test_display_rotation_is_honoured_as_ffmpeg_does(tmp_path, rotation: int) -> None:
+    upright = smooth_frames(10, 48, 32)  # (T, 48, 32, 3): portrait, as the user saw it
+    upright[:, :8, :8] = (255, 0, 0)  # a red corner at the top left shows the orientation
+    turns = rotation // 90
+    # Stored turned back by the rotation (np.rot90 is counterclockwise, like the angle)
+    stored = np.ascontiguousarray(np.rot90(upright, k=-turns, axes=(1, 2)))
+    path = tmp_path / f"phone{rotation}.mp4"
+    _write_rotated(path, stored, float(rotation))
+    info = media.probe_video_file(path)
+    assert info.rotation == rotation
+    assert (info.width, info.height) == (32, 48)  # the displayed (upright) size
+    frames, _ = media.read_video_file(path)
+    assert frames.shape == upright.shape
+    assert psnr(frames, upright) >= MIN_RGB_PSNR_DB
+    assert frames[:, 2:6, 2:6, 0].min() > 200 and frames[:, 2:6, 2:6, 1].max() < 60  # red corner
