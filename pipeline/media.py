@@ -11,11 +11,14 @@ Errors are :class:`MediaError` naming what could not be read.
 
 from __future__ import annotations
 
+import heapq
 import io
+from collections import deque
 from collections.abc import Iterator
 from dataclasses import dataclass
 from fractions import Fraction
 from pathlib import Path
+from typing import Any
 
 import av
 import cv2
@@ -243,15 +246,47 @@ def probe_video_file(path: Path) -> VideoFileInfo:
         raise MediaError(f"cannot read video file {path}: {exc}") from exc
 
 
+# Decoded frames whose container timestamps may come in decode order, not presentation order
+# (AVI stores no presentation times: with B-frames its decoded frames carry shuffled stamps).
+# The stamps of this many consecutive frames are sorted back onto them (H.264 reorders at most
+# 16 frames; x264's B-pyramid 4).
+REORDER_DEPTH = 16
+
+
+def _presentation_times(frames: Iterator[av.VideoFrame]) -> Iterator[tuple[float | None, Any]]:
+    """``(time in seconds or None, frame)`` of decoded ``frames`` (presentation order), each
+    given the smallest timestamp still unused among the next :data:`REORDER_DEPTH` frames.
+
+    Where a container's timestamps increase (MP4, MOV, MKV, WebM, TS) this is each frame's own;
+    where they come in decode order (AVI with B-frames: 0.05, 0.2, 0.15, 0.25, 0.1, ...) the
+    sorted stamps belong to the frames in the order they are shown. Frames without a timestamp
+    get None (the caller falls back to the rate).
+    """
+    pending: deque[av.VideoFrame] = deque()  # frames decoded, not yet given out
+    stamps: list[float] = []  # heap of the pending frames' timestamps
+    for frame in frames:
+        pending.append(frame)
+        if frame.time is not None:
+            heapq.heappush(stamps, float(frame.time))
+        if len(pending) > REORDER_DEPTH:
+            out = pending.popleft()
+            yield (heapq.heappop(stamps) if out.time is not None else None), out
+    while pending:
+        out = pending.popleft()
+        yield (heapq.heappop(stamps) if out.time is not None else None), out
+
+
 def iter_video_file(path: Path, start: float = 0.0) -> Iterator[tuple[float, np.ndarray]]:
     """Stream ``(time in seconds, (H, W, 3) uint8 RGB)`` from a video file, one frame at a time.
 
-    Frames without a usable timestamp get ``index / fps``. The display rotation of the file
-    (its display matrix) is applied, so frames come out upright. ``start`` > 0 seeks to the
-    keyframe at or before ``start`` seconds and decodes from there (frames before ``start``
-    minus half a frame are skipped), so reading the end of a long file does not decode all of
-    it; after a seek every frame must carry a timestamp. Raises :class:`MediaError` naming the
-    file when it cannot be opened or decoding fails part way (frames already yielded stand).
+    Times are the frames' presentation timestamps (put back in increasing order where the
+    container gives them in decode order, see :func:`_presentation_times`); frames without a
+    usable timestamp get ``index / fps``. The display rotation of the file (its display matrix)
+    is applied, so frames come out upright. ``start`` > 0 seeks to the keyframe at or before
+    ``start`` seconds and decodes from there (frames before ``start`` minus half a frame are
+    skipped), so reading the end of a long file does not decode all of it; after a seek every
+    frame must carry a timestamp. Raises :class:`MediaError` naming the file when it cannot be
+    opened or decoding fails part way (frames already yielded stand).
     """
     info = probe_video_file(path)
     last = -np.inf
@@ -262,13 +297,14 @@ def iter_video_file(path: Path, start: float = 0.0) -> Iterator[tuple[float, np.
             if start > 0 and stream.time_base is not None:
                 # backward=True (default): land on the keyframe at or before the target
                 container.seek(int(start / stream.time_base), stream=stream)
-            for index, frame in enumerate(container.decode(stream)):
+            decoded = _presentation_times(container.decode(stream))
+            for index, (stamp, frame) in enumerate(decoded):
                 if start > 0:
-                    if frame.time is None:
+                    if stamp is None:
                         raise MediaError(f"cannot seek in video file {path}: no frame timestamps")
-                    if frame.time < start - 0.5 / info.fps:
+                    if stamp < start - 0.5 / info.fps:
                         continue
-                time = float(frame.time) if frame.time is not None else index / info.fps
+                time = stamp if stamp is not None else index / info.fps
                 if not time > last:  # broken or repeated timestamps: fall back to the rate
                     time = last + 1.0 / info.fps
                 last = time

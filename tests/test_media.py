@@ -114,3 +114,27 @@ def test_display_rotation_is_honoured_as_ffmpeg_does(tmp_path, rotation: int) ->
     assert frames.shape == upright.shape
     assert psnr(frames, upright) >= MIN_RGB_PSNR_DB
     assert frames[:, 2:6, 2:6, 0].min() > 200 and frames[:, 2:6, 2:6, 1].max() < 60  # red corner
+
+
+def test_avi_with_b_frames_gives_frames_at_their_own_times(tmp_path) -> None:
+    """AVI stores decode-order stamps: with B-frames PyAV hands decoded frames shuffled times
+    (0.05, 0.2, 0.15, 0.25, 0.1, ...). They must come out in order, one frame per 1 / fps."""
+    import av
+
+    frames = smooth_frames(40, 48, 64)
+    frames[:, :, :4] = np.arange(40)[:, None, None, None] * 6  # a left band counting frames
+    path = tmp_path / "b_frames.avi"
+    with av.open(str(path), mode="w", format="avi") as container:
+        stream = container.add_stream("libx264", rate=20)
+        stream.width, stream.height, stream.pix_fmt = 64, 48, "yuv420p"
+        stream.options = {"crf": "10", "bframes": "3"}
+        for image in frames:
+            container.mux(stream.encode(av.VideoFrame.from_ndarray(image, format="rgb24")))
+        container.mux(stream.encode())
+    with av.open(str(path)) as container:  # the trap: shuffled stamps straight from PyAV
+        raw = [f.time for f in container.decode(video=0)]
+    assert np.any(np.diff(raw) < 0)
+    out, stamps = media.read_video_file(path)
+    np.testing.assert_allclose(stamps, np.arange(40) / 20.0, atol=1e-6)
+    np.testing.assert_allclose(out[:, 20, 1, 1], np.arange(40) * 6, atol=3)  # frames in order
+    assert psnr(out, frames) >= MIN_RGB_PSNR_DB
