@@ -63,6 +63,40 @@ def test_short_video_is_rejected_with_the_reason(tmp_path: Path) -> None:
         list(read_video_clips(path, IngestConfig(**SMALL)))
 
 
+@pytest.mark.parametrize(
+    ("suffix", "fmt", "codec"),
+    [
+        (".ts", "mpegts", "libx264"),
+        (".MTS", "mpegts", "libx264"),  # AVCHD camcorders, upper case as they write it
+        (".m2ts", "mpegts", "libx264"),
+        (".3gp", "3gp", "libx264"),
+        (".mpg", "mpeg", "mpeg2video"),
+        (".avi", "avi", "mjpeg"),
+    ],
+)
+def test_camera_and_phone_containers_are_found_and_ingested(
+    tmp_path: Path, suffix: str, fmt: str, codec: str
+) -> None:
+    import av
+
+    frames = smooth_frames(32, 48, 64)
+    path = tmp_path / f"cam{suffix}"
+    with av.open(str(path), mode="w", format=fmt) as container:
+        stream = container.add_stream(codec, rate=16)
+        stream.width, stream.height = 64, 48
+        stream.pix_fmt = "yuvj420p" if codec == "mjpeg" else "yuv420p"
+        for image in frames:
+            container.mux(stream.encode(av.VideoFrame.from_ndarray(image, format="rgb24")))
+        container.mux(stream.encode())
+    (tmp_path / "notes.txt").write_text("not a video")
+    stage = IngestStage(IngestConfig(**SMALL))
+    assert stage.list_units(str(tmp_path)) == [f"video:{path}"]
+    rows = list(stage.process_unit(f"video:{path}"))
+    assert len(rows) == 2  # 2 s at 8 fps: 2 clips of 8 (MPEG-TS stamps start at 1.4 s)
+    np.testing.assert_allclose(rows[1]["timestamps"], (8 + np.arange(8)) / 8.0, atol=1e-6)
+    np.testing.assert_array_equal(rows[1]["source_frame_indices"], 2 * (8 + np.arange(8)))
+
+
 def test_unreadable_video_is_rejected_naming_the_file(tmp_path: Path) -> None:
     path = tmp_path / "broken.mp4"
     path.write_bytes(b"\x00\x00\x00\x18ftypmp42 this is not a video")

@@ -21,7 +21,12 @@ from egosim.pipeline.stage import ClipRejected
 from egosim.stages.common.frame_plan import plan_resize
 from egosim.stages.ingest.standardise import WindowPolicy, resample_windows
 
-VIDEO_SUFFIXES = frozenset({".mp4", ".mov", ".mkv", ".avi", ".webm", ".m4v"})
+# Video files ingest lists (any case): phones (.mp4 .mov .3gp), cameras and camcorders (.mts
+# .m2ts .ts .avi), the web (.webm .mkv .flv .ogv), older tools (.mpg .mpeg .wmv .m4v).
+VIDEO_SUFFIXES = frozenset(
+    {".mp4", ".mov", ".mkv", ".avi", ".webm", ".m4v", ".3gp", ".ts", ".mts", ".m2ts"}
+    | {".mpg", ".mpeg", ".wmv", ".flv", ".ogv"}
+)
 MIN_SOURCE_SIDE = 32  # smallest source width or height accepted, pixels (smaller: rejected)
 # A video decoding to fewer frames than its container declares, by more than this fraction
 # (and more than 2 frames), is truncated: its unit gets a reject naming the counts.
