@@ -557,3 +557,83 @@ def test_missed_hand_is_carried_while_the_other_is_found() -> None:
     outside[46:, 6:34] = False
     assert out[0][outside].sum() == 0, "carried mask leaked onto the table"
     np.testing.assert_array_equal(out[1], masks[1])
+
+
+def _drawn_hand(wrist: tuple[float, float]) -> np.ndarray:
+    """21 keypoints ``(21, 2)`` of an open hand pointing up, wrist at ``wrist`` (pixels)."""
+    kp = np.zeros((21, 2))
+    kp[0] = (0.0, 0.0)
+    for j, (dx, angle) in enumerate(((-14.0, -150.0), (-7, -100), (0, -90), (7, -80), (13, -70))):
+        base = 1 + 4 * j
+        start = np.array([dx * 0.5, -10.0]) if j == 0 else np.array([dx, -30.0])
+        step = 10.0 * np.array([np.cos(np.radians(angle)), np.sin(np.radians(angle))])
+        for i in range(4):
+            kp[base + i] = start + i * step
+    return kp + np.asarray(wrist)
+
+
+def _moving_hand_frames(shifts: list[tuple[int, int]], gone_from: int = 99) -> np.ndarray:
+    """Frames ``(T, 96, 128, 3)``: a textured hand patch moving over a textured static table by
+    ``shifts`` (dx, dy per frame, cumulative); from frame ``gone_from`` on, no hand."""
+    rng = np.random.default_rng(5)
+    table = cv2.GaussianBlur(
+        np.clip(rng.normal(120, 35, (96, 128, 3)), 0, 255).astype(np.uint8), (5, 5), 0
+    )
+    skin = cv2.GaussianBlur(
+        np.clip(rng.normal((200, 150, 120), 25, (96, 128, 3)), 0, 255).astype(np.uint8),
+        (5, 5),
+        0,
+    )
+    region = draw_hand(_drawn_hand((40.5, 80.5)), 0, 96, 128, CapsuleParams(forearm=False))[0]
+    frames, x, y = [], 0, 0
+    for t, (dx, dy) in enumerate(shifts):
+        x, y = x + dx, y + dy
+        f = table.copy()
+        if t < gone_from:
+            moved = np.float32([[1, 0, x], [0, 1, y]])
+            m = cv2.warpAffine(region, moved, (128, 96), flags=cv2.INTER_NEAREST) > 0
+            s = cv2.warpAffine(skin, moved, (128, 96))
+            f[m] = s[m]
+        frames.append(f)
+    return np.stack(frames)
+
+
+def test_missed_hand_keypoints_are_carried_by_tracking() -> None:
+    """A hand found in frame 0 only, moving 6 px right and 3 px down per frame: its keypoints
+    are carried into frames 1-3 within a pixel (dwm_00013 t=33: a fast hand the dense-flow
+    propagation lost); a hand found in the last frame is carried backwards the same way."""
+    from egosim.stages.hand_mask.carry import carry_keypoints
+
+    frames = _moving_hand_frames([(0, 0), (6, 3), (6, 3), (6, 3)])
+    truth = np.stack([_drawn_hand((40.5 + 6 * t, 80.5 + 3 * t)) for t in range(4)])  # (4, 21, 2)
+    kp = np.full((4, 2, 21, 2), np.nan)
+    kp[0, 0] = truth[0]
+    kp[3, 1] = truth[3]  # hand 1: the same hand, found in the last frame only
+    valid = np.zeros((4, 2), bool)
+    valid[0, 0] = valid[3, 1] = True
+    out, ok, carried = carry_keypoints(frames, kp, valid)
+    assert ok.all() and carried[1:, 0].all() and carried[:3, 1].all()
+    assert not carried[0, 0] and not carried[3, 1]
+    err_fwd = np.abs(out[1:, 0] - truth[1:]).max()
+    err_back = np.abs(out[:3, 1] - truth[:3]).max()
+    assert err_fwd < 1.0 and err_back < 1.0, f"carried off by {err_fwd:.2f} / {err_back:.2f} px"
+    np.testing.assert_array_equal(out[0, 0], truth[0])
+
+
+def test_hand_that_leaves_is_not_carried() -> None:
+    """The hand vanishes after frame 1 (left the view, covered): the table where it was does
+    not move with it, so the track stops there and no ghost hand is carried into frames 2-3;
+    the frame limit also holds."""
+    from egosim.stages.hand_mask.carry import CarryParams, carry_keypoints
+
+    frames = _moving_hand_frames([(0, 0), (6, 3), (6, 3), (6, 3)], gone_from=2)
+    kp = np.full((4, 1, 21, 2), np.nan)
+    kp[0, 0] = _drawn_hand((40.5, 80.5))
+    valid = np.zeros((4, 1), bool)
+    valid[0, 0] = True
+    _, ok, carried = carry_keypoints(frames, kp, valid)
+    assert carried[1, 0], "the hand still in view in frame 1 was not carried"
+    assert not ok[2:, 0].any(), "a hand was carried into frames without one"
+    moving = _moving_hand_frames([(0, 0), (6, 3), (6, 3), (6, 3)])
+    _, ok, _ = carry_keypoints(moving, kp, valid, CarryParams(max_frames=2))
+    assert ok[:3, 0].all() and not ok[3, 0], "carried past max_frames"

@@ -17,7 +17,9 @@ hand with 2D keypoints (MANO order, pixels, pixel centres at integer + 0.5):
   no arm to follow (it is out of view) and nothing more is added;
 - pixels of the strip's colour connected to it within ``colour_region`` half-widths of the axis
   are certainly arm; when those within ``refine_half_angle_deg`` form a ray from the wrist, the
-  arm is re-aimed along its main axis (:func:`region_direction`) and the labels redrawn; that
+  arm is re-aimed along its main axis (:func:`region_direction`) and the labels redrawn, unless
+  that axis turns more than ``refine_slack_deg`` farther from the hand's direction than the
+  searched one (a shaded table or cushion in the arm's colour running off sideways); that
   region is probably arm wherever it runs (``region_probable``: an arm that turns more than the
   band allows is not ruled out);
 - a tapered band along ``d`` from the wrist to the image border is probably arm;
@@ -80,6 +82,8 @@ class ArmParams:
     out_of_view: float = 0.5  # no direction search when the hand's own direction leaves the
     # image within this many hand lengths of the wrist: its arm is out of view, and a search
     # sideways would follow the table (0: always search)
+    refine_slack_deg: float = 40.0  # the region's axis may turn at most this much farther
+    # from the hand's direction than the searched direction did (180: no limit)
     hand_ring: float = 0.03  # probably-background ring round the hand (GrabCut may grow the
     # hand into it), times its scale in px per metre: 3 cm at the hand's depth (0: none)
 
@@ -105,6 +109,8 @@ class ArmParams:
             problems.append(f"walk_gap must be in [0, 20], got {self.walk_gap}")
         if not 0.0 <= self.max_turn_deg <= 180.0:
             problems.append(f"max_turn_deg must be in [0, 180], got {self.max_turn_deg}")
+        if not 0.0 <= self.refine_slack_deg <= 180.0:
+            problems.append(f"refine_slack_deg must be in [0, 180], got {self.refine_slack_deg}")
         for name in ("turn_cost", "out_of_view", "hand_ring"):
             if not 0.0 <= getattr(self, name) <= 100.0:
                 problems.append(f"{name} must be in [0, 100], got {getattr(self, name)}")
@@ -293,6 +299,11 @@ def _exit_distance(point: np.ndarray, d: np.ndarray, width: int, height: int) ->
     return float(min(ts)) if ts else float("inf")
 
 
+def _turn_deg(a: np.ndarray, b: np.ndarray) -> float:
+    """Degrees between unit vectors ``a (2,)`` and ``b (2,)``."""
+    return float(np.degrees(np.arccos(np.clip(float(a @ b), -1.0, 1.0))))
+
+
 def _rotate(v: np.ndarray, degrees: float) -> np.ndarray:
     a = np.radians(degrees)
     return np.array([np.cos(a) * v[0] - np.sin(a) * v[1], np.sin(a) * v[0] + np.cos(a) * v[1]])
@@ -330,6 +341,7 @@ def draw_arm_labels(
             hand_len = max(hand_len, PALM_LENGTH_M * scale * capsule.radius_scale)
         r_wrist = FOREARM_RADIUS_M[0] * scale * capsule.radius_scale
         leaves = _exit_distance(wrist, d, *labels.shape[::-1]) < arm.out_of_view * hand_len
+        hand_dir = d
         if lab is not None and arm.max_turn_deg > 0 and not leaves:
             d = arm_direction(
                 lab,
@@ -344,6 +356,9 @@ def draw_arm_labels(
         fan, band, seed, region = _arm_regions(lab, mask, wrist, d, hand_len, scale, capsule, arm)
         if region is not None and arm.refine_direction:
             better = region_direction(region, wrist, d)
+            limit = _turn_deg(d, hand_dir) + arm.refine_slack_deg
+            if better is not None and _turn_deg(better, hand_dir) > limit:
+                better = None  # the arm's colour runs off sideways (a shaded table or cushion)
             if better is not None:
                 fan, band, seed, again = _arm_regions(
                     lab, mask, wrist, better, hand_len, scale, capsule, arm

@@ -14,12 +14,13 @@ Backends:
   the sleeve's or skin's colour connected to the wrist, found by GrabCut seeded with the hand
   skeleton and a strip beyond the wrist along the arm's image direction (searched round the
   hand's own, wrist minus middle knuckle, by colour, then re-aimed along the arm-coloured
-  region); then each hand's mask
-  is carried by optical flow up to ``propagate_frames`` frames backwards and forwards into the
-  frames that missed that hand (see ``propagate``): a hand the keypoints miss for a few frames,
-  or an arm that enters later, is masked there too; only the certain seeds (keypoint skeleton,
-  arm strip) travel with confidence, so a background patch wrongly joined to a hand in one frame
-  is not carried into frames without a hand.
+  region); a hand the keypoints miss in a frame is first carried there from the nearest frame
+  that found it (at most ``carry_frames`` away) by tracking its pixels (see ``carry``); then
+  each hand's mask is carried by optical flow up to ``propagate_frames`` frames backwards and
+  forwards into the frames that missed that hand (see ``propagate``): a hand still missed, or
+  an arm that enters later, is masked there too; only the certain seeds (keypoint skeleton, arm
+  strip) travel with confidence, so a background patch wrongly joined to a hand in one frame is
+  not carried into frames without a hand.
 - ``sam``: a SAM-family model from ``sam_model_path`` through transformers, prompted with the
   keypoints and the capsule mask's box (see ``sam``).
 
@@ -54,6 +55,7 @@ from egosim.schemas.hands import HANDS
 from egosim.stages.common.cameras import CAMERA_COLUMNS, CAMERA_ROLES, resolve_cameras
 from egosim.stages.hand_mask.arm_region import ArmParams, hand_arm_masks
 from egosim.stages.hand_mask.capsules import CapsuleParams, draw_hands
+from egosim.stages.hand_mask.carry import CarryParams, carry_keypoints
 from egosim.stages.hand_mask.propagate import PropagationParams, propagate_hands
 from egosim.stages.hand_mask.sam import SamSegmenter, mask_box
 
@@ -69,6 +71,8 @@ class HandMaskConfig(StageConfig):
     fan_half_angle_deg: float = 55.0  # probable-background fan either side of the arm direction
     grabcut_iterations: int = 3  # GrabCut iterations per frame
     grabcut_max_side: int = 256  # GrabCut works on a region downscaled to this longest side
+    carry_frames: int = 8  # track a missed hand's keypoints this many frames from a frame
+    # that found it, backwards and forwards (0: off; see carry)
     propagate_frames: int = 8  # carry each hand's mask this many frames backwards and forwards
     # in time by optical flow, into frames that missed that hand (0: off; see propagate)
     min_joint_confidence: float = 0.0  # joints with lower confidence are ignored
@@ -83,6 +87,8 @@ class HandMaskConfig(StageConfig):
             problems.append(f"fan_half_angle_deg must be in [0, 89], got {self.fan_half_angle_deg}")
         if self.grabcut_iterations < 1:
             problems.append(f"grabcut_iterations must be >= 1, got {self.grabcut_iterations}")
+        if not 0 <= self.carry_frames <= 1000:
+            problems.append(f"carry_frames must be in [0, 1000], got {self.carry_frames}")
         if not 0 <= self.propagate_frames <= 1000:
             problems.append(f"propagate_frames must be in [0, 1000], got {self.propagate_frames}")
         if self.grabcut_max_side < 16:
@@ -105,6 +111,10 @@ def masks_from_keypoints(
     ``frames (T, H, W, 3)`` uint8 RGB; ``keypoints (T, K, 21, 2)`` pixels (NaN = unknown);
     ``valid (T, K)``. Works in image space only (see the module docstring).
     """
+    if config.carry_frames > 0:
+        keypoints, valid, _ = carry_keypoints(
+            frames, keypoints, valid, CarryParams(max_frames=config.carry_frames)
+        )
     capsule = CapsuleParams(radius_scale=config.radius_scale, forearm=config.forearm)
     arm = ArmParams(fan_half_angle_deg=config.fan_half_angle_deg)
     found = [
@@ -203,7 +213,7 @@ class HandMaskStage(ClipStage):
     # cleaned joints and a replacement camera (see the module docstring)
     optional_inputs: ClassVar[Mapping[str, ShardSchema]] = {**CAMERA_ROLES, "hands": HANDS}
     output = HAND_MASK
-    version = 10  # 2: image-space arm masks (no world axis). 3: arm found by a colour walk, masks
+    version = 11  # 2: image-space arm masks (no world axis). 3: arm found by a colour walk, masks
     # carried into frames whose hands were missed. 4: arm re-aimed along its colour region.
     # 5: that region is probably arm wherever it runs. 6: each hand carried into the frames that
     # missed it, and only its certain seeds (skeleton, arm strip) carried with confidence.
@@ -213,6 +223,8 @@ class HandMaskStage(ClipStage):
     # half-width was passed in its place: a cost of 15-40 per radian, scale-dependent), now 3.
     # 10: lengths along the arm at least the palm's length at the hand's scale (a foreshortened
     # hand's arm strip lay inside the hand); no direction search when the hand points out of view
+    # 11: missed hands' keypoints carried by tracking (carry); the arm is not re-aimed along its
+    # colour region when that turns more than refine_slack_deg past the searched direction
     backends = ("keypoints", "sam")
     # What process reads (the executor decodes nothing else): the frames, joints and camera
     # of the clip, the robot arm's mask, the cleaned joints.
