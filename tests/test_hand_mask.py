@@ -637,3 +637,34 @@ def test_hand_that_leaves_is_not_carried() -> None:
     moving = _moving_hand_frames([(0, 0), (6, 3), (6, 3), (6, 3)])
     _, ok, _ = carry_keypoints(moving, kp, valid, CarryParams(max_frames=2))
     assert ok[:3, 0].all() and not ok[3, 0], "carried past max_frames"
+
+
+def test_arm_not_reaimed_along_a_sideways_shade(monkeypatch: pytest.MonkeyPatch) -> None:
+    """DWM 00013 t=25: the direction search, fooled by the shaded cushion, turned the arm 20
+    degrees off the hand's direction, and the arm-coloured region (mostly the shade) then
+    re-aimed it 47 degrees farther, nearly sideways: the certain arm seed lay on the cushion.
+    The re-aiming is refused when it turns more than ``refine_slack_deg`` past the search
+    (hand_mask v11), so the seed stays off the shade; without the limit it does not."""
+    import egosim.stages.hand_mask.arm_region as arm_region
+
+    h, w = 160, 240
+    wrist = np.array([60.5, 128.5])
+    image = _sleeve_frame(h, w, wrist, np.array([0.0, 1.0]), 7)  # the arm: down, 30 px in view
+    shade = np.array([np.cos(np.radians(5.0)), np.sin(np.radians(5.0))])  # nearly sideways
+    start = wrist + 12 * shade
+    cv2.line(image, tuple(int(v) for v in start), tuple(int(v) for v in wrist + 400 * shade),
+             (150, 40, 160), 25)  # fmt: skip
+    kp = _hand_keypoints(wrist, np.array([0.0, -1.0]), 30.0, 20.0)  # fingers up: arm down
+    fooled = np.array([np.cos(np.radians(60.0)), np.sin(np.radians(60.0))])  # 30 deg off down
+    monkeypatch.setattr(arm_region, "arm_direction", lambda *args, **kwargs: fooled)
+    far_shade = np.zeros((h, w), bool)
+    far_shade[110:150, 130:] = True  # the shade more than 70 px from the wrist
+    certain = {}
+    for slack in (40.0, 180.0):
+        params = arm_region.ArmParams(refine_slack_deg=slack)
+        _, _, seeds = arm_region.hand_arm_masks(
+            image, kp[None], np.array([True]), CapsuleParams(), params
+        )
+        certain[slack] = int(seeds[0][far_shade].sum())
+    assert certain[40.0] == 0, f"{certain[40.0]} certain arm px on the far shade"
+    assert certain[180.0] > 200, f"without the limit the seed should follow the shade: {certain}"
