@@ -1,7 +1,8 @@
 """Contact sheets of real runs: look at what the dataset workflow made of each real video.
 
 ``python -m bench.real_sheets [--runs runs/real] [--out runs/real/sheets]`` reads the run folders
-that ``bench.real_video`` (``make eval-real``) wrote and writes one PNG per clip: rows at the first,
+that ``bench.real_video`` (``make eval-real``) wrote, or one run folder of ``egosim run`` (e.g. on
+your own videos), and writes one PNG per clip: rows at the first,
 middle and last frame; columns real frame | scene render | visible (white = a scene point
 landed) | skeleton video | hand mask over the real frame (red). Above them, frame 0 beside the
 inpainted hand-free first frame: the layout of the sheets of ``egosim report``, which this
@@ -50,7 +51,7 @@ def clip_sheet(by_role: dict[str, dict[str, dict]], cid: str) -> np.ndarray | No
 
 
 def main() -> int:
-    """Write a sheet per clip of every run folder under ``--runs``; exit 1 if none was written."""
+    """Write a sheet per clip of ``--runs`` (a run folder, or a folder of them); exit 1 if none."""
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--runs", type=Path, default=ROOT / "runs" / "real", help="run folders")
     parser.add_argument("--out", type=Path, default=None, help="sheet folder (RUNS/sheets)")
@@ -58,7 +59,8 @@ def main() -> int:
     out = args.out or args.runs / "sheets"
     out.mkdir(parents=True, exist_ok=True)
     written = 0
-    for run in sorted(p for p in args.runs.iterdir() if (p / "ingest").is_dir()):
+    runs = [args.runs] if (args.runs / "ingest").is_dir() else sorted(args.runs.iterdir())
+    for run in (p for p in runs if (p / "ingest").is_dir()):
         by_role = read_roles(run)
         for cid in by_role["clips"]:
             sheet = clip_sheet(by_role, cid)
