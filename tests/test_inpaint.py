@@ -26,7 +26,7 @@ from egosim.stages.inpaint.diffusers_backend import (
     prepare_inputs,
 )
 from egosim.stages.inpaint.reproject_fill import dilate, opencv_fill, reproject_fill
-from egosim.stages.inpaint.stage import InpaintConfig, InpaintStage
+from egosim.stages.inpaint.stage import InpaintConfig, InpaintStage, carry_lost_hands
 from egosim.world import WorldConfig, render_clip
 from tests.conftest import make_clip, one_shard_task, translated, write_cameras
 
@@ -220,6 +220,48 @@ def test_a_sleeve_that_other_masks_missed_leaves_no_ghost() -> None:
     np.testing.assert_array_equal(checked.image[hole], scene[hole])
 
 
+def test_carry_lost_hands_adds_a_dropped_hand_not_a_moved_one() -> None:
+    masks = np.zeros((6, 60, 80), np.uint8)
+    masks[:2, 20:40, 10:30] = 1  # a hand in frames 0-1, lost by frames 2-3's masks ...
+    masks[4:, 20:40, 10:30] = 1  # ... and found again in frames 4-5
+    masks[:, 5:15, 50:60] = 1  # a second hand, moving 4 px a frame: never lost
+    for k in range(6):
+        masks[k, 5:15, 50:60] = 0
+        masks[k, 5:15, 50 + 4 * k - 10 : 60 + 4 * k - 10] = 1
+    out = carry_lost_hands(masks, window=2, min_cover=0.3, reach=0.05)
+    np.testing.assert_array_equal(out[0], masks[0])  # frame 0 keeps its own mask
+    for k in (2, 3):  # the lost hand is carried into the frames that dropped it
+        assert np.all(out[k, 20:40, 10:30] == 1)
+    for k in (1, 4, 5):  # frames that found it are unchanged, as is the moving hand
+        np.testing.assert_array_equal(out[k], masks[k])
+    np.testing.assert_array_equal(out[2:4, :, 40:], masks[2:4, :, 40:])
+    np.testing.assert_array_equal(carry_lost_hands(masks, window=0), masks)
+
+
+def test_a_hand_the_later_masks_dropped_leaves_no_ghost() -> None:
+    """Still camera; the hand stays over the hole in frames 0-3 but frames 2-3's masks lost it,
+    then it leaves (frames 4-5). Without the carry the median of 2, 3, 4, 5 pastes half the
+    hand; with it frames 2-3 are masked where frame 1 had the hand, and the table comes back.
+    The colour test is off, so only the carry can keep the hand out."""
+    rng = np.random.default_rng(5)
+    scene = np.clip(rng.normal((120, 100, 80), 12, (48, 64, 3)), 0, 255).astype(np.uint8)
+    frames = np.repeat(scene[None], 6, axis=0)  # (T, H, W, 3)
+    frames[:4, 10:30, 20:40] = (200, 150, 130)  # the hand, frames 0-3
+    masks = np.zeros((6, 48, 64), np.uint8)
+    masks[:2, 10:30, 20:40] = 1  # masked in frames 0-1 only
+    base = {"dilate_px": 0, "dilate_fraction": 0.0, "occluder_ratio": 0.0, "candidates": 7}
+    hole = masks[0] > 0
+    images = {}
+    for carry in (0, 2):
+        stage = InpaintStage(InpaintConfig(**base, carry_frames=carry))
+        result = stage.fill(frames, masks, None, np.zeros(4), None, static_camera=True)
+        images[carry] = result.image
+        assert result.filled[hole].all() and (result.fill_source[hole] > 0).all()
+    err = np.abs(images[0][hole].astype(int) - scene[hole]).mean()
+    assert err > 20, err  # the ghost the carry prevents
+    np.testing.assert_array_equal(images[2][hole], scene[hole])
+
+
 def test_clip_without_depth_is_filled_not_rejected() -> None:
     clip = world_clip(0)
     row = row_from_clip(Clip(**{**clip.__dict__, "depth": None, "static_depth": None}))
@@ -331,8 +373,9 @@ def test_stage_takes_depth_and_cameras_from_connected_roles(tmp_path: Path) -> N
     decoded = next(read_clips(clips))
     cfg = InpaintConfig()
     grow = cfg.dilate_px + round(cfg.dilate_fraction * float(np.hypot(*decoded.frames.shape[1:3])))
+    masks = carry_lost_hands(gt.hand_mask, cfg.carry_frames, cfg.carry_cover, cfg.carry_reach)
     expected = reproject_fill(
-        decoded.frames, gt.hand_mask, depth0, moved, gt.intrinsics, dilate_px=grow,
+        decoded.frames, masks, depth0, moved, gt.intrinsics, dilate_px=grow,
         candidates=cfg.candidates, occluder_ratio=cfg.occluder_ratio,
     )  # fmt: skip
     np.testing.assert_array_equal(media.decode_png(row["first_frame"]), expected.image)

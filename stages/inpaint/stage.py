@@ -12,7 +12,9 @@ inputs when a workflow connects them, else the clip's own. Backends:
   ``cameras`` row's ``static_camera``, or poses that do not move), which makes the fill a plain
   temporal median, else homographies fitted to features and checked round the hole (see
   ``aligned_fill``). Masks grow by ``dilate_px`` plus ``dilate_fraction`` of the image diagonal
-  first (motion blur, shadows and mask edges);
+  first (motion blur, shadows and mask edges), and a hand that a later frame's mask dropped
+  (masked a frame or two before or after, nothing near it in this frame) is carried into that
+  frame's mask (:func:`carry_lost_hands`), so the frame does not paste it into frame 0;
 - ``opencv``: OpenCV (Telea) inpainting only (the baseline);
 - ``diffusers``: a diffusers inpainting pipeline from ``model_path`` (see
   ``diffusers_backend``).
@@ -30,6 +32,7 @@ import dataclasses
 from collections.abc import Mapping
 from typing import Any, ClassVar, Literal
 
+import cv2
 import numpy as np
 
 from egosim.pipeline import media
@@ -81,6 +84,11 @@ class InpaintConfig(StageConfig):
     unseen_method: str = "telea"  # OpenCV method for pixels no frame sees: "telea" or "ns"
     occluder_ratio: float = 0.8  # a sample nearer frame 0's hand colours than this times its
     # nearest background colour is another frame's missed hand or arm, not used (0: off)
+    carry_frames: int = 2  # a hand a later frame's mask lost is carried in from frames this
+    # near (either side), so that frame does not paste the hand into frame 0 (0: off)
+    carry_cover: float = 0.3  # ... when less than this fraction of the nearby frame's mask
+    # region lies within carry_reach of the frame's own mask (a moved hand stays near)
+    carry_reach: float = 0.05  # ... a fraction of the image diagonal
     local_residual: float = 15.0  # image-aligned fill: a homography fills only the hole pixels
     # whose nearby ring matches frame 0 within this many grey levels (mean; 0: off)
     model_path: str = ""  # local folder of a diffusers inpainting pipeline (backend diffusers)
@@ -100,6 +108,12 @@ class InpaintConfig(StageConfig):
             problems.append(f"depth_tolerance must be in [0, 1], got {self.depth_tolerance}")
         if not 0.0 < self.inpaint_radius <= 100.0:
             problems.append(f"inpaint_radius must be in (0, 100], got {self.inpaint_radius}")
+        if not 0 <= self.carry_frames <= 16:
+            problems.append(f"carry_frames must be in [0, 16], got {self.carry_frames}")
+        if not 0.0 <= self.carry_cover <= 1.0:
+            problems.append(f"carry_cover must be in [0, 1], got {self.carry_cover}")
+        if not 0.0 <= self.carry_reach <= 1.0:
+            problems.append(f"carry_reach must be in [0, 1], got {self.carry_reach}")
         if not 0.0 <= self.local_residual <= 255.0:
             problems.append(f"local_residual must be in [0, 255], got {self.local_residual}")
         if not 0.0 <= self.occluder_ratio <= 1.0:
@@ -122,10 +136,11 @@ class InpaintStage(ClipStage):
     """Remove hands from the first frame: reprojected later frames, then OpenCV inpainting."""
 
     name = "inpaint"
-    version = 7  # 3: median of several frames; clips without depth aligned in the image. 4: more
+    version = 8  # 3: median of several frames; clips without depth aligned in the image. 4: more
     # frames in the median, dilation with the image size. 5: hand-coloured samples not used.
     # 6: large holes no longer rejected (chunked sampling). 7: the image-aligned fill checks
-    # each homography near every hole pixel (local_residual)
+    # each homography near every hole pixel (local_residual). 8: a hand a later frame's mask
+    # dropped is carried in from nearby frames before sampling (carry_lost_hands)
 
     description = "remove hands from the first frame (reprojected frames + OpenCV inpainting)"
     config_class = InpaintConfig
@@ -181,6 +196,7 @@ class InpaintStage(ClipStage):
             image = self._diffusers.inpaint(frames[0], target)
             source = (target * FILL_GENERATED).astype(np.uint8)
             return FillResult(image, source, zeros16, target > 0)
+        hand_mask = carry_lost_hands(hand_mask, cfg.carry_frames, cfg.carry_cover, cfg.carry_reach)
         if depth0 is None or world_from_cam is None:
             still = static_camera or (world_from_cam is not None and _still(world_from_cam))
             return aligned_fill(
@@ -255,6 +271,43 @@ class InpaintStage(ClipStage):
             "generated_fraction": float(frac[FILL_GENERATED]),
             "backend": cfg.backend,
         }
+
+
+def carry_lost_hands(
+    hand_mask: np.ndarray, window: int, min_cover: float = 0.3, reach: float = 0.05
+) -> np.ndarray:
+    """``hand_mask (T, H, W)`` with hands a frame's mask lost carried in from nearby frames.
+
+    A connected region of frame ``n``'s mask (``0 < |n - k| <= window``) of which less than
+    ``min_cover`` lies within ``reach`` (a fraction of the image diagonal) of frame ``k``'s own
+    mask is a hand that frame ``k``'s mask dropped (a detection dropout: a hand that moved
+    still has its mask nearby); the region is added to frame ``k``'s mask, so frame ``k`` does
+    not fill frame 0 with that hand. Frame 0 keeps its own mask (it decides what is filled).
+    """
+    own = (hand_mask > 0).astype(np.uint8)  # (T, H, W)
+    out = own.copy()
+    t, h, w = own.shape
+    if window <= 0 or t < 2:
+        return out
+    radius = max(1.0, reach * float(np.hypot(h, w)))
+    parts = [cv2.connectedComponents(m, connectivity=8) for m in own]  # (count, labels (H, W))
+    for k in range(1, t):
+        near = None  # (H, W) within reach of frame k's mask, made when first needed
+        for n in range(max(0, k - window), min(t, k + window + 1)):
+            count, labels = parts[n]
+            if n == k or count <= 1:
+                continue
+            if near is None:
+                far = cv2.distanceTransform(1 - own[k], cv2.DIST_L2, 3)  # (H, W) px to mask
+                near = (far <= radius).ravel()
+            flat = labels.ravel()
+            size = np.bincount(flat, minlength=count)  # (count,) pixels per region
+            covered = np.bincount(flat, weights=near, minlength=count)  # (count,) near k's
+            lost = covered < min_cover * size  # (count,)
+            lost[0] = False  # label 0 is the background
+            if lost.any():
+                out[k] |= lost[labels].astype(np.uint8)
+    return out
 
 
 def _still(world_from_cam: np.ndarray) -> bool:
