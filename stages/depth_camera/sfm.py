@@ -49,6 +49,9 @@ class SfmOptions:
     prior_focal: float = 0.0  # focal prior in pixels (clip intrinsics), tried first; 0 = none
     plausible_fov_deg: tuple[float, float] = (40.0, 100.0)  # horizontal FOV a model should have
     try_global: bool = False  # also run pycolmap's global mapper when incremental is not good
+    focal_check_factors: tuple[float, ...] = (0.7, 1.4)  # focal check: focal held at these x
+    # the kept model's, error rise against it free (sfm_worker.focal_rise); () = no check
+    focal_check_points: int = 400  # focal check: at most this many of the model's points
 
 
 @dataclass(frozen=True)
@@ -71,6 +74,9 @@ class SfmResult:
     obs_uv: np.ndarray  # (N, 2) its pixel in that frame
     obs_point_id: np.ndarray  # (N,) int64 the observed point's id
     mapper: str  # which mapper built the model: incremental, global, incremental-fixed-focal
+    focal_check_factors: np.ndarray  # (C,) focal check: focal held at these x the model's
+    focal_rise: np.ndarray  # (C,) relative reprojection error rise at each (see sfm_worker)
+    seconds_focal_check: float  # time of the focal check in the worker
 
 
 def write_inputs(
@@ -95,6 +101,7 @@ def write_inputs(
     opts["width"] = int(frames.shape[2])
     opts["focal_factors"] = list(options.focal_factors)
     opts["plausible_fov_deg"] = list(options.plausible_fov_deg)
+    opts["focal_check_factors"] = list(options.focal_check_factors)
     (work / "options.json").write_text(json.dumps(opts))
 
 
@@ -174,6 +181,9 @@ def read_result(path: Path, num_frames: int, height: int) -> SfmResult:
             obs_uv=data["obs_uv"],
             obs_point_id=data["obs_point_id"],
             mapper=str(data["mapper"]),
+            focal_check_factors=data["focal_check_factors"],
+            focal_rise=data["focal_rise"],
+            seconds_focal_check=float(timings[2]),
         )
 
 

@@ -23,7 +23,11 @@ Model choice (``camera_model``), in order:
    equals the first, ``static_camera`` true, no depth (DWM section 3.3: ``scene_render`` repeats
    the inpainted first frame).
 2. ``sfm``: SfM + PnP tracking poses frame 0 and at least ``min_registered_fraction`` of the
-   frames, and frame 0 gets depth.
+   frames, frame 0 gets depth, and the motion determines the focal: the focal check (bundle
+   adjustment of the kept model with its focal held at ``sfm_focal_check_factors`` x its own)
+   raises the reprojection error by at least ``sfm_focal_min_rise`` at every factor. A model
+   that fails only the focal check gives way to the rotation model when that poses the clip
+   (its depth, like its focal, is not determined), and is kept otherwise.
 3. ``rotation``: otherwise, when a pure rotation explains the frame-to-frame motion: per pair the
    RANSAC homography's inliers are at least ``rotation_min_h_inlier_ratio`` of the fundamental
    matrix's inliers and its median transfer residual on them is at most
@@ -120,6 +124,11 @@ class DepthCameraConfig(StageConfig):
     sfm_good_max_reprojection_px: float = 1.0  # ... register with at most this error (plausible f)
     sfm_plausible_fov_deg: tuple[float, ...] = (40.0, 110.0)  # horizontal FOV of a believable model
     sfm_try_global: bool = True  # also try pycolmap's global mapper when incremental is not good
+    sfm_focal_check_factors: tuple[float, ...] = (0.7, 1.4)  # focal check: the kept model is
+    # bundle-adjusted again with its focal held at these x its own (() = no check)
+    sfm_focal_min_rise: float = 0.1  # focal check: a model whose reprojection error rises less
+    # than this (relative) at any factor has an undetermined focal and depth: rotation model
+    sfm_focal_check_points: int = 400  # focal check: at most this many of the model's points
     min_registered_fraction: float = 0.8  # fewer frames posed by estimation than this = reject
     track_ransac_px: float = 3.0  # PnP tracking: RANSAC inlier threshold, pixels
     track_min_inliers: int = 20  # PnP tracking: fewer inliers = the frame stays unposed
@@ -162,6 +171,7 @@ class DepthCameraConfig(StageConfig):
             "track_keyframe_stride",
             "track_max_frames",
             "track_min_inliers",
+            "sfm_focal_check_points",
             "depth_sources",
             "depth_top_k",
             "depth_min_support",
@@ -181,6 +191,16 @@ class DepthCameraConfig(StageConfig):
             not (np.isfinite(f) and 0.1 <= f <= 10.0) for f in self.sfm_focal_factors
         ):
             problems.append(f"sfm_focal_factors must be in [0.1, 10], got {self.sfm_focal_factors}")
+        if any(
+            not (np.isfinite(f) and 0.1 <= f <= 10.0 and f != 1.0)
+            for f in self.sfm_focal_check_factors
+        ):
+            problems.append(
+                "sfm_focal_check_factors must be in [0.1, 10] and not 1, got "
+                f"{self.sfm_focal_check_factors}"
+            )
+        if not (np.isfinite(self.sfm_focal_min_rise) and self.sfm_focal_min_rise >= 0):
+            problems.append(f"sfm_focal_min_rise must be >= 0, got {self.sfm_focal_min_rise}")
         fov = self.sfm_plausible_fov_deg
         if len(fov) != 2 or not (0 < fov[0] < fov[1] < 180):
             problems.append(f"sfm_plausible_fov_deg must be (low, high) in (0, 180), got {fov}")
@@ -271,6 +291,8 @@ class DepthCameraConfig(StageConfig):
             num_threads=self.sfm_threads,
             mask_dilate_px=self.hand_dilate_px,
             timeout_s=self.sfm_timeout_s,
+            focal_check_factors=tuple(self.sfm_focal_check_factors),
+            focal_check_points=self.sfm_focal_check_points,
         )
 
 
@@ -425,6 +447,27 @@ def window_depth(
     return depth0, conf0, sources
 
 
+def focal_undetermined(sfm: SfmResult, min_rise: float) -> str | None:
+    """Why the motion of ``sfm``'s frames does not determine its focal, or None when it does.
+
+    The worker's focal check (``sfm_worker.focal_rise``) held the model's focal at a few factors
+    of its own and bundle-adjusted the same frames and tracks again; when the reprojection error
+    rises by less than ``min_rise`` at any of them, another focal fits the frames as well, and the
+    model's depth (which scales with the focal along the camera's motion) is not determined
+    either. No check run: None.
+    """
+    rise = np.asarray(sfm.focal_rise, dtype=np.float64)
+    if not len(rise) or float(rise.min()) >= min_rise:
+        return None
+    figures = ", ".join(
+        f"{r:+.0%} at {k:g}x" for k, r in zip(sfm.focal_check_factors, rise, strict=True)
+    )
+    return (
+        f"focal not determined by the motion (reprojection error with the focal held: "
+        f"{figures}; a rise under {min_rise:.0%} at any factor means undetermined)"
+    )
+
+
 def sfm_camera(
     frames: np.ndarray,
     usable: np.ndarray | None,
@@ -564,6 +607,7 @@ def estimate_sfm(
             return static
     usable = usable_pixels(hand_mask, config.hand_dilate_px)
     rot_intrinsics = intrinsics
+    sfm_est: CameraEstimate | None = None
     key = keyframe_indices(t, config.sfm_keyframe_stride)  # (K,)
     try:
         sfm = run_sfm(
@@ -577,16 +621,27 @@ def estimate_sfm(
         sfm_why = str(exc)
     else:
         est, sfm_why = sfm_camera(frames, usable, sfm, config, prior)
-        if est is not None:
+        undetermined = focal_undetermined(sfm, config.sfm_focal_min_rise)
+        if est is not None and undetermined is None:
+            rise = ", ".join(f"{r:+.0%}" for r in sfm.focal_rise)
+            log.info("clip %s: %s; focal check %s: sfm", clip_id, sfm_why, rise or "off")
             return est
+        if est is not None:  # SfM posed the clip, but its focal and depth are not determined
+            sfm_est, sfm_why = est, f"{sfm_why}, but its {undetermined}"
         if _plausible_focal(float(sfm.intrinsics[0]), w, config.sfm_plausible_fov_deg):
             rot_intrinsics = sfm.intrinsics
     rot = estimate_rotations(
         frames, usable, rot_intrinsics, config.rotation_params(), config.rotation_self_calibrate
     )
     frac = float(rot.posed.mean())
+    rot_what = f"the rotation model posed {int(rot.posed.sum())}/{t} frames"
     if frac >= config.min_registered_fraction:
+        if sfm_est is not None:
+            log.info("clip %s: %s; %s: rotation model, no depth", clip_id, sfm_why, rot_what)
         return rotation_camera(rot, prior)
+    if sfm_est is not None:  # nothing better: the SfM model, as before the focal check
+        log.info("clip %s: %s; %s: SfM model kept", clip_id, sfm_why, rot_what)
+        return sfm_est
     residuals = [p.h_residual_px for p in rot.pairs if np.isfinite(p.h_residual_px)]
     raise ClipRejected(
         f"clip {clip_id}: {sfm_why}; rotation-only model: a homography explains "
@@ -686,7 +741,7 @@ def build_source_track(
     posed = posed_by != POSED_BY_INTERPOLATION
     log.info(
         "source %s, chunk %d: %d track frames; SfM (%s mapper, f %.0f px, features %.0f s, "
-        "mapping %.0f s) and PnP posed %d",
+        "mapping %.0f s, focal check %.0f s) and PnP posed %d",
         req.uri,
         chunk,
         len(frames),
@@ -694,8 +749,12 @@ def build_source_track(
         intrinsics[0],
         sfm.seconds_features,
         sfm.seconds_mapping,
+        sfm.seconds_focal_check,
         int(posed.sum()),
     )
+    undetermined = focal_undetermined(sfm, config.sfm_focal_min_rise)
+    if undetermined is not None:  # each window decides between SfM and rotation on its own
+        raise SourceTrackError(f"SfM on the source's keyframes: its {undetermined}")
     depths: dict[int, tuple[np.ndarray, np.ndarray, tuple[int, ...]]] = {}
     segments = []
     for start in range(0, len(frames), segment):
@@ -914,7 +973,9 @@ class DepthCameraStage(ClipStage):
     # 3: one SfM thread (reproducible); 2: visibility-aware depth confidence
     # 9: windows of a longer video share one camera track, world frame and metric scale per
     # source (source_track auto)
-    version = 9
+    # 10: focal check after SfM: a model whose focal (and so depth) the motion does not
+    # determine gives way to the rotation model when that poses the clip (the EgoDex sample)
+    version = 10
     config_class = DepthCameraConfig
     inputs: ClassVar[Mapping[str, ShardSchema]] = {"clips": CLIPS}
     output = DEPTH_CAMERA
