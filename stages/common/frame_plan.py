@@ -8,6 +8,7 @@ uses them too).
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -22,8 +23,17 @@ IMAGE_SUFFIXES = frozenset({".jpg", ".jpeg", ".png", ".bmp", ".webp"})  # frame-
 
 
 def frame_files(folder: Path) -> list[Path]:
-    """The images of a frame folder (:data:`IMAGE_SUFFIXES`), sorted by name: its frame order."""
-    return sorted(p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES)
+    """The images of a frame folder (:data:`IMAGE_SUFFIXES`) in frame order: names sorted with
+    their digit runs compared as numbers, so ``ffmpeg``'s ``%d.jpg`` (1, 2, ..., 10) and zero-padded
+    names (0001, 0002, ...) both keep time order (a plain sort put 10 before 2)."""
+    images = (p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES)
+    return sorted(images, key=_natural_key)
+
+
+def _natural_key(path: Path) -> tuple:
+    """Sort key of a file name: text parts lower-cased, digit runs as numbers, name as tie-break."""
+    parts = re.split(r"(\d+)", path.name)
+    return (tuple((0, int(t), "") if t.isdigit() else (1, 0, t.lower()) for t in parts), path.name)
 
 
 ClipFrame = tuple[float, int, np.ndarray]  # one clip frame: (time, source frame index, frame)
