@@ -220,6 +220,35 @@ def test_a_sleeve_that_other_masks_missed_leaves_no_ghost() -> None:
     np.testing.assert_array_equal(checked.image[hole], scene[hole])
 
 
+def test_reprojection_fills_only_where_the_ring_agrees() -> None:
+    """Still camera, flat depth: later frames show the table right of the hole's centre but
+    something dark (an object moved there, or a wrong pose) left of it. Reprojected,
+    they paste it into the hole; with the ring check they fill the right side only (beyond the
+    check's reach across the centre), and the left side is inpainted from frame 0's own
+    surroundings."""
+    rng = np.random.default_rng(6)
+    scene = np.clip(rng.normal((120, 100, 80), 6, (48, 64, 3)), 0, 255).astype(np.uint8)
+    frames = np.repeat(scene[None], 5, axis=0)  # (T, H, W, 3)
+    frames[0, 14:34, 16:48] = (200, 150, 130)  # the hand in frame 0
+    frames[1:, :, :32] = (20, 30, 40)  # later frames: something dark left of column 32
+    masks = np.zeros((5, 48, 64), np.uint8)
+    masks[0, 14:34, 16:48] = 1
+    depth0 = np.ones((48, 64), np.float32)  # (H, W) metres
+    poses = np.repeat(np.eye(4)[None], 5, axis=0)  # (T, 4, 4) a still camera
+    intrinsics = np.array([50.0, 50.0, 32.0, 24.0])
+    args = (frames, masks, depth0, poses, intrinsics)
+    plain = reproject_fill(*args, dilate_px=0, candidates=4)
+    checked = reproject_fill(*args, dilate_px=0, candidates=4, local_residual=15.0)
+    hole = masks[0] > 0
+    left, right = hole.copy(), hole.copy()
+    left[:, 32:], right[:, :40] = False, False  # the residual is a 15 px mean: 8 px overlap
+    assert np.all(plain.image[left] == (20, 30, 40))  # the paste the check prevents
+    np.testing.assert_array_equal(checked.image[right], scene[right])  # reprojected
+    assert np.all(checked.fill_source[left] == 2)  # inpainted from frame 0's surroundings
+    err = np.abs(checked.image[left].astype(int) - scene[left]).mean()
+    assert err < 12, err
+
+
 def test_carry_lost_hands_adds_a_dropped_hand_not_a_moved_one() -> None:
     masks = np.zeros((6, 60, 80), np.uint8)
     masks[:2, 20:40, 10:30] = 1  # a hand in frames 0-1, lost by frames 2-3's masks ...
@@ -377,6 +406,7 @@ def test_stage_takes_depth_and_cameras_from_connected_roles(tmp_path: Path) -> N
     expected = reproject_fill(
         decoded.frames, masks, depth0, moved, gt.intrinsics, dilate_px=grow,
         candidates=cfg.candidates, occluder_ratio=cfg.occluder_ratio,
+        local_residual=cfg.local_residual,
     )  # fmt: skip
     np.testing.assert_array_equal(media.decode_png(row["first_frame"]), expected.image)
     assert row["reprojected_fraction"] > 0.3

@@ -25,7 +25,7 @@ from egosim.stages.inpaint.reproject_fill import (
     FillResult,
     OccluderColours,
     dilate,
-    pushpull_fill,
+    local_residual_map,
     slot_median,
     unseen_fill,
 )
@@ -61,23 +61,6 @@ def homography_to_first(
     if hom is None or inliers is None or int(inliers.sum()) < MIN_MATCHES:
         return None
     return hom
-
-
-def local_residual_map(
-    diff: np.ndarray, known: np.ndarray, hole: np.ndarray, window: int = 15
-) -> np.ndarray:
-    """``(H, W)`` float32: the alignment residual ``diff`` near each pixel, carried into ``hole``.
-
-    ``diff (H, W)``: absolute grey difference of an aligned frame and frame 0, trusted on
-    ``known (H, W)`` (the ring round the hole); its mean over a ``window`` box of known pixels
-    is spread into the ``hole (H, W)`` (and wherever no known pixel is near) by
-    :func:`~egosim.stages.inpaint.reproject_fill.pushpull_fill`.
-    """
-    k = known.astype(np.float32)
-    num = cv2.boxFilter(diff.astype(np.float32) * k, -1, (window, window), normalize=False)
-    den = cv2.boxFilter(k, -1, (window, window), normalize=False)
-    local = np.where(den > 0.5, num / np.maximum(den, 1e-6), 0).astype(np.float32)  # (H, W)
-    return pushpull_fill(local, (den <= 0.5) | (hole > 0))  # (H, W)
 
 
 def aligned_fill(

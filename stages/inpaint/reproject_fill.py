@@ -11,11 +11,15 @@ Method (backward warping, needs depth of frame 0 only):
    mask, dilated). When that frame's depth is known, the depth found there must also agree with
    the predicted depth within ``depth_tolerance`` (relative): a moved object or an occluder is
    rejected.
-3. Frames are tried by increasing time gap (closest first: least object motion and lighting
+3. Near each hole pixel the frame must also show frame 0's ring (the pixels just outside the
+   hole, lifted with frame 0's measured depth) within ``local_residual`` grey levels (mean
+   absolute difference, :func:`ring_residual`): where the pose, the depth or the scene (a held
+   object that moved) is wrong near the hole, that frame does not fill that side of it.
+4. Frames are tried by increasing time gap (closest first: least object motion and lighting
    change); a pixel takes the per-channel median of the colours (bilinear) of the first
    ``candidates`` frames that may fill it (1 = the closest frame alone). The median leaves no
    ghost of a hand or arm that one frame's mask missed.
-4. What no frame saw is filled by :func:`unseen_fill` (OpenCV Telea or Navier-Stokes).
+5. What no frame saw is filled by :func:`unseen_fill` (OpenCV Telea or Navier-Stokes).
 
 The result records, per pixel, the fill source (0 original, 1 reprojected, 2 OpenCV) and the
 frame index its colour came from.
@@ -111,6 +115,56 @@ def pushpull_fill(image: np.ndarray, mask: np.ndarray) -> np.ndarray:
     return out
 
 
+def local_residual_map(
+    diff: np.ndarray, known: np.ndarray, hole: np.ndarray, window: int = 15
+) -> np.ndarray:
+    """``(H, W)`` float32: the alignment residual ``diff`` near each pixel, carried into ``hole``.
+
+    ``diff (H, W)``: absolute grey difference of an aligned frame and frame 0, trusted on
+    ``known (H, W)`` (the ring round the hole); its mean over a ``window`` box of known pixels
+    is spread into the ``hole (H, W)`` (and wherever no known pixel is near) by
+    :func:`pushpull_fill`.
+    """
+    k = known.astype(np.float32)
+    num = cv2.boxFilter(diff.astype(np.float32) * k, -1, (window, window), normalize=False)
+    den = cv2.boxFilter(k, -1, (window, window), normalize=False)
+    local = np.where(den > 0.5, num / np.maximum(den, 1e-6), 0).astype(np.float32)  # (H, W)
+    return pushpull_fill(local, (den <= 0.5) | (hole > 0))  # (H, W)
+
+
+def ring_residual(
+    ring_check: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
+    frame: np.ndarray,
+    mask: np.ndarray,
+    cam_from_world: np.ndarray,
+    intrinsics: np.ndarray,
+    hole: np.ndarray,
+) -> np.ndarray:
+    """``(H, W)`` float32: how far ``frame (H, W, 3)`` reprojected disagrees with frame 0 near
+    each ``hole (H, W)`` pixel (:func:`local_residual_map` of the ring's grey differences).
+
+    ``ring_check``: the ring's pixel rows, columns ``(R,)``, world points ``(R, 3)`` and frame-0
+    grey levels ``(R,)``. Ring points that land outside ``frame`` or on its ``mask (H, W)``
+    (dilated hands) are not evidence.
+    """
+    ry, rx, world, grey0 = ring_check
+    h, w = hole.shape
+    uv, _ = project_points(transform_points(cam_from_world, world), intrinsics)  # (R, 2)
+    x, y = uv[:, 0] - 0.5, uv[:, 1] - 0.5
+    seen = np.isfinite(x) & np.isfinite(y) & (x >= 0) & (x <= w - 1) & (y >= 0) & (y <= h - 1)
+    xi = np.clip(np.round(np.nan_to_num(x)).astype(int), 0, w - 1)
+    yi = np.clip(np.round(np.nan_to_num(y)).astype(int), 0, h - 1)
+    seen &= mask[yi, xi] == 0
+    diff = np.zeros((h, w), np.float32)
+    known = np.zeros((h, w), bool)
+    if seen.any():
+        grey = cv2.cvtColor(frame, cv2.COLOR_RGB2GRAY)[..., None]  # (H, W, 1)
+        got = sample_bilinear(grey, x[seen], y[seen])[:, 0].astype(np.float32)  # (R',)
+        diff[ry[seen], rx[seen]] = np.abs(got - grey0[seen])
+        known[ry[seen], rx[seen]] = True
+    return local_residual_map(diff, known, hole)
+
+
 class OccluderColours:
     """Tells samples that look like frame 0's hands and arms from ones that look like background.
 
@@ -203,12 +257,17 @@ def reproject_fill(
     candidates: int = 1,
     unseen_method: str = "telea",
     occluder_ratio: float = 0.0,
+    local_residual: float = 0.0,
+    ring_px: int = 15,
 ) -> FillResult:
     """Remove the hand from ``frames[0]``; see the module docstring.
 
     ``frames (T, H, W, 3)`` uint8 RGB, ``hand_mask (T, H, W)`` 1 = hand, ``depth0 (H, W)``
     metres (0 = unknown), ``world_from_cam (T, 4, 4)``, ``intrinsics (4,)``, optional
-    ``depth (T, H, W)`` of every frame for the agreement test.
+    ``depth (T, H, W)`` of every frame for the agreement test. ``local_residual``: a frame
+    fills only the hole pixels whose nearby ring (``ring_px`` round the hole, reprojected with
+    frame 0's measured depth) it shows within this many grey levels of frame 0 (mean absolute
+    difference; 0: off): a moved object or a wrong pose near the hole does not fill it.
     """
     t, h, w = frames.shape[:3]
     if hand_mask.shape != (t, h, w) or depth0.shape != (h, w) or world_from_cam.shape != (t, 4, 4):
@@ -243,6 +302,15 @@ def reproject_fill(
         occluders = OccluderColours(frames[0], hand_mask[0] > 0, target, occluder_ratio)
     samples = np.zeros((candidates, len(ys), 3), np.float32)  # colours per candidate slot
     count = np.zeros(len(ys), np.int32)  # (M,) slots each pixel filled
+    ring_check = None
+    if local_residual > 0:  # the ring round the hole, where frame 0's depth is measured
+        ring = (dilate(target, ring_px) > 0) & ~target & (depth0 > 0)  # (H, W)
+        ry, rx = np.nonzero(ring)  # (R,)
+        ring_world = transform_points(
+            world_from_cam[0], unproject_depth(depth0, intrinsics)[ry, rx]
+        )
+        grey0 = cv2.cvtColor(frames[0], cv2.COLOR_RGB2GRAY).astype(np.float32)  # (H, W)
+        ring_check = (ry, rx, ring_world, grey0[ry, rx])
     for k in range(1, t):  # 3. closest frames first
         todo = count < candidates
         if not todo.any():
@@ -259,6 +327,11 @@ def reproject_fill(
         if depth is not None:
             seen = depth[k][yi, xi].astype(np.float64)
             ok &= (seen <= 0) | (np.abs(seen - z) <= depth_tolerance * np.maximum(z, 1e-6))
+        if ring_check is not None and ok.any():
+            near = ring_residual(
+                ring_check, frames[k], masks[k], cam_from_world, intrinsics, target
+            )
+            ok &= near[ys[idx], xs[idx]] <= local_residual
         if not ok.any():
             continue
         sampled = sample_bilinear(frames[k], x[ok], y[ok])  # (m_ok, 3)

@@ -89,8 +89,9 @@ class InpaintConfig(StageConfig):
     carry_cover: float = 0.3  # ... when less than this fraction of the nearby frame's mask
     # region lies within carry_reach of the frame's own mask (a moved hand stays near)
     carry_reach: float = 0.05  # ... a fraction of the image diagonal
-    local_residual: float = 15.0  # image-aligned fill: a homography fills only the hole pixels
-    # whose nearby ring matches frame 0 within this many grey levels (mean; 0: off)
+    local_residual: float = 15.0  # a later frame fills only the hole pixels whose nearby ring
+    # it shows within this many grey levels of frame 0 (mean; 0: off): through a homography in
+    # the image-aligned fill, reprojected with frame 0's depth in the depth fill
     model_path: str = ""  # local folder of a diffusers inpainting pipeline (backend diffusers)
     device: str = "cpu"  # torch device of the diffusers pipeline
     prompt: str = "empty table, no hands"  # text prompt of the diffusers pipeline
@@ -136,11 +137,12 @@ class InpaintStage(ClipStage):
     """Remove hands from the first frame: reprojected later frames, then OpenCV inpainting."""
 
     name = "inpaint"
-    version = 8  # 3: median of several frames; clips without depth aligned in the image. 4: more
+    version = 9  # 3: median of several frames; clips without depth aligned in the image. 4: more
     # frames in the median, dilation with the image size. 5: hand-coloured samples not used.
     # 6: large holes no longer rejected (chunked sampling). 7: the image-aligned fill checks
     # each homography near every hole pixel (local_residual). 8: a hand a later frame's mask
-    # dropped is carried in from nearby frames before sampling (carry_lost_hands)
+    # dropped is carried in from nearby frames before sampling (carry_lost_hands). 9: the
+    # depth fill checks each frame's reprojected ring near every hole pixel (local_residual)
 
     description = "remove hands from the first frame (reprojected frames + OpenCV inpainting)"
     config_class = InpaintConfig
@@ -224,6 +226,7 @@ class InpaintStage(ClipStage):
                 candidates=cfg.candidates,
                 unseen_method=cfg.unseen_method,
                 occluder_ratio=cfg.occluder_ratio,
+                local_residual=cfg.local_residual,
             )
         except InpaintInputError as exc:
             raise ClipRejected(f"clip {clip_id!r}: {exc}") from exc
