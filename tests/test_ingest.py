@@ -173,3 +173,70 @@ def test_real_egocentric_video() -> None:
     assert len(clips) == 2
     assert clips[0].frames.shape == (16, 96, 160, 3)
     assert clips[0].frames.std() > 10  # real content, not a blank decode
+
+
+def _egodex_episode(tmp_path: Path, frames: int = 40) -> Path:
+    """A synthetic EgoDex episode (hdf5 + mp4, 30 fps, 64x48): camera orbit, two hands."""
+    from egosim.pipeline.geometry import look_at
+    from egosim.pipeline.records import Clip
+    from egosim.world.egodex_export import write_egodex
+
+    rng = np.random.default_rng(0)
+    poses = np.stack([look_at([0.01 * i, -0.45, 1.25], [0.0, 0.0, 0.8]) for i in range(frames)])
+    centres = np.array([[-0.1, 0.0, 0.8], [0.1, 0.0, 0.8]])  # (2, 3)
+    joints = centres[None, :, None] + rng.uniform(-0.06, 0.06, (frames, 2, 21, 3))
+    clip = Clip(
+        clip_id="episode",
+        source="synthetic",
+        source_uri="",
+        fps=30.0,
+        timestamps=np.arange(frames) / 30.0,
+        intrinsics=np.array([60.0, 60.0, 32.0, 24.0]),
+        frames=smooth_frames(frames, 48, 64),
+        world_from_cam=poses,
+        hand_joints=joints.astype(np.float32),
+        hand_valid=np.ones((frames, 2), bool),
+        hand_confidence=rng.uniform(0.2, 1.0, (frames, 2, 21)).astype(np.float32),
+        text="pick up the cup",
+    )
+    hdf5_path, _ = write_egodex(clip, tmp_path / "task", stem="0")
+    return hdf5_path
+
+
+def test_egodex_streaming_reader_gives_the_whole_episode_readers_clips(tmp_path: Path) -> None:
+    from egosim.stages.ingest.egodex import read_egodex_clip, read_egodex_clips
+    from egosim.stages.ingest.video_source import standardise_clip
+
+    hdf5_path = _egodex_episode(tmp_path)
+    cfg = IngestConfig(height=32, width=48, num_frames=9, min_frames=5, fps=10.0)
+    old = list(standardise_clip(read_egodex_clip(hdf5_path), cfg))
+    new = list(read_egodex_clips(hdf5_path, cfg))
+    assert len(new) == len(old) == 2  # 40 frames at 30 fps: 14 at 10 fps, one 9 + a 5 tail
+    for a, b in zip(old, new, strict=True):
+        assert (a.clip_id, a.fps, a.clip_policy, a.text) == (
+            b.clip_id,
+            b.fps,
+            b.clip_policy,
+            b.text,
+        )
+        np.testing.assert_array_equal(a.frames, b.frames)
+        np.testing.assert_array_equal(a.source_frame_indices, b.source_frame_indices)
+        np.testing.assert_array_equal(a.timestamps, b.timestamps)
+        np.testing.assert_array_equal(a.intrinsics, b.intrinsics)
+        np.testing.assert_array_equal(a.world_from_cam, b.world_from_cam)
+        np.testing.assert_array_equal(a.hand_joints, b.hand_joints)
+        np.testing.assert_array_equal(a.hand_valid, b.hand_valid)
+        assert (a.source_fps, a.source_num_frames) == (b.source_fps, b.source_num_frames)
+
+
+def test_egodex_video_shorter_than_its_labels_is_rejected_before_any_clip(tmp_path: Path) -> None:
+    from egosim.stages.ingest.egodex import read_egodex_clips
+
+    hdf5_path = _egodex_episode(tmp_path)
+    write_video_file(hdf5_path.with_suffix(".mp4"), smooth_frames(30, 48, 64), fps=30.0)
+    cfg = IngestConfig(height=32, width=48, num_frames=9, min_frames=5, fps=10.0)
+    clips = read_egodex_clips(hdf5_path, cfg)
+    with pytest.raises(
+        ClipRejected, match=r"frame count mismatch: hdf5 has 40 frames, 0\.mp4 has 30"
+    ):
+        next(clips)

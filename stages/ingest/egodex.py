@@ -8,6 +8,8 @@ of the camera).
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+from dataclasses import dataclass
 from pathlib import Path
 
 import h5py
@@ -15,9 +17,12 @@ import numpy as np
 
 from egosim.pipeline.egodex_format import EGODEX_HAND_JOINTS, egodex_camera_to_ours
 from egosim.pipeline.geometry import invert_se3, transform_points
-from egosim.pipeline.media import MediaError, probe_video_file, read_video_file
+from egosim.pipeline.media import MediaError, iter_video_file, probe_video_file, read_video_file
 from egosim.pipeline.records import NUM_HAND_JOINTS, Clip
 from egosim.pipeline.stage import ClipRejected
+from egosim.stages.common.frame_plan import plan_resize
+from egosim.stages.ingest.standardise import resample_windows
+from egosim.stages.ingest.video_source import ClipFormat, window_policy
 
 MIN_IN_FRONT_FRACTION = 0.5  # below this share of valid joints at z > 0 the convention is wrong
 
@@ -140,10 +145,7 @@ def _read_frames(hdf5_path: Path, mp4_path: Path, t: int) -> tuple[np.ndarray, f
     except MediaError as exc:
         raise ClipRejected(f"{hdf5_path}: {exc}") from exc
     if len(frames) != t:
-        raise ClipRejected(
-            f"{hdf5_path}: frame count mismatch: hdf5 has {t} frames, {mp4_path.name} has "
-            f"{len(frames)}"
-        )
+        raise _count_mismatch(hdf5_path, mp4_path, t, len(frames))
     return frames, fps
 
 
@@ -162,25 +164,130 @@ def read_egodex_clip(
     dataset, a non-finite camera pose, an hdf5/mp4 frame-count mismatch, or hands that lie mostly
     behind the camera (a camera-convention error).
     """
-    hdf5_path = Path(hdf5_path)
+    episode = _read_episode(Path(hdf5_path), clip_id, min_wrist_confidence)
+    frames, fps = _read_frames(episode.hdf5_path, episode.mp4_path, episode.num_frames)
+    return episode.clip(frames, fps)
+
+
+@dataclass(frozen=True)
+class _Episode:
+    """An EgoDex episode's labels, checked, without its frames."""
+
+    hdf5_path: Path  # the labels
+    mp4_path: Path  # the sibling video
+    clip_id: str  # the clip id the episode's clips start with
+    num_frames: int  # frames of the episode (T)
+    intrinsics: np.ndarray  # (4,) fx, fy, cx, cy of the video's frames
+    world_from_cam: np.ndarray  # (T, 4, 4) in our camera axes
+    joints: np.ndarray  # (T, 2, 21, 3) float32
+    valid: np.ndarray  # (T, 2) bool
+    confidence: np.ndarray  # (T, 2, 21) float32
+    text: str | None  # llm_description
+
+    def clip(self, frames: np.ndarray, fps: float) -> Clip:
+        """The whole episode as one clip with ``frames (T, H, W, 3)`` at ``fps``."""
+        return Clip(
+            clip_id=self.clip_id,
+            source="egodex",
+            source_uri=str(self.hdf5_path),
+            fps=float(fps),
+            timestamps=np.arange(self.num_frames, dtype=np.float64) / fps,
+            intrinsics=self.intrinsics,
+            frames=frames,
+            world_from_cam=self.world_from_cam,
+            hand_joints=self.joints,
+            hand_valid=self.valid,
+            hand_confidence=self.confidence,
+            text=self.text,
+        )
+
+
+def _read_episode(hdf5_path: Path, clip_id: str | None, min_wrist_confidence: float) -> _Episode:
+    """Read and check an episode's labels (see :func:`read_egodex_clip` for the rejections)."""
     mp4_path = _sibling_video(hdf5_path)
     data, t, text = _read_hdf5(hdf5_path)
     world_from_cam = _camera_poses(hdf5_path, data["transforms/camera"])  # (T, 4, 4)
     joints, confidence, valid = _hands(data, t, min_wrist_confidence)
     _check_hands_in_front(hdf5_path, world_from_cam, joints, valid)
-    frames, fps = _read_frames(hdf5_path, mp4_path, t)
     k = data["camera/intrinsic"]
-    return Clip(
+    return _Episode(
+        hdf5_path=hdf5_path,
+        mp4_path=mp4_path,
         clip_id=clip_id or f"{hdf5_path.parent.name}_{hdf5_path.stem}",
-        source="egodex",
-        source_uri=str(hdf5_path),
-        fps=float(fps),
-        timestamps=np.arange(t, dtype=np.float64) / fps,
+        num_frames=t,
         intrinsics=np.array([k[0, 0], k[1, 1], k[0, 2], k[1, 2]], dtype=np.float64),
-        frames=frames,
         world_from_cam=world_from_cam,
-        hand_joints=joints.astype(np.float32),
-        hand_valid=valid,
-        hand_confidence=confidence.astype(np.float32),
+        joints=joints.astype(np.float32),
+        valid=valid,
+        confidence=confidence.astype(np.float32),
         text=text,
+    )
+
+
+def read_egodex_clips(
+    hdf5_path: Path, cfg: ClipFormat, min_wrist_confidence: float = 0.0
+) -> Iterator[Clip]:
+    """An EgoDex episode cut into standard clips by the clip policy, streaming its video.
+
+    The same clips as ``standardise_clip(read_egodex_clip(hdf5_path), cfg)``, but the video is
+    decoded frame by frame and resized as it goes, so memory holds one window of clip-size
+    frames, not the whole episode at 1080p (an average 8.8 s EgoDex episode is 1.6 GB of RGB;
+    a minute is 11 GB). The video's declared frame count is checked against the labels before
+    any clip is made; the decoded count again at the end.
+    """
+    episode = _read_episode(Path(hdf5_path), None, min_wrist_confidence)
+    t, mp4_path = episode.num_frames, episode.mp4_path
+    try:
+        info = probe_video_file(mp4_path)
+    except MediaError as exc:
+        raise ClipRejected(f"{hdf5_path}: {exc}") from exc
+    if info.num_frames and info.num_frames != t:
+        raise _count_mismatch(hdf5_path, mp4_path, t, info.num_frames)
+    plan = plan_resize(info.width, info.height, cfg.width, cfg.height)
+    policy = window_policy(cfg)
+    decoded = 0
+
+    def frames() -> Iterator[tuple[float, np.ndarray]]:
+        nonlocal decoded
+        for _, image in iter_video_file(mp4_path):
+            if decoded >= t:  # more frames than labels: checked after the stream ends
+                decoded += 1
+                continue
+            yield decoded / info.fps, plan.apply(image)
+            decoded += 1
+
+    def pick(a: np.ndarray, idx: np.ndarray) -> np.ndarray:
+        return a[idx]
+
+    try:
+        windows = resample_windows(frames(), policy, info.fps, f"EgoDex episode {hdf5_path}")
+        for window in windows:
+            idx = window.source_indices  # (T,) indices into the episode
+            yield Clip(
+                clip_id=f"{episode.clip_id}-w{window.index:03d}",
+                source="egodex",
+                source_uri=str(hdf5_path),
+                fps=window.fps,
+                timestamps=window.timestamps,
+                intrinsics=plan.intrinsics(episode.intrinsics),
+                frames=window.frames,
+                world_from_cam=pick(episode.world_from_cam, idx),
+                hand_joints=pick(episode.joints, idx),
+                hand_valid=pick(episode.valid, idx),
+                hand_confidence=pick(episode.confidence, idx),
+                text=episode.text,
+                source_fps=float(info.fps),
+                source_num_frames=t,
+                source_frame_indices=idx,
+                clip_policy=policy.label(window.kind),
+            ).check()
+    except MediaError as exc:
+        raise ClipRejected(f"{hdf5_path}: {exc}") from exc
+    if decoded != t and not policy.max_windows:
+        raise _count_mismatch(hdf5_path, mp4_path, t, decoded)
+
+
+def _count_mismatch(hdf5_path: Path, mp4_path: Path, t: int, frames: int) -> ClipRejected:
+    return ClipRejected(
+        f"{hdf5_path}: frame count mismatch: hdf5 has {t} frames, {mp4_path.name} has {frames}"
     )

@@ -49,7 +49,7 @@ from egosim.stages.ingest import (
     synthetic_source,
     video_source,
 )
-from egosim.stages.ingest.egodex import read_egodex_clip
+from egosim.stages.ingest.egodex import read_egodex_clips
 from egosim.stages.ingest.mcap_source import read_mcap_clip
 from egosim.stages.ingest.robot_source import ArmModel
 
@@ -253,7 +253,7 @@ class IngestStage(SourceStage):
         elif kind == "frames":
             yield from frames_source.read_frame_clips(Path(rest), cfg)
         elif kind == "egodex":
-            yield from video_source.standardise_clip(read_egodex_clip(Path(rest)), cfg)
+            yield from read_egodex_clips(Path(rest), cfg)  # streams the video
         elif kind == "mcap":
             yield from video_source.standardise_clip(read_mcap_clip(Path(rest)), cfg)
         elif kind == "synthetic":
@@ -304,7 +304,7 @@ def unit_name(unit: str) -> str:
     path = Path(rest)
     if kind == "synthetic":
         return unit
-    if kind == "egodex":  # egodex.read_egodex_clip: <task folder>_<stem>
+    if kind == "egodex":  # egodex.read_egodex_clips: <task folder>_<stem>
         return sanitize_id(f"{path.parent.name}_{path.stem}")
     if kind == "agibot":  # agibot_source: agibot_<task>_<episode>
         return sanitize_id(agibot_source.paths_of(path).name)
