@@ -62,6 +62,7 @@ EPIC = "epic_kitchens_frames"
 HOT3D_RGB_X = (427, 853)  # HOT3D's side-by-side recording: the RGB (middle) view, pixels
 HOT3D_LEFT_X = (0, 427)  # ... and the left greyscale view
 CRF = 18  # H.264 quality of the written variants
+FORMATS = {"mkv": "matroska", "mov": "mov", "webm": "webm", "avi": "avi", "mts": "mpegts"}
 
 
 @dataclass(frozen=True)
@@ -78,7 +79,7 @@ class Spec:
     rotation: int = 0  # display rotation written to the stream (degrees, counterclockwise);
     # the pixels are stored turned the other way, so a player that honours it shows them upright
     vfr: bool = False  # irregular frame times (jitter up to 35% of a frame, some frames dropped)
-    container: str = "mp4"  # mp4, mov, mkv or webm (VP9)
+    container: str = "mp4"  # mp4, mov, mkv, webm (VP9), avi (H.264 with B-frames) or mts (TS)
     audio: bool = False  # add an AAC (Opus in webm) audio stream
     grey: bool = False  # encode as greyscale (pix_fmt gray)
     hevc: bool = False  # encode H.265 Main 10 (yuv420p10le), as phones record, not H.264
@@ -108,7 +109,14 @@ def _variants() -> tuple[Variant, ...]:
     fmt = "the same pictures as {} in another file format: ingest only, frames compared"
     return (
         Variant("egodex_ref", EGODEX, Spec(duration_s=short), "clips", note="plain re-encode"),
-        Variant("dwm_ref", DWM, Spec(duration_s=DWM_S), "clips", note="plain re-encode, 8 fps"),
+        Variant(
+            "dwm_ref",
+            DWM,
+            Spec(duration_s=DWM_S),
+            "clips",
+            note="plain re-encode, 8 fps (ingest only: dwm_24fps runs these pictures through)",
+            full=False,
+        ),
         *(
             Variant(
                 f"egodex_{fps:g}fps",
@@ -192,7 +200,9 @@ def _variants() -> tuple[Variant, ...]:
             EGODEX,
             Spec(duration_s=short, vfr=True),
             "clips",
-            note="variable frame rate: frame times jittered by up to 35%, some frames dropped",
+            note="variable frame rate: frame times jittered by up to 35%, some frames dropped "
+            "(ingest only: after ingest the clip is an ordinary one)",
+            full=False,
         ),
         *(
             Variant(
@@ -204,7 +214,7 @@ def _variants() -> tuple[Variant, ...]:
                 full=False,
                 same_as="egodex_ref",
             )
-            for c in ("mov", "webm")
+            for c in ("mov", "webm", "avi", "mts")
         ),
         Variant(
             "egodex_audio",
@@ -243,8 +253,10 @@ def _variants() -> tuple[Variant, ...]:
             "pour_coke_no_hands",
             POUR,
             Spec(duration_s=short, crop_x=(0, 860)),
-            "clips",
-            note="fixed camera, the left part of the table before the hand comes in",
+            "reject",
+            reason="hand_valid_fraction",
+            note="fixed camera, the left part of the table before the hand comes in: no hand, "
+            "so pack's quality gate must name the missing hands",
         ),
         Variant(
             "epic_frames",
@@ -327,7 +339,7 @@ def write_variant(src: Path, dst: Path, spec: Spec) -> None:
     if turns:  # stored turned back, so that the display rotation makes it upright
         images = [np.ascontiguousarray(np.rot90(im, k=-turns)) for im in images]
     codec = "libx265" if spec.hevc else {"webm": "libvpx-vp9"}.get(spec.container, "libx264")
-    fmt = {"mkv": "matroska", "mov": "mov", "webm": "webm"}.get(spec.container, "mp4")
+    fmt = FORMATS.get(spec.container, "mp4")
     rate = Fraction(fps).limit_denominator(1001)
     time_base = Fraction(1, 90000)
     dst.parent.mkdir(parents=True, exist_ok=True)
@@ -385,7 +397,7 @@ def variant_input(variant: Variant, data: Path, out: Path) -> Path:
     once into ``OUT/inputs/``."""
     if variant.spec is None:
         return data / variant.source
-    ext = {"mkv": ".mkv", "mov": ".mov", "webm": ".webm"}.get(variant.spec.container, ".mp4")
+    ext = f".{variant.spec.container}"
     path = out / "inputs" / f"{variant.name}{ext}"
     if not path.is_file():
         tmp = path.with_name(f"tmp-{path.name}")

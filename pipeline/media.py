@@ -204,11 +204,18 @@ class VideoFileInfo:
     width: int  # displayed frame width in pixels (after the display rotation)
     height: int  # displayed frame height in pixels (after the display rotation)
     rotation: int = 0  # display rotation, degrees counterclockwise (0, 90, 180 or -90)
+    start_s: float = 0.0  # the stream's first timestamp, seconds (0 when it declares none)
+    duration_s: float = 0.0  # the stream's declared duration, seconds (0 when unknown)
 
 
 def _quarter_turns(rotation: float) -> int:
     """``rotation`` degrees (counterclockwise, from the display matrix) as quarter turns."""
     return round(rotation / 90.0) % 4
+
+
+def _seconds(value: int | None, time_base: Fraction | None) -> float:
+    """``value`` ticks of ``time_base`` in seconds; 0 when either is unknown."""
+    return float(value * time_base) if value is not None and time_base else 0.0
 
 
 def probe_video_file(path: Path) -> VideoFileInfo:
@@ -241,6 +248,9 @@ def probe_video_file(path: Path) -> VideoFileInfo:
                 width=width,
                 height=height,
                 rotation=[0, 90, 180, -90][turns],
+                start_s=_seconds(stream.start_time, stream.time_base),
+                duration_s=_seconds(stream.duration, stream.time_base)
+                or (container.duration or 0) / av.time_base,
             )
     except (av.error.FFmpegError, OSError) as exc:
         raise MediaError(f"cannot read video file {path}: {exc}") from exc

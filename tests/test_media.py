@@ -138,3 +138,9 @@ def test_avi_with_b_frames_gives_frames_at_their_own_times(tmp_path) -> None:
     np.testing.assert_allclose(stamps, np.arange(40) / 20.0, atol=1e-6)
     np.testing.assert_allclose(out[:, 20, 1, 1], np.arange(40) * 6, atol=3)  # frames in order
     assert psnr(out, frames) >= MIN_RGB_PSNR_DB
+
+
+def test_probe_gives_the_declared_start_and_duration(video_file) -> None:
+    info = media.probe_video_file(video_file)  # 60 frames at 30 fps
+    assert info.start_s == pytest.approx(0.0, abs=1e-6)
+    assert info.duration_s == pytest.approx(2.0, abs=1.5 / 30)

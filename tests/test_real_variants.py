@@ -48,19 +48,21 @@ def _frames(row: dict) -> np.ndarray:
         Spec(container="mov"),
         Spec(container="mkv"),
         Spec(container="webm"),
+        Spec(container="avi"),
+        Spec(container="mts"),
         Spec(audio=True),
         Spec(container="webm", audio=True),
         Spec(rotation=-90),
         Spec(rotation=90, container="mov", hevc=True, audio=True),
     ],
-    ids=["mov", "mkv", "webm", "audio", "webm-opus", "rotated", "phone-hevc"],
+    ids=["mov", "mkv", "webm", "avi", "mts", "audio", "webm-opus", "rotated", "phone-hevc"],
 )
 def test_other_files_of_the_same_pictures_ingest_to_the_same_clips(
     tmp_path: Path, source: Path, spec: Spec
 ) -> None:
     plain = tmp_path / "plain.mp4"
     write_variant(source, plain, Spec())
-    ext = {"mkv": ".mkv", "mov": ".mov", "webm": ".webm"}.get(spec.container, ".mp4")
+    ext = f".{spec.container}"
     variant = tmp_path / f"variant{ext}"
     write_variant(source, variant, spec)
     if spec.rotation:

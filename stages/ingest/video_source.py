@@ -15,7 +15,7 @@ from typing import Protocol
 import numpy as np
 
 from egosim.pipeline.geometry import intrinsics_from_fov
-from egosim.pipeline.media import MediaError, iter_video_file, probe_video_file
+from egosim.pipeline.media import MediaError, VideoFileInfo, iter_video_file, probe_video_file
 from egosim.pipeline.records import Clip
 from egosim.pipeline.stage import ClipRejected
 from egosim.stages.common.frame_plan import plan_resize
@@ -90,11 +90,13 @@ def read_video_clips(path: Path, cfg: ClipFormat) -> Iterator[Clip]:
     plan = plan_resize(info.width, info.height, cfg.width, cfg.height)
     intrinsics = plan.intrinsics(source_intrinsics(cfg, info.width, info.height))
     decoded, exhausted = 0, False  # frames decoded; True once the decoder reached the end
+    span = [np.inf, -np.inf]  # first and last decoded frame times, seconds
 
     def counted() -> Iterator[tuple[float, np.ndarray]]:
         nonlocal decoded, exhausted
         for t, f in iter_video_file(path):
             decoded += 1
+            span[0], span[1] = min(span[0], t), max(span[1], t)
             yield t, plan.apply(f)
         exhausted = True
 
@@ -121,11 +123,33 @@ def read_video_clips(path: Path, cfg: ClipFormat) -> Iterator[Clip]:
         raise ClipRejected(f"{exc} (after {count} complete clip(s))") from exc
     missing = info.num_frames - decoded
     # Only a file read to its end can show truncation (max_clips_per_source stops early).
-    if exhausted and info.num_frames and missing > max(2, TRUNCATION_TOLERANCE * info.num_frames):
+    if (
+        exhausted
+        and info.num_frames
+        and missing > max(2, TRUNCATION_TOLERANCE * info.num_frames)
+        and not _reaches_declared_end(info, decoded, span[0], span[1])
+    ):
         raise ClipRejected(
             f"video file {path} is truncated: decoded {decoded} of the {info.num_frames} frames "
             f"its container declares (kept the {count} clip(s) of the decoded part)"
         )
+
+
+def _reaches_declared_end(info: VideoFileInfo, decoded: int, first: float, last: float) -> bool:
+    """Whether frames decoded from ``first`` to ``last`` seconds cover the stream's declared
+    duration, up to two frame intervals (or the truncation tolerance of it).
+
+    A container may count frames that decode to nothing (AVI's empty "drop" chunks where a
+    variable-rate source was muxed on a fine time grid: 40 frames declared as 1200 at 600 fps):
+    then fewer frames decode than it declares though none is lost. A truncated file stops
+    early in time. Unknown duration: False (the frame count decides).
+    """
+    if not info.duration_s or decoded < 2 or not last > first:
+        return False
+    interval = (last - first) / (decoded - 1)  # seconds per decoded frame
+    end = info.start_s + info.duration_s  # where the stream says it ends
+    slack = max(2 * interval, TRUNCATION_TOLERANCE * info.duration_s)
+    return last + interval >= end - slack
 
 
 def standardise_clip(clip: Clip, cfg: ClipFormat) -> Iterator[Clip]:
