@@ -173,7 +173,10 @@ class IngestStage(SourceStage):
     # 3: clip ids sanitised to the identifier rule and unique across a run (schemas.ids).
     # 4: clips v3 (gripper_opening; robot sources agibot and lerobot).
     # 5: clips v4 (embodiment_mask; synthetic robot clips).
-    version = 5
+    # 6: frames carry presentation times sorted back into order (AVI with B-frames had them
+    #    shuffled); an AVI counting empty drop chunks is no longer rejected as truncated. MP4,
+    #    MOV, MKV, WebM clips are unchanged.
+    version = 6
     config: IngestConfig
 
     def list_units(self, source: str | None) -> list[str]:
