@@ -256,9 +256,6 @@ def read_egodex_clips(
             yield decoded / info.fps, plan.apply(image)
             decoded += 1
 
-    def pick(a: np.ndarray, idx: np.ndarray) -> np.ndarray:
-        return a[idx]
-
     try:
         windows = resample_windows(frames(), policy, info.fps, f"EgoDex episode {hdf5_path}")
         for window in windows:
@@ -271,10 +268,10 @@ def read_egodex_clips(
                 timestamps=window.timestamps,
                 intrinsics=plan.intrinsics(episode.intrinsics),
                 frames=window.frames,
-                world_from_cam=pick(episode.world_from_cam, idx),
-                hand_joints=pick(episode.joints, idx),
-                hand_valid=pick(episode.valid, idx),
-                hand_confidence=pick(episode.confidence, idx),
+                world_from_cam=episode.world_from_cam[idx],
+                hand_joints=episode.joints[idx],
+                hand_valid=episode.valid[idx],
+                hand_confidence=episode.confidence[idx],
                 text=episode.text,
                 source_fps=float(info.fps),
                 source_num_frames=t,
