@@ -293,23 +293,22 @@ def carry_lost_hands(
     if window <= 0 or t < 2:
         return out
     radius = max(1.0, reach * float(np.hypot(h, w)))
-    parts = [cv2.connectedComponents(m, connectivity=8) for m in own]  # (count, labels (H, W))
+    # per frame: labels (H, W) and each region's bounding box and size (x, y, w, h, area)
+    parts = [cv2.connectedComponentsWithStats(m, connectivity=8)[1:3] for m in own]
     for k in range(1, t):
         near = None  # (H, W) within reach of frame k's mask, made when first needed
         for n in range(max(0, k - window), min(t, k + window + 1)):
-            count, labels = parts[n]
-            if n == k or count <= 1:
+            labels, stats = parts[n]
+            if n == k or len(stats) <= 1:
                 continue
             if near is None:
                 far = cv2.distanceTransform(1 - own[k], cv2.DIST_L2, 3)  # (H, W) px to mask
-                near = (far <= radius).ravel()
-            flat = labels.ravel()
-            size = np.bincount(flat, minlength=count)  # (count,) pixels per region
-            covered = np.bincount(flat, weights=near, minlength=count)  # (count,) near k's
-            lost = covered < min_cover * size  # (count,)
-            lost[0] = False  # label 0 is the background
-            if lost.any():
-                out[k] |= lost[labels].astype(np.uint8)
+                near = far <= radius
+            for i, (x, y, bw, bh, area) in enumerate(stats[1:], start=1):
+                box = np.s_[y : y + bh, x : x + bw]
+                region = labels[box] == i  # (bh, bw)
+                if np.count_nonzero(near[box] & region) < min_cover * area:
+                    out[k][box] |= region.astype(np.uint8)
     return out
 
 
