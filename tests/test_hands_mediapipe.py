@@ -546,6 +546,42 @@ def test_aligned_mpjpe_ignores_a_rigid_turn_and_shift() -> None:
     assert 0.1 < aligned_mpjpe_mm(bumped, truth) < 0.5
 
 
+def test_hand_accuracy_per_joint_errors_point_at_the_moved_joints() -> None:
+    """Index tip moved 5 mm sideways: only it has a wrist-relative error (5 mm) and a pixel
+    error (fx * 5 mm / depth); the wrist moved 4 mm as well: every other joint is then 4 mm off
+    wrist-relative (the wrist is the reference) and the wrist itself 0. The per-joint means
+    average to the MPJPE and the 2D error."""
+    from egosim.stages.hands.metrics import JOINT_NAMES, hand_accuracy
+
+    rng = np.random.default_rng(1)
+    truth_cam = np.zeros((2, 2, 21, 3))
+    truth_cam[:, 0] = rng.normal([-0.05, 0.02, 0.5], [0.03, 0.03, 0.01], (2, 21, 3))
+    truth_cam[:, 0, 8, 2] = 0.5  # the moved joints sit at a known depth
+    truth_cam[:, 0, 0, 2] = 0.5
+    pred = truth_cam.copy()
+    pred[0, 0, 8, 0] += 0.005  # frame 0: index tip 5 mm right
+    pred[1, 0, 0, 0] += 0.004  # frame 1: wrist 4 mm right
+    k = np.array([400.0, 400.0, 160.0, 120.0])
+    valid = np.array([[True, False]] * 2)
+    acc = hand_accuracy(
+        pred, project_points(pred, k)[0], valid, truth_cam, valid, np.tile(np.eye(4), (2, 1, 1)),
+        k, (320, 240),
+    )  # fmt: skip
+    table = acc.per_joint()  # (21, 2) mm, px
+    assert JOINT_NAMES[8] == "index4" and len(JOINT_NAMES) == 21
+    expected_mm = np.full(21, 2.0)  # frame 1: 4 mm on every joint but the wrist, halved
+    expected_mm[0] = 0.0
+    expected_mm[8] = (5.0 + 4.0) / 2
+    np.testing.assert_allclose(table[:, 0], expected_mm, atol=1e-9)
+    expected_px = np.zeros(21)
+    expected_px[8] = 400.0 * 0.005 / 0.5 / 2  # 4 px in frame 0, 0 in frame 1
+    expected_px[0] = 400.0 * 0.004 / 0.5 / 2
+    np.testing.assert_allclose(table[:, 1], expected_px, atol=1e-9)
+    summary = acc.summary()
+    np.testing.assert_allclose(table[:, 0].mean(), summary["mpjpe_mm"], rtol=1e-12)
+    np.testing.assert_allclose(table[:, 1].mean(), summary["error_2d_px"], rtol=1e-12)
+
+
 def test_hand_accuracy_depth_ratio_of_a_hand_placed_too_far() -> None:
     """A hand scaled by 1.1 about the camera centre projects where the true one does (2D error
     0, orientation 0) but sits 10% too far: depth ratio 1.1, MPJPE = 10% of the wrist offsets."""

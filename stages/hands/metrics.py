@@ -27,6 +27,15 @@ from egosim.pipeline.geometry import invert_se3, project_points, transform_point
 from egosim.stages.common.hand_lift import best_rotation
 
 WRIST = 0  # joint index of the wrist
+JOINTS = 21  # joints per hand (MediaPipe / MANO order: wrist, then thumb, index, ... 4 each)
+JOINT_NAMES = (
+    "wrist",
+    *(
+        f"{finger}{k}"
+        for finger in ("thumb", "index", "middle", "ring", "pinky")
+        for k in (1, 2, 3, 4)
+    ),
+)  # 1 = the finger's base joint (CMC / MCP), 4 = its tip
 
 
 def orientation_error_deg(pred: np.ndarray, truth: np.ndarray) -> float:
@@ -66,6 +75,19 @@ class HandAccuracy:
     # joint depth / true median joint depth
     aligned_mpjpe_mm: list[float] = field(default_factory=list)  # per found hand-frame,
     # after the best rotation and translation
+    joint_error_mm: list[np.ndarray] = field(default_factory=list)  # per found hand-frame:
+    # (21,) each joint's wrist-relative distance (the terms of ``mpjpe_mm``)
+    joint_error_2d_px: list[np.ndarray] = field(default_factory=list)  # per found hand-frame:
+    # (21,) each joint's pixel distance (the terms of ``error_2d_px``)
+
+    def per_joint(self) -> np.ndarray:
+        """``(21, 2)``: each joint's mean wrist-relative error (mm) and mean 2D error (px) over
+        the found hand-frames (NaN when none): which joints carry the MPJPE."""
+        if not self.joint_error_mm:
+            return np.full((JOINTS, 2), np.nan)
+        return np.stack(
+            [np.mean(self.joint_error_mm, axis=0), np.mean(self.joint_error_2d_px, axis=0)], axis=1
+        )
 
     def summary(self) -> dict[str, float]:
         """Scalar figures: recall, mean 2D error and offset, orientation error, MPJPE."""
@@ -108,6 +130,8 @@ def combine(parts: list[HandAccuracy]) -> HandAccuracy:
         out.mpjpe_mm += p.mpjpe_mm
         out.depth_ratio += p.depth_ratio
         out.aligned_mpjpe_mm += p.aligned_mpjpe_mm
+        out.joint_error_mm += p.joint_error_mm
+        out.joint_error_2d_px += p.joint_error_2d_px
     return out
 
 
@@ -159,6 +183,11 @@ def hand_accuracy(
             continue
         acc.found += 1
         acc.error_2d_px.append(float(np.linalg.norm(diff, axis=1).mean()))
+        acc.joint_error_2d_px.append(np.linalg.norm(diff, axis=1))
+        rel = (joints_cam[f, s] - joints_cam[f, s, WRIST]) - (
+            truth_cam[f, s] - truth_cam[f, s, WRIST]
+        )
+        acc.joint_error_mm.append(1000.0 * np.linalg.norm(rel, axis=1))
         acc.offset_2d_px.append(diff.mean(axis=0))
         acc.orientation_deg.append(orientation_error_deg(joints_cam[f, s], truth_cam[f, s]))
         acc.mpjpe_mm.append(wrist_relative_mpjpe_mm(joints_cam[f, s], truth_cam[f, s]))
