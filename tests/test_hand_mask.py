@@ -668,3 +668,33 @@ def test_arm_not_reaimed_along_a_sideways_shade(monkeypatch: pytest.MonkeyPatch)
         certain[slack] = int(seeds[0][far_shade].sum())
     assert certain[40.0] == 0, f"{certain[40.0]} certain arm px on the far shade"
     assert certain[180.0] > 200, f"without the limit the seed should follow the shade: {certain}"
+
+
+def test_carried_hand_frame_still_receives_its_neighbours_mask() -> None:
+    """A frame whose hand was carried there by tracking has a mask of its own, often without
+    the arm (EgoDex t=11, 41-42); marked open, it still receives the neighbour's mask (the arm)
+    by propagation, joined to its own; not marked, it keeps its own only."""
+    from egosim.stages.hand_mask.propagate import propagate_hands
+
+    table = _static_table()
+    frames = np.stack([table.copy(), table.copy()])
+    for f in frames:
+        f[30:96, 90:112] = (60, 40, 90)  # a still arm in a dark sleeve, from the bottom border
+    per_hand = np.zeros((2, 1, 96, 128), np.uint8)
+    per_hand[1, 0, 30:96, 90:112] = 1  # frame 1: hand and arm
+    per_hand[0, 0, 30:50, 90:112] = 1  # frame 0 (carried hand): the hand only
+    certain = np.zeros_like(per_hand)
+    certain[1, 0, 40:90, 96:106] = 1
+    certain[0, 0, 35:45, 96:106] = 1
+    masks = per_hand.max(axis=1)  # (2, H, W)
+    arm0 = np.zeros((96, 128), bool)
+    arm0[55:94, 92:110] = True  # the arm in frame 0, inside its edges
+    opened = np.array([[True], [False]])
+    out = propagate_hands(frames, masks, per_hand, certain, open_frames=opened)
+    assert out[0][arm0].mean() > 0.9, f"arm covered {out[0][arm0].mean():.2f}"
+    assert out[0][30:50, 90:112].all(), "the frame's own mask was lost"
+    outside = np.ones((96, 128), bool)
+    outside[24:, 84:118] = False
+    assert out[0][outside].sum() == 0, "carried mask leaked onto the table"
+    closed = propagate_hands(frames, masks, per_hand, certain)
+    assert closed[0][arm0].mean() < 0.1, "a frame with its own mask received without opening"

@@ -126,6 +126,7 @@ def propagate_backwards(
     params: PropagationParams | None = None,
     certain: np.ndarray | None = None,
     flows: FrameFlows | None = None,
+    open_frames: np.ndarray | None = None,
 ) -> np.ndarray:
     """Masks ``(T, H, W)`` uint8 with later masks carried back into earlier frames.
 
@@ -135,7 +136,9 @@ def propagate_backwards(
     given; every earlier frame gains what the (already propagated) next frame's mask shows of
     it, as long as that mask was found at most ``max_frames`` frames later. ``flows``: the
     grey frames and flows of ``frames``, shared with other calls on the same clip (None: made
-    here).
+    here). ``open_frames (T,)`` bool, optional: frames that receive carried masks even though
+    their own is not empty (a hand whose keypoints were themselves carried there, see
+    ``carry``); they are still sources for the frames beyond.
     """
     p = params or PropagationParams()
     out = masks.astype(np.uint8).copy()
@@ -144,6 +147,9 @@ def propagate_backwards(
         return out
     # Frames since the mask at each frame was found (0: its own mask is not empty).
     age = np.where(out.reshape(len(out), -1).any(axis=1), 0, p.max_frames + 1)  # (T,)
+    receive = age > 0  # (T,) frames that may gain carried pixels
+    if open_frames is not None:
+        receive |= np.asarray(open_frames, bool)
     flows = flows or FrameFlows(frames)
     grey_of = flows.grey
     erode = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * p.erode_px + 1,) * 2)
@@ -151,7 +157,7 @@ def propagate_backwards(
     for t in range(len(frames) - 2, -1, -1):
         if out[t + 1].sum() < p.min_pixels or age[t + 1] >= p.max_frames:
             continue
-        if p.into_empty_only and age[t] == 0:
+        if p.into_empty_only and not receive[t]:
             continue
         fwd = flows.flow(t, t + 1)  # (H, W, 2) t -> t+1
         warped = _pull(out[t + 1], fwd, cv2.INTER_NEAREST)  # (H, W) proposal at t
@@ -190,6 +196,7 @@ def propagate_both_ways(
     params: PropagationParams | None = None,
     certain: np.ndarray | None = None,
     flows: FrameFlows | None = None,
+    open_frames: np.ndarray | None = None,
 ) -> np.ndarray:
     """Masks ``(T, H, W)`` carried backwards and forwards in time (see :func:`propagate_backwards`).
 
@@ -197,9 +204,12 @@ def propagate_both_ways(
     their union. Both directions share ``flows`` (None: made here).
     """
     flows = flows or FrameFlows(frames)
-    back = propagate_backwards(frames, masks, params, certain, flows)
+    back = propagate_backwards(frames, masks, params, certain, flows, open_frames)
     rev = None if certain is None else certain[::-1]
-    forward = propagate_backwards(frames[::-1], masks[::-1], params, rev, flows.reversed())[::-1]
+    rev_open = None if open_frames is None else open_frames[::-1]
+    forward = propagate_backwards(
+        frames[::-1], masks[::-1], params, rev, flows.reversed(), rev_open
+    )[::-1]
     return back | forward
 
 
@@ -209,18 +219,21 @@ def propagate_hands(
     per_hand: np.ndarray,
     certain: np.ndarray,
     params: PropagationParams | None = None,
+    open_frames: np.ndarray | None = None,
 ) -> np.ndarray:
     """Masks ``(T, H, W)`` with each hand's mask carried into the frames that missed that hand.
 
     ``masks (T, H, W)`` every frame's own mask; ``per_hand (T, K, H, W)`` the parts of it that
     belong to hand ``k``; ``certain (T, K, H, W)`` their certain seeds (see ``arm_region``). Hand
     by hand, :func:`propagate_both_ways` carries ``per_hand[:, k]`` into the frames where it is
-    empty; the result is the union with ``masks``. Every hand and direction shares one
-    :class:`FrameFlows`, so each flow is computed once per clip.
+    empty, and into those ``open_frames (T, K)`` marks for it (optional); the result is the union
+    with ``masks``. Every hand and direction shares one :class:`FrameFlows`, so each flow is
+    computed once per clip.
     """
     out = masks.astype(np.uint8).copy()
     flows = FrameFlows(frames)
     for k in range(per_hand.shape[1]):
         if per_hand[:, k].any():
-            out |= propagate_both_ways(frames, per_hand[:, k], params, certain[:, k], flows)
+            opened = None if open_frames is None else open_frames[:, k]
+            out |= propagate_both_ways(frames, per_hand[:, k], params, certain[:, k], flows, opened)
     return out

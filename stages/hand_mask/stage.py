@@ -111,8 +111,9 @@ def masks_from_keypoints(
     ``frames (T, H, W, 3)`` uint8 RGB; ``keypoints (T, K, 21, 2)`` pixels (NaN = unknown);
     ``valid (T, K)``. Works in image space only (see the module docstring).
     """
+    carried = np.zeros(valid.shape, bool)  # (T, K) hands carried by tracking, not found
     if config.carry_frames > 0:
-        keypoints, valid, _ = carry_keypoints(
+        keypoints, valid, carried = carry_keypoints(
             frames, keypoints, valid, CarryParams(max_frames=config.carry_frames)
         )
     capsule = CapsuleParams(radius_scale=config.radius_scale, forearm=config.forearm)
@@ -137,7 +138,9 @@ def masks_from_keypoints(
         )
         per_hand = np.stack([f[1] for f in found])  # (T, K, H, W)
         certain = np.stack([f[2] for f in found])  # (T, K, H, W)
-        masks = propagate_hands(frames, masks, per_hand, certain, params)
+        # A frame whose hand was carried there still receives that hand's mask from its
+        # neighbours (its arm, from frames where the search found it), joined to its own.
+        masks = propagate_hands(frames, masks, per_hand, certain, params, carried)
     return masks
 
 
@@ -213,7 +216,7 @@ class HandMaskStage(ClipStage):
     # cleaned joints and a replacement camera (see the module docstring)
     optional_inputs: ClassVar[Mapping[str, ShardSchema]] = {**CAMERA_ROLES, "hands": HANDS}
     output = HAND_MASK
-    version = 11  # 2: image-space arm masks (no world axis). 3: arm found by a colour walk, masks
+    version = 12  # 2: image-space arm masks (no world axis). 3: arm found by a colour walk, masks
     # carried into frames whose hands were missed. 4: arm re-aimed along its colour region.
     # 5: that region is probably arm wherever it runs. 6: each hand carried into the frames that
     # missed it, and only its certain seeds (skeleton, arm strip) carried with confidence.
@@ -225,6 +228,7 @@ class HandMaskStage(ClipStage):
     # hand's arm strip lay inside the hand); no direction search when the hand points out of view
     # 11: missed hands' keypoints carried by tracking (carry); the arm is not re-aimed along its
     # colour region when that turns more than refine_slack_deg past the searched direction
+    # 12: a frame whose hand was carried there still receives that hand's propagated mask
     backends = ("keypoints", "sam")
     # What process reads (the executor decodes nothing else): the frames, joints and camera
     # of the clip, the robot arm's mask, the cleaned joints.
