@@ -31,3 +31,9 @@ def test_prefixed_and_padded_names_keep_their_order(tmp_path: Path):
         "img10.png",
         "IMG11.png",
     ]
+
+
+def test_digit_like_characters_in_names_do_not_break_the_listing(tmp_path: Path):
+    """``str.isdigit`` is true of ``²`` but ``int`` refuses it; such a name is text, not a crash."""
+    _touch(tmp_path, ["2.jpg", "1²2.jpg", "10.jpg", "1.jpg"])
+    assert [p.name for p in frame_files(tmp_path)] == ["1.jpg", "1²2.jpg", "2.jpg", "10.jpg"]

@@ -30,10 +30,16 @@ def frame_files(folder: Path) -> list[Path]:
     return sorted(images, key=_natural_key)
 
 
-def _natural_key(path: Path) -> tuple:
-    """Sort key of a file name: text parts lower-cased, digit runs as numbers, name as tie-break."""
+def _natural_key(path: Path) -> tuple[tuple[int | str, ...], str]:
+    """Sort key of a file name: text parts lower-cased, digit runs as numbers, name as tie-break.
+
+    ``re.split`` with one group alternates text and digit runs, text first (maybe empty), so
+    every name has text at even and numbers at odd positions: ints only meet ints. The digit
+    runs are told by position, not by ``str.isdigit``, which is also true of characters ``int``
+    refuses (a superscript ``²`` in a name raised ValueError).
+    """
     parts = re.split(r"(\d+)", path.name)
-    return (tuple((0, int(t), "") if t.isdigit() else (1, 0, t.lower()) for t in parts), path.name)
+    return tuple(int(t) if i % 2 else t.lower() for i, t in enumerate(parts)), path.name
 
 
 ClipFrame = tuple[float, int, np.ndarray]  # one clip frame: (time, source frame index, frame)
