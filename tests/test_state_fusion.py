@@ -170,6 +170,13 @@ def test_ransac_plane_finds_the_table_among_clutter_and_repeats_itself():
     assert np.array_equal(again[2], inliers) and np.array_equal(
         again[0] * np.sign(again[0] @ n_true), normal
     )
+    with pytest.raises(FusionError, match="N >= 3"):  # numpy's ValueError before
+        ransac_plane(points[:0], 0.01, 300)
+    with pytest.raises(FusionError, match="N >= 3"):
+        ransac_plane(points[:2], 0.01, 300)
+    line = np.outer(np.arange(10.0), [1.0, 2.0, 3.0])  # (10, 3) collinear: no plane
+    with pytest.raises(FusionError, match="degenerate"):
+        ransac_plane(line, 0.01, 300)
 
 
 def test_moved_object_lands_within_a_centimetre_baseline_does_not(seed0):

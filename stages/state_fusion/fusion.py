@@ -222,13 +222,17 @@ def ransac_plane(
 ) -> tuple[np.ndarray, float, np.ndarray]:
     """The plane of most inliers among ``points (N, 3)``: ``(unit normal (3,), offset, inliers)``.
 
-    Seeded RANSAC on three-point samples, the best hypothesis refined once by least squares on its
-    inliers (distance <= ``threshold``), inliers as sorted indices. Deterministic for the same
-    input: open3d's ``segment_plane`` is not, even seeded (its parallel loop stops early in
-    whichever thread gets there first; open3d issues #5647 and #7270), and the state fusion
-    built on it changed between runs of the same command.
+    Seeded RANSAC on three-point samples; the best hypothesis (most inliers, distance <=
+    ``threshold``; the first of equals) is refitted once by least squares on its inliers, and the
+    refit is kept when it holds at least as many inliers, else the sampled plane. Inliers as
+    sorted indices. Deterministic for the same input: open3d's ``segment_plane`` is not, even
+    seeded (its parallel loop stops early in whichever thread gets there first; open3d issues
+    #5647 and #7270), and the state fusion built on it changed between runs of the same command.
+    Raises :class:`FusionError` for fewer than three points or when every sample is degenerate.
     """
     pts = np.asarray(points, dtype=np.float64)
+    if pts.ndim != 2 or pts.shape[1] != 3 or len(pts) < 3:
+        raise FusionError(f"a plane needs (N >= 3, 3) points, got shape {pts.shape}")
     rng = np.random.default_rng(seed)
     picks = rng.integers(0, len(pts), size=(iterations, 3))
     a, b, c = pts[picks[:, 0]], pts[picks[:, 1]], pts[picks[:, 2]]
