@@ -27,11 +27,18 @@ Real DWM clips (``dwm_realworld/realworld_dynamic``; no cameras or depth: masks 
 landmarks, fill by the image-aligned path). Hand truth: ``videos_hands`` pixels brighter than 30
 (rendered hands, no arms; the render misses the hands in some frames).
 
-- ``recall``: the fraction of hand-truth pixels (all frames) inside the mask;
+- ``recall``: the fraction of hand-truth pixels (all frames) inside the mask; ``recall_3px``:
+  within 3 px of it. The render is a hand mesh drawn without the scene: it covers fingers hidden
+  under a held object (00013 t=17-20, under the cushion) and sits a few px off the real hand in
+  places, so part of what ``recall`` misses is not visible hand (00013, hand_mask v11: recall
+  0.836, within 3 / 6 / 10 px 0.911 / 0.950 / 0.976);
 - ``far_px``: mask pixels per frame farther than 50 px from the allowed region: hand truth plus,
   for each hand blob, the cone from it down to the bottom border within 45 degrees of vertical
   (where an egocentric arm comes from; see :func:`allowed_region`), dilated by 50 px; taken on
-  the frames whose hand truth shows a hand;
+  the frames whose hand truth shows a hand. Both of 00013's far patches with hand_mask v11 are
+  real arm or hand: t=8's (3,785 px) is the left hand and forearm, which the render leaves out
+  of that frame, and t=19's (395 px) the right sleeve at the bottom-right corner, flatter than
+  the 45-degree cone;
 - frame 0 of both clips shows no hand, so the inpainting is measured on the sub-clip that starts
   at the first frame with a visible hand (``start``; what a clip cut there would get as its
   frame 0): ``psnr_hand`` in the hand truth dilated by 15 px and ``psnr_frame`` over the frame,
@@ -250,6 +257,8 @@ def dwm_case(cid: str, data: Path, out: Path) -> dict:
     masks = masks_from_keypoints(video, uv, present, HandMaskConfig()) > 0  # (T, H, W)
     mask_s = time.perf_counter() - start
     recall = float(masks[hands].mean()) if hands.any() else float("nan")
+    near = dilate(masks.astype(np.uint8), 3) > 0  # (T, H, W)
+    recall_3px = float(near[hands].mean()) if hands.any() else float("nan")
     shown = np.nonzero(hands.reshape(len(hands), -1).mean(axis=1) >= MIN_HAND_FRACTION)[0]
     # videos_hands misses the hands in some frames (its own tracking): those frames have no
     # truth to judge a mask by, so the false-positive figure is taken on the others only.
@@ -278,6 +287,7 @@ def dwm_case(cid: str, data: Path, out: Path) -> dict:
     return {
         "case": cid,
         "recall": recall,
+        "recall_3px": recall_3px,
         "far_px_mean": float(np.mean(far[shown])) if len(shown) else 0.0,
         "far_px_max": float(np.max(far)),
         "far_px_frame": worst,
@@ -455,7 +465,8 @@ def main() -> int:
             r = dwm_case(cid, args.data, args.out)
             rows["dwm"].append(r)
             print(
-                f"dwm {cid} recall {r['recall']:.3f} far px/frame {r['far_px_mean']:.0f} "
+                f"dwm {cid} recall {r['recall']:.3f} (3 px {r['recall_3px']:.3f}) "
+                f"far px/frame {r['far_px_mean']:.0f} "
                 f"({r['frames_judged']} frames judged) "
                 f"(max {r['far_px_max']:.0f} at t={r['far_px_frame']}) | start {r['start']}: "
                 f"hand {r['psnr_hand']:.2f} vs Telea {r['telea_hand']:.2f} dB, frame "
