@@ -303,7 +303,7 @@ def reproject_fill(
     samples = np.zeros((candidates, len(ys), 3), np.float32)  # colours per candidate slot
     count = np.zeros(len(ys), np.int32)  # (M,) slots each pixel filled
     ring_check = None
-    if local_residual > 0:  # the ring round the hole, where frame 0's depth is measured
+    if local_residual > 0:  # 3. the ring round the hole, where frame 0's depth is measured
         ring = (dilate(target, ring_px) > 0) & ~target & (depth0 > 0)  # (H, W)
         ry, rx = np.nonzero(ring)  # (R,)
         ring_world = transform_points(
@@ -311,7 +311,7 @@ def reproject_fill(
         )
         grey0 = cv2.cvtColor(frames[0], cv2.COLOR_RGB2GRAY).astype(np.float32)  # (H, W)
         ring_check = (ry, rx, ring_world, grey0[ry, rx])
-    for k in range(1, t):  # 3. closest frames first
+    for k in range(1, t):  # 4. closest frames first
         todo = count < candidates
         if not todo.any():
             break
@@ -348,7 +348,7 @@ def reproject_fill(
     todo = ~done
     image[ys[done], xs[done]] = np.clip(np.round(colours[done]), 0, 255).astype(np.uint8)
     fill_source[ys[done], xs[done]] = FILL_REPROJECTED
-    # 4. OpenCV for what no frame saw.
+    # 5. OpenCV for what no frame saw.
     unseen = np.zeros((h, w), np.uint8)
     unseen[ys[todo], xs[todo]] = 1
     if unseen.any():

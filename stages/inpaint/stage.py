@@ -6,9 +6,10 @@ poses come from :func:`egosim.stages.common.cameras.resolve_cameras` and frame 0
 inputs when a workflow connects them, else the clip's own. Backends:
 
 - ``reproject`` (default): fill from later frames reprojected through depth and pose (median of
-  the first ``candidates`` frames that see a pixel), then OpenCV inpainting for what no frame saw
-  (see ``reproject_fill``). Without frame-0 depth or poses (a static camera has no depth) the
-  later frames are aligned in the image instead: the identity for a static camera (the
+  the first ``candidates`` frames that see a pixel and show frame 0's ring near it within
+  ``local_residual``), then OpenCV inpainting for what no frame saw (see ``reproject_fill``).
+  Without frame-0 depth or poses (a static camera has no depth) the later frames are aligned in
+  the image instead: the identity for a static camera (the
   ``cameras`` row's ``static_camera``, or poses that do not move), which makes the fill a plain
   temporal median, else homographies fitted to features and checked round the hole (see
   ``aligned_fill``). Masks grow by ``dilate_px`` plus ``dilate_fraction`` of the image diagonal
