@@ -25,7 +25,7 @@ from egosim.stages.inpaint.diffusers_backend import (
     composite_output,
     prepare_inputs,
 )
-from egosim.stages.inpaint.reproject_fill import dilate, opencv_fill, reproject_fill
+from egosim.stages.inpaint.reproject_fill import dilate, opencv_fill, reproject_fill, ring_residual
 from egosim.stages.inpaint.stage import InpaintConfig, InpaintStage, carry_lost_hands
 from egosim.world import WorldConfig, render_clip
 from tests.conftest import make_clip, one_shard_task, translated, write_cameras
@@ -247,6 +247,26 @@ def test_reprojection_fills_only_where_the_ring_agrees() -> None:
     assert np.all(checked.fill_source[left] == 2)  # inpainted from frame 0's surroundings
     err = np.abs(checked.image[left].astype(int) - scene[left]).mean()
     assert err < 12, err
+
+
+def test_ring_residual_measures_the_seen_ring_and_holds_back_nothing_unseen() -> None:
+    """Ring points 1 m in front of a still camera, frame 0 grey 100 there: a frame 40 grey levels
+    off gives 40 next to the hole; the same frame with its hands' mask over the whole ring shows
+    none of it, and the map is 0 (no evidence: the frame is not held back)."""
+    h, w = 40, 50
+    hole = np.zeros((h, w), bool)
+    hole[15:25, 20:30] = True
+    ring = (dilate(hole, 5) > 0) & ~hole  # (H, W)
+    ry, rx = np.nonzero(ring)
+    intrinsics = np.array([40.0, 40.0, 25.0, 20.0])
+    world = np.stack([(rx + 0.5 - 25.0) / 40.0, (ry + 0.5 - 20.0) / 40.0, np.ones(len(rx))], 1)
+    check = (ry, rx, world, np.full(len(rx), 100.0, np.float32))
+    frame = np.full((h, w, 3), 140, np.uint8)  # (H, W, 3) grey 140 everywhere
+    free = np.zeros((h, w), np.uint8)
+    near = ring_residual(check, frame, free, np.eye(4), intrinsics, hole)
+    np.testing.assert_allclose(near[hole], 40.0, atol=0.5)
+    covered = ring_residual(check, frame, ring.astype(np.uint8), np.eye(4), intrinsics, hole)
+    assert np.all(covered == 0)
 
 
 def test_carry_lost_hands_adds_a_dropped_hand_not_a_moved_one() -> None:

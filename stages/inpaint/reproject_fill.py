@@ -144,8 +144,9 @@ def ring_residual(
     each ``hole (H, W)`` pixel (:func:`local_residual_map` of the ring's grey differences).
 
     ``ring_check``: the ring's pixel rows, columns ``(R,)``, world points ``(R, 3)`` and frame-0
-    grey levels ``(R,)``. Ring points that land outside ``frame`` or on its ``mask (H, W)``
-    (dilated hands) are not evidence.
+    grey levels ``(R,)``. Ring points that land outside ``frame``, behind it or on its ``mask (H,
+    W)`` (dilated hands) are not evidence; when no ring point is evidence the map is 0 everywhere,
+    so the frame is not held back (nothing shows it wrong).
     """
     ry, rx, world, grey0 = ring_check
     h, w = hole.shape
