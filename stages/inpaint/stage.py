@@ -294,11 +294,19 @@ def carry_lost_hands(
     if window <= 0 or t < 2:
         return out
     radius = max(1.0, reach * float(np.hypot(h, w)))
-    # per frame: labels (H, W) and each region's bounding box and size (x, y, w, h, area)
-    parts = [cv2.connectedComponentsWithStats(m, connectivity=8)[1:3] for m in own]
+    # frame -> its labels (H, W) int32 and each region's box and size (x, y, w, h, area), kept
+    # for the frames within window of k only (all T at once, 4 bytes a pixel, outweighed the
+    # clip's RGB frames)
+    parts: dict[int, tuple[np.ndarray, np.ndarray]] = {}
     for k in range(1, t):
+        lo, hi = max(0, k - window), min(t, k + window + 1)
+        for n in [n for n in parts if n < lo]:
+            del parts[n]
+        for n in range(lo, hi):
+            if n not in parts:
+                parts[n] = cv2.connectedComponentsWithStats(own[n], connectivity=8)[1:3]
         near = None  # (H, W) within reach of frame k's mask, made when first needed
-        for n in range(max(0, k - window), min(t, k + window + 1)):
+        for n in range(lo, hi):
             labels, stats = parts[n]
             if n == k or len(stats) <= 1:
                 continue
