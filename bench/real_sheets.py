@@ -56,6 +56,8 @@ def main() -> int:
     parser.add_argument("--runs", type=Path, default=ROOT / "runs" / "real", help="run folders")
     parser.add_argument("--out", type=Path, default=None, help="sheet folder (RUNS/sheets)")
     args = parser.parse_args()
+    if not args.runs.is_dir():
+        parser.error(f"--runs {args.runs}: no such folder (a run folder, or a folder of them)")
     out = args.out or args.runs / "sheets"
     out.mkdir(parents=True, exist_ok=True)
     written = 0
