@@ -1,7 +1,7 @@
 """How well the ``hands`` backend ``mediapipe`` finds hands in real and synthetic development video.
 
 ``python -m bench.hands_real [--data ../shared/data] [--seeds 11 13] [--variants default alt]
-[--skip-synthetic] [--skip-real] [--per-joint]`` prints,
+[--skip-synthetic] [--skip-real] [--per-joint] [--misses]`` prints,
 with the default :class:`~egosim.stages.hands.mediapipe_backend.MediaPipeParams`:
 
 - **DWM dynamic clips** (``dwm_realworld/realworld_dynamic/videos/*.mp4``, whose
@@ -25,7 +25,10 @@ with the default :class:`~egosim.stages.hands.mediapipe_backend.MediaPipeParams`
   for the palm-PnP lift and the old translation-only lift on the same detections; with
   ``--per-joint``, each joint's mean wrist-relative error (mm) and 2D error (px) for the palm-PnP
   lift (which joints carry the MPJPE: on the drawn hands the wrist and thumb, whose 2D points
-  MediaPipe puts 24-40 px from the world's joints where the fingers are 4-9 px off).
+  MediaPipe puts 24-40 px from the world's joints where the fingers are 4-9 px off); with
+  ``--misses``, for the true hands in view that the backend missed, how often the landmark model
+  sees a hand on the true hand's own ROI (:func:`missed_presence`): a search problem when it
+  does, the model's when it does not.
 - **InterHand fixture** (``interhand_fixture/``: real hands, studio cameras, 3D joints): the
   landmark model run on the ROI of each true hand (the palm detector finds 1 of 6 in these tight
   crops), then the depth each lift gives against the true median joint depth: the palm-PnP lift
@@ -196,13 +199,38 @@ def count_figures(path: Path) -> list[dict[str, float]]:
     return out
 
 
+def missed_presence(clip, valid: np.ndarray, model) -> list[float]:
+    """The landmark model's hand-presence score on the ROI of each true hand the backend missed
+    (``valid (T, 2)`` False where the world's hand is in view: at least 11 joints inside the
+    image, as :func:`~egosim.stages.hands.metrics.hand_accuracy` counts it). A high score means a
+    search could find the hand there; a low one that the model does not see it even there."""
+    from egosim.pipeline.geometry import invert_se3, project_points, transform_points
+    from egosim.stages.common.roi_landmarks import TrackParams, roi_from_landmarks
+
+    cam_from_world = invert_se3(clip.world_from_cam)  # (T, 4, 4)
+    out = []
+    for f, s in zip(*np.nonzero(clip.hand_valid & ~valid), strict=True):
+        joints = transform_points(cam_from_world[f], clip.hand_joints[f, s].astype(np.float64))
+        uv, depth = project_points(joints, clip.intrinsics)  # (21, 2), (21,)
+        inside = (depth > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < clip.width)
+        inside &= (uv[:, 1] >= 0) & (uv[:, 1] < clip.height)
+        if inside.sum() >= 11:
+            roi = roi_from_landmarks(uv)
+            out.append(model.run(clip.frames[f], roi, TrackParams().max_gain).presence)
+    return out
+
+
 def synthetic_figures(
-    seeds: list[int], variant: str = "default", per_joint: dict | None = None
+    seeds: list[int],
+    variant: str = "default",
+    per_joint: dict | None = None,
+    misses: list | None = None,
 ) -> dict[str, dict[str, float]]:
     """Accuracy against the synthetic world's true joints, palm-PnP vs translation-only lift, on
     the world ``variant`` ("default": the one the backend was tuned on; "alt": held out). Given a
     ``per_joint`` dict, each lift's ``(21, 2)`` per-joint table (mm, px) is put in it
-    (:meth:`~egosim.stages.hands.metrics.HandAccuracy.per_joint`)."""
+    (:meth:`~egosim.stages.hands.metrics.HandAccuracy.per_joint`); given a ``misses`` list, the
+    landmark model's presence on each missed true hand (:func:`missed_presence`) is added to it."""
     from egosim.world.clip import render_clip
     from egosim.world.config import WorldConfig
 
@@ -221,6 +249,10 @@ def synthetic_figures(
         for lift in parts:
             p = replace(params, lift=lift)
             res = hands_from_raw(raw, clip.width, clip.intrinsics, None, None, p)
+            if misses is not None and lift == "palm_pnp":
+                from egosim.stages.common.roi_landmarks import LandmarkModel
+
+                misses += missed_presence(clip, res.valid, LandmarkModel(params.model_complexity))
             parts[lift].append(
                 hand_accuracy(
                     res.joints,
@@ -305,6 +337,11 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument(
         "--per-joint", action="store_true", help="synthetic: per-joint error table (palm PnP)"
     )
+    ap.add_argument(
+        "--misses",
+        action="store_true",
+        help="synthetic: the landmark model's presence on the true ROI of each missed hand",
+    )
     args = ap.parse_args(argv)
     if not args.skip_real:
         real(args.data)
@@ -319,8 +356,18 @@ def main(argv: list[str] | None = None) -> None:
             held = " (held out)" if variant != "default" else ""
             print(f"Synthetic world {variant}{held}, seeds {args.seeds} (odd tabletop, even wild)")
             tables: dict[str, np.ndarray] = {}
-            for lift, figures in synthetic_figures(args.seeds, variant, tables).items():
+            missed: list[float] | None = [] if args.misses else None
+            for lift, figures in synthetic_figures(args.seeds, variant, tables, missed).items():
                 print(_line(lift, figures))
+            if missed is not None:
+                score = np.array(missed)
+                print(
+                    f"  missed hand-frames {score.size}: the landmark model on the true hand's "
+                    f"ROI has presence >= 0.5 on {np.mean(score >= 0.5):.2f}, >= 0.2 on "
+                    f"{np.mean(score >= 0.2):.2f}, median {np.median(score):.3f}"
+                    if score.size
+                    else "  missed hand-frames 0"
+                )
             if args.per_joint:
                 print("  joint     wrist-relative mm   2D px  (palm_pnp, found hand-frames)")
                 for name, (mm, px) in zip(JOINT_NAMES, tables["palm_pnp"], strict=True):

@@ -360,3 +360,44 @@ def test_hand_lost_at_the_first_frame_is_carried_onto_it(egodex) -> None:
     assert present[0].all() and present[1:].all()
     errors = [_nearest_error(uv[0, k], raw.uv[0]) / hand_size(uv[0, k]) for k in (0, 1)]
     assert max(errors) < 0.05, errors
+
+
+def test_missed_presence_asks_the_model_on_each_missed_true_hand_in_view() -> None:
+    """``bench.hands_real.missed_presence`` runs the model once per true hand in view that the
+    backend missed, on that hand's own ROI: found hands, hands with fewer than 11 joints in the
+    image and hands the world marks as hidden are not asked about."""
+    from types import SimpleNamespace
+
+    from bench.hands_real import missed_presence
+
+    rng = np.random.default_rng(3)
+    k = np.array([300.0, 300.0, 160.0, 120.0])  # fx, fy, cx, cy of a 320 x 240 image
+    hand = rng.normal([0.0, 0.0, 0.5], [0.02, 0.02, 0.005], (21, 3))  # (21, 3) near the centre
+    right = hand + np.array([0.05, 0.0, 0.0])  # (21, 3) 5 cm to its right
+    joints = np.stack([np.stack([hand, right])] * 3)  # (3, 2, 21, 3)
+    joints[0, 1, :, 0] += 1.0  # frame 0, right hand: far right, out of the image
+    valid = np.array([[True, False], [False, False], [False, False]])  # left found at frame 0
+    hidden = np.array([[True, True], [True, True], [True, False]])  # frame 2 right: hidden
+    clip = SimpleNamespace(
+        frames=np.zeros((3, 240, 320, 3), np.uint8),
+        hand_joints=joints,
+        hand_valid=hidden,
+        world_from_cam=np.tile(np.eye(4), (3, 1, 1)),
+        intrinsics=k,
+        width=320,
+        height=240,
+    )
+    asked = []
+
+    class Model:
+        def run(self, frame, roi, max_gain):
+            asked.append(roi.centre)
+            return SimpleNamespace(presence=0.25)
+
+    scores = missed_presence(clip, valid, Model())
+    # asked: frame 1 left and right, frame 2 left (frame 0 left found, right out of view;
+    # frame 2 right hidden)
+    assert scores == [0.25, 0.25, 0.25]
+    for centre, (f, s) in zip(asked, [(1, 0), (1, 1), (2, 0)], strict=True):
+        true_uv = joints[f, s, :, :2] / joints[f, s, :, 2:] * k[:2] + k[2:]  # (21, 2)
+        assert np.linalg.norm(centre - true_uv.mean(axis=0)) < 0.5 * hand_size(true_uv)
