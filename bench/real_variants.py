@@ -343,22 +343,32 @@ def write_variant(src: Path, dst: Path, spec: Spec) -> None:
     rate = Fraction(fps).limit_denominator(1001)
     time_base = Fraction(1, 90000)
     dst.parent.mkdir(parents=True, exist_ok=True)
-    with av.open(str(dst), mode="w", format=fmt) as container:
+    # bitexact and one encoder thread: the same variant file on every run (a threaded x264 and
+    # the header's creation time changed its bytes, and cameras decided one clip differently)
+    with av.open(str(dst), mode="w", format=fmt, options={"fflags": "+bitexact"}) as container:
         stream = container.add_stream(codec, rate=rate)
+        stream.codec_context.thread_count = 1
         stream.width, stream.height = images[0].shape[1], images[0].shape[0]
         stream.pix_fmt = "gray" if spec.grey else "yuv420p10le" if spec.hevc else "yuv420p"
         stream.time_base = time_base
         stream.codec_context.time_base = time_base
         if codec == "libx264":
-            stream.options = {"crf": str(CRF), "preset": "veryfast"}
+            x264 = "threads=1:cpu-independent=1"
+            stream.options = {"crf": str(CRF), "preset": "veryfast", "x264-params": x264}
         elif codec == "libx265":
             stream.options = {
                 "crf": str(CRF + 4),
                 "preset": "ultrafast",
-                "x265-params": "log-level=1",
+                "x265-params": "log-level=1:pools=1:frame-threads=1",
             }
         else:
-            stream.options = {"crf": "32", "b": "0", "deadline": "realtime", "cpu-used": "8"}
+            stream.options = {
+                "crf": "32",
+                "b": "0",
+                "deadline": "realtime",
+                "cpu-used": "8",
+                "threads": "1",
+            }
         if turns:
             stream.set_display_rotation(float(spec.rotation))
         audio = None
@@ -407,11 +417,14 @@ def variant_input(variant: Variant, data: Path, out: Path) -> Path:
 
 
 def run_variant(source: Path, run: Path, workers: int, full: bool) -> tuple[int, float]:
-    """``egosim run`` on ``source`` into ``run``, the dataset workflow (``full``) or ingest's
-    alone, with default settings, in a subprocess: (exit code, seconds)."""
+    """``egosim run`` on ``source`` into ``run``, the dataset workflow (``full``, on ``workers``
+    local Dask workers) or ingest's alone (in the subprocess, no cluster), with default
+    settings: (exit code, seconds)."""
     workflow = WORKFLOW if full else INGEST_WORKFLOW
     cmd = [sys.executable, "-m", "egosim.pipeline.cli", "run", str(workflow)]
-    cmd += ["--out", str(run), "--input", str(source), "--workers", str(workers)]
+    cmd += ["--out", str(run), "--input", str(source)]
+    # One ingest task needs no Dask cluster (its start was half of an ingest-only run)
+    cmd += ["--workers", str(workers)] if full else ["--scheduler", "here"]
     run.mkdir(parents=True, exist_ok=True)
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     start = time.perf_counter()
