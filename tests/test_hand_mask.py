@@ -698,3 +698,32 @@ def test_carried_hand_frame_still_receives_its_neighbours_mask() -> None:
     assert out[0][outside].sum() == 0, "carried mask leaked onto the table"
     closed = propagate_hands(frames, masks, per_hand, certain)
     assert closed[0][arm0].mean() < 0.1, "a frame with its own mask received without opening"
+
+
+def test_carry_skips_steps_the_nearer_side_already_made(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A hand found in frames 0 and 3 of a moving clip: frame 1 takes frame 0's carry, frame 2
+    frame 3's, each within a pixel; the backward track from frame 3 stops at frame 1, which the
+    forward one reached nearer, so three tracking steps are made, not four."""
+    import egosim.stages.hand_mask.carry as carry
+
+    frames = _moving_hand_frames([(0, 0), (6, 3), (6, 3), (6, 3)])
+    truth = np.stack([_drawn_hand((40.5 + 6 * t, 80.5 + 3 * t)) for t in range(4)])  # (4, 21, 2)
+    kp = np.full((4, 1, 21, 2), np.nan)
+    kp[[0, 3], 0] = truth[[0, 3]]
+    valid = np.zeros((4, 1), bool)
+    valid[[0, 3], 0] = True
+    steps: list[int] = []
+    step = carry.carry_step
+
+    def counted(
+        grey_a: np.ndarray, grey_b: np.ndarray, keypoints: np.ndarray, p: carry.CarryParams
+    ) -> np.ndarray | None:
+        steps.append(1)
+        return step(grey_a, grey_b, keypoints, p)
+
+    monkeypatch.setattr(carry, "carry_step", counted)
+    out, ok, carried = carry.carry_keypoints(frames, kp, valid)
+    assert ok.all() and carried[1:3, 0].all() and not carried[[0, 3], 0].any()
+    err = np.abs(out[1:3, 0] - truth[1:3]).max()
+    assert err < 1.0, f"carried off by {err:.2f} px"
+    assert len(steps) == 3, f"{len(steps)} tracking steps"

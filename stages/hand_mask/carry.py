@@ -159,6 +159,12 @@ def carry_keypoints(
                 if last is None or age >= p.max_frames:
                     last = None
                     continue
+                if t in best and best[t][0] <= age + 1:
+                    # The forward pass reached t as near (it wins ties) and, having come from
+                    # the found frame behind t, is nearer at every frame this track would reach
+                    # next: the step could change nothing.
+                    last = None
+                    continue
                 moved = carry_step(grey(t - step), grey(t), last, p)
                 if moved is None:
                     last = None
