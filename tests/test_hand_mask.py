@@ -727,3 +727,21 @@ def test_carry_skips_steps_the_nearer_side_already_made(monkeypatch: pytest.Monk
     err = np.abs(out[1:3, 0] - truth[1:3]).max()
     assert err < 1.0, f"carried off by {err:.2f} px"
     assert len(steps) == 3, f"{len(steps)} tracking steps"
+
+
+def test_found_hand_without_a_wrist_is_not_replaced_by_a_carried_one() -> None:
+    """A hand found in frame 1 whose wrist is unknown (NaN: below the joint confidence, behind
+    the camera) is kept as found, not overwritten by the hand carried from frame 0, and the
+    track does not pass through it into frame 2."""
+    from egosim.stages.hand_mask.carry import carry_keypoints
+
+    frames = _moving_hand_frames([(0, 0), (6, 3), (6, 3), (6, 3)])
+    truth = np.stack([_drawn_hand((40.5 + 6 * t, 80.5 + 3 * t)) for t in range(4)])  # (4, 21, 2)
+    kp = np.full((4, 1, 21, 2), np.nan)
+    kp[:2, 0] = truth[:2]
+    kp[1, 0, 0] = np.nan  # frame 1: found, wrist unknown
+    valid = np.zeros((4, 1), bool)
+    valid[:2, 0] = True
+    out, ok, carried = carry_keypoints(frames, kp, valid)
+    np.testing.assert_array_equal(out[1, 0], kp[1, 0])
+    assert not carried.any() and not ok[2:, 0].any()

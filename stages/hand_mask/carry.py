@@ -130,7 +130,8 @@ def carry_keypoints(
     ``frames (T, H, W, 3)`` uint8 RGB; ``keypoints (T, K, 21, 2)`` pixels (NaN = unknown);
     ``valid (T, K)`` the hands found. A hand is carried from the nearest frame (at most
     ``max_frames`` away, either direction) that found it, frame by frame (see the module
-    docstring); ``carried`` marks the frames and hands filled so. Found hands are unchanged.
+    docstring); ``carried`` marks the frames and hands filled so. Found hands are unchanged; one
+    found without a wrist (NaN) is not carried from, and no track passes through it.
     """
     p = params or CarryParams()
     kp = np.array(keypoints, dtype=np.float64, copy=True)
@@ -155,6 +156,9 @@ def carry_keypoints(
             for t in order:
                 if found[t, k]:
                     last, age = kp[t, k], 0
+                    continue
+                if ok[t, k]:  # found without a wrist: kept as it is, and no track crosses it
+                    last = None
                     continue
                 if last is None or age >= p.max_frames:
                     last = None

@@ -216,7 +216,7 @@ class HandMaskStage(ClipStage):
     # cleaned joints and a replacement camera (see the module docstring)
     optional_inputs: ClassVar[Mapping[str, ShardSchema]] = {**CAMERA_ROLES, "hands": HANDS}
     output = HAND_MASK
-    version = 12  # 2: image-space arm masks (no world axis). 3: arm found by a colour walk, masks
+    version = 13  # 2: image-space arm masks (no world axis). 3: arm found by a colour walk, masks
     # carried into frames whose hands were missed. 4: arm re-aimed along its colour region.
     # 5: that region is probably arm wherever it runs. 6: each hand carried into the frames that
     # missed it, and only its certain seeds (skeleton, arm strip) carried with confidence.
@@ -229,6 +229,7 @@ class HandMaskStage(ClipStage):
     # 11: missed hands' keypoints carried by tracking (carry); the arm is not re-aimed along its
     # colour region when that turns more than refine_slack_deg past the searched direction
     # 12: a frame whose hand was carried there still receives that hand's propagated mask
+    # 13: a found hand without a wrist is no longer replaced by a carried one (nor crossed)
     backends = ("keypoints", "sam")
     # What process reads (the executor decodes nothing else): the frames, joints and camera
     # of the clip, the robot arm's mask, the cleaned joints.
