@@ -745,3 +745,26 @@ def test_found_hand_without_a_wrist_is_not_replaced_by_a_carried_one() -> None:
     out, ok, carried = carry_keypoints(frames, kp, valid)
     np.testing.assert_array_equal(out[1, 0], kp[1, 0])
     assert not carried.any() and not ok[2:, 0].any()
+
+
+def test_stage_masks_a_missed_hand_where_carry_puts_it() -> None:
+    """The ``keypoints`` backend end to end: a hand found in frame 0 only, moving 6 px right and
+    3 px down per frame, is masked in frames 1-3 where it is (IoU > 0.9 against its capsules at
+    the true keypoints) with ``carry_frames`` on, and not at all with it off."""
+    from egosim.stages.hand_mask.stage import masks_from_keypoints
+
+    frames = _moving_hand_frames([(0, 0), (6, 3), (6, 3), (6, 3)])
+    truth = np.stack([_drawn_hand((40.5 + 6 * t, 80.5 + 3 * t)) for t in range(4)])  # (4, 21, 2)
+    kp = np.full((4, 2, 21, 2), np.nan)
+    kp[0, 0] = truth[0]
+    valid = np.zeros((4, 2), bool)
+    valid[0, 0] = True
+    plain = {"forearm": False, "colour_refine": False}
+    masks = masks_from_keypoints(frames, kp, valid, HandMaskConfig(**plain))  # (4, H, W)
+    for t in range(1, 4):
+        want = draw_hand(truth[t], -1, 96, 128, CapsuleParams(forearm=False))[0] > 0
+        got = masks[t] > 0
+        score = (want & got).sum() / (want | got).sum()
+        assert score > 0.9, f"frame {t}: IoU {score:.2f} with the moved hand"
+    off = masks_from_keypoints(frames, kp, valid, HandMaskConfig(carry_frames=0, **plain))
+    assert not off[1:].any()
