@@ -28,6 +28,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from egosim.stages.common.klt import track_forward_backward
 from egosim.stages.hand_mask.capsules import CapsuleParams, draw_hand, hand_scale_px
 
 
@@ -66,28 +67,21 @@ def _track_points(
     grey_a: np.ndarray, grey_b: np.ndarray, region: np.ndarray, p: CarryParams
 ) -> tuple[np.ndarray, np.ndarray]:
     """Points ``(N, 2)`` in ``grey_a`` inside ``region (H, W)`` and where they are in
-    ``grey_b`` ``(N, 2)``: kept where the backward track returns within ``fb_px`` and the two
-    windows match within ``max_error`` grey levels."""
+    ``grey_b`` ``(N, 2)``: kept where the backward track returns within ``fb_px``, the two
+    windows match within ``max_error`` grey levels and the point lands inside ``grey_b``."""
     corners = cv2.goodFeaturesToTrack(grey_a, 200, 0.01, 3, mask=region)
     ys, xs = np.nonzero(region[:: p.grid_px, :: p.grid_px])
     grid = np.stack([xs, ys], axis=1).astype(np.float32) * p.grid_px  # (G, 2)
     pts = grid if corners is None else np.concatenate([corners.reshape(-1, 2), grid])
     if len(pts) < p.min_points:
         return np.zeros((0, 2), np.float32), np.zeros((0, 2), np.float32)
-    pts = pts.reshape(-1, 1, 2).astype(np.float32)
-    lk = {
-        "winSize": (p.window_px, p.window_px),
-        "maxLevel": 4,
-        "criteria": (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01),
-    }
-    fwd, ok_f, err = cv2.calcOpticalFlowPyrLK(grey_a, grey_b, pts, None, **lk)
-    back, ok_b, _ = cv2.calcOpticalFlowPyrLK(grey_b, grey_a, fwd, None, **lk)
-    good = (ok_f[:, 0] == 1) & (ok_b[:, 0] == 1) & (err[:, 0] <= p.max_error)
-    good &= np.linalg.norm((back - pts)[:, 0], axis=1) <= p.fb_px
+    pts = pts.astype(np.float32)  # (N, 2)
+    track = track_forward_backward(grey_a, grey_b, pts, p.window_px, levels=4)
+    good = track.converged & (track.error <= p.max_error) & (track.fb_px <= p.fb_px)  # (N,)
     h, w = grey_b.shape
-    inside = (fwd[:, 0, 0] >= 0) & (fwd[:, 0, 0] < w) & (fwd[:, 0, 1] >= 0) & (fwd[:, 0, 1] < h)
-    good &= inside
-    return pts[good, 0], fwd[good, 0]
+    x, y = track.uv_b[:, 0], track.uv_b[:, 1]
+    good &= (x >= 0) & (x < w) & (y >= 0) & (y < h)
+    return pts[good], track.uv_b[good]
 
 
 def carry_step(
