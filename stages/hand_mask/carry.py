@@ -9,7 +9,8 @@ skin has few corners) are followed by pyramidal Lucas-Kanade from the last frame
 hand to the next, kept where the backward track returns within ``fb_px``, and a similarity
 (rotation, scale, shift) fitted to them by RANSAC moves all 21 keypoints. Repeated frame to
 frame, forwards and backwards in time, for at most ``max_frames`` frames from a detection; a
-frame reached from both sides takes the nearer detection's keypoints. The track stops where
+frame reached from both sides takes the nearer detection's keypoints (the earlier one's when
+both are as near). The track stops where
 fewer than ``min_points`` points track and follow the fit (the hand left the view or was
 covered) or where the fit scales or turns more than a hand does between two frames. (Asking
 for a fraction of the seeded points as well stopped most tracks: grid points on plain skin

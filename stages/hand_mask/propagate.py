@@ -7,7 +7,9 @@ the last frame to the first, frame ``t + 1``'s mask is pulled back into frame ``
 dense optical flow from ``t`` to ``t + 1`` (OpenCV DIS):
 ``warped_t(x) = mask_{t+1}(x + flow_{t->t+1}(x))``; forwards in time the same on the reversed
 clip. The masks are one hand's (:func:`propagate_hands`): a frame gets hand ``k`` carried into it
-when its own mask of hand ``k`` is empty (that hand was missed), whatever the other hand's.
+when its own mask of hand ``k`` is empty (that hand was missed), whatever the other hand's, or
+when it is marked open (``open_frames``: the hand's keypoints were carried there by tracking,
+see ``carry``, so its mask may lack the arm); an open frame's own mask is kept and joined.
 
 Background that the arm covers at ``t + 1`` but not at ``t`` also maps into the arm, so the
 warped mask keeps only pixels whose grey level at ``t`` is within ``photo_tolerance`` of frame
@@ -201,7 +203,9 @@ def propagate_both_ways(
     """Masks ``(T, H, W)`` carried backwards and forwards in time (see :func:`propagate_backwards`).
 
     Each direction starts from the frames' own ``masks`` (and ``certain`` parts); the result is
-    their union. Both directions share ``flows`` (None: made here).
+    their union. Both directions share ``flows`` (None: made here). ``open_frames (T,)`` bool,
+    optional: frames that receive carried masks although their own is not empty, in both
+    directions.
     """
     flows = flows or FrameFlows(frames)
     back = propagate_backwards(frames, masks, params, certain, flows, open_frames)

@@ -17,10 +17,11 @@ Backends:
   region); a hand the keypoints miss in a frame is first carried there from the nearest frame
   that found it (at most ``carry_frames`` away) by tracking its pixels (see ``carry``); then
   each hand's mask is carried by optical flow up to ``propagate_frames`` frames backwards and
-  forwards into the frames that missed that hand (see ``propagate``): a hand still missed, or
-  an arm that enters later, is masked there too; only the certain seeds (keypoint skeleton, arm
-  strip) travel with confidence, so a background patch wrongly joined to a hand in one frame is
-  not carried into frames without a hand.
+  forwards into the frames that missed that hand, and into those it was carried into by
+  tracking, joined to their own mask (see ``propagate``): a hand still missed, an arm that
+  enters later or the arm of a carried hand is masked there too; only the certain seeds
+  (keypoint skeleton, arm strip) travel with confidence, so a background patch wrongly joined
+  to a hand in one frame is not carried into frames without a hand.
 - ``sam``: a SAM-family model from ``sam_model_path`` through transformers, prompted with the
   keypoints and the capsule mask's box (see ``sam``).
 
