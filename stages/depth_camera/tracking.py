@@ -19,6 +19,7 @@ import numpy as np
 
 from egosim.pipeline.geometry import intrinsics_matrix
 from egosim.schemas.depth_camera import POSED_BY_MAPPER, POSED_BY_PNP
+from egosim.stages.common.klt import track_forward_backward
 
 if TYPE_CHECKING:
     from egosim.stages.depth_camera.sfm import SfmResult
@@ -69,18 +70,10 @@ def track_points(
     n = len(uv_a)
     if n == 0:
         return np.zeros((0, 2)), np.zeros(0, dtype=bool)
-    pts = uv_a.reshape(-1, 1, 2).astype(np.float32)
-    lk = {
-        "winSize": (params.window, params.window),
-        "maxLevel": params.levels,
-        "criteria": (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01),
-    }
-    fwd, st1, _ = cv2.calcOpticalFlowPyrLK(grey_a, grey_b, pts, None, **lk)
-    back, st2, _ = cv2.calcOpticalFlowPyrLK(grey_b, grey_a, fwd, None, **lk)
-    uv_b = fwd.reshape(-1, 2).astype(np.float64)  # (N, 2)
-    fb = np.linalg.norm(back.reshape(-1, 2) - uv_a.reshape(-1, 2), axis=1)  # (N,)
+    t = track_forward_backward(grey_a, grey_b, uv_a, params.window, params.levels)
+    uv_b = t.uv_b.astype(np.float64)  # (N, 2)
     h, w = grey_b.shape
-    ok = (st1[:, 0] == 1) & (st2[:, 0] == 1) & (fb < params.max_fb_error_px)
+    ok = t.converged & (t.fb_px < params.max_fb_error_px)
     ok &= (uv_b[:, 0] >= 0) & (uv_b[:, 0] <= w - 1) & (uv_b[:, 1] >= 0) & (uv_b[:, 1] <= h - 1)
     if usable_b is not None and ok.any():
         iu = np.clip(np.round(uv_b[:, 0]).astype(int), 0, w - 1)
