@@ -484,3 +484,37 @@ def test_undetermined_focal_gives_way_to_the_rotation_model(
     assert out.camera_model == model
     assert (out.depth0 is None) == (model == "rotation")
     assert st.focal_undetermined(_fake_sfm(t, []), 0.1) is None  # no check run: no verdict
+
+
+def test_a_source_track_with_an_undetermined_focal_is_refused(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """``build_source_track`` refuses a source whose SfM model fails the focal check (each window
+    then decides between SfM and the rotation model on its own), and goes on to depth with one
+    that passes it (reading and SfM stubbed: the decision only)."""
+    from egosim.stages.depth_camera import stage as st
+
+    t = 6
+    frames = np.zeros((t, H, W, 3), np.uint8)
+    req = st.TrackRequest("video", "clip.mp4", 16.0, 30.0, (H, W), tuple(K), np.arange(t), 0)
+    monkeypatch.setattr(st, "read_track_frames", lambda *a, **k: (np.arange(t), frames))
+    reached_depth: list[bool] = []
+
+    def no_depth(*a: Any, **k: Any) -> None:
+        reached_depth.append(True)
+        raise RuntimeError("past the focal check")
+
+    monkeypatch.setattr(st, "window_depth", no_depth)
+    for rise, refused in (([0.01, 0.3], True), ([0.4, 0.3], False)):
+        sfm = _fake_sfm(t, rise)
+        posed_by = np.zeros(t, np.int8)  # every frame posed by the mapper
+        track = (K.copy(), sfm.cam_from_world, posed_by, {0: np.zeros((0, 3))}, sfm)
+        monkeypatch.setattr(st, "estimate_track", lambda *a, _r=track, **k: _r)
+        reached_depth.clear()
+        if refused:
+            with pytest.raises(st.SourceTrackError, match=r"focal not determined.*\+1% at 0.7x"):
+                st.build_source_track(req, 6, 0, st.DepthCameraConfig())
+        else:
+            with pytest.raises(RuntimeError, match="past the focal check"):
+                st.build_source_track(req, 6, 0, st.DepthCameraConfig())
+        assert reached_depth == ([] if refused else [True])
