@@ -2,8 +2,10 @@
 
 The file layout, the ARKit joint map and the camera axes are described once in
 :mod:`egosim.pipeline.egodex_format` (the synthetic world's EgoDex writer shares them).
-:func:`read_egodex_clip` checks the camera convention on every file (hands must lie in front
-of the camera).
+:func:`read_egodex_clips` (what ingest runs: the episode cut into standard clips while its video
+streams) and :func:`read_egodex_clip` (the whole episode as one clip, its reference) read the
+same checked labels, and check the camera convention on every file (hands must lie in front of
+the camera).
 """
 
 from __future__ import annotations
@@ -233,7 +235,8 @@ def read_egodex_clips(
     decoded frame by frame and resized as it goes, so memory holds one window of clip-size
     frames, not the whole episode at 1080p (an average 8.8 s EgoDex episode is 1.6 GB of RGB;
     a minute is 11 GB). The video's declared frame count is checked against the labels before
-    any clip is made; the decoded count again at the end.
+    any clip is made; the decoded count again at the end, when every clip is kept
+    (``max_clips_per_source`` 0: a capped run stops decoding early, so its count is not checked).
     """
     episode = _read_episode(Path(hdf5_path), None, min_wrist_confidence)
     t, mp4_path = episode.num_frames, episode.mp4_path

@@ -29,7 +29,8 @@ VIDEO_SUFFIXES = frozenset(
 )
 MIN_SOURCE_SIDE = 32  # smallest source width or height accepted, pixels (smaller: rejected)
 # A video decoding to fewer frames than its container declares, by more than this fraction
-# (and more than 2 frames), is truncated: its unit gets a reject naming the counts.
+# (and more than 2 frames), whose frames also end short of its declared duration, is
+# truncated: its unit gets a reject naming the counts.
 TRUNCATION_TOLERANCE = 0.02
 
 
@@ -74,9 +75,11 @@ def read_video_clips(path: Path, cfg: ClipFormat) -> Iterator[Clip]:
 
     ``source_num_frames`` is the container's declared frame count (None when it declares none).
     Frames are turned upright by the file's display rotation. A source smaller than
-    :data:`MIN_SOURCE_SIDE` is rejected; a file that decodes to fewer frames than it declares
-    (truncated) is rejected after the clips its decoded part gave, naming both counts, so the
-    loss shows in the rejects table.
+    :data:`MIN_SOURCE_SIDE` is rejected; a file read to its end that decodes to fewer frames
+    than it declares (by more than :data:`TRUNCATION_TOLERANCE`) and whose decoded frames also
+    stop short of its declared duration (truncated, :func:`_reaches_declared_end`) is rejected
+    after the clips its decoded part gave, naming both counts, so the loss shows in the rejects
+    table.
     """
     try:
         info = probe_video_file(path)
