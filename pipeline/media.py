@@ -205,7 +205,8 @@ class VideoFileInfo:
     height: int  # displayed frame height in pixels (after the display rotation)
     rotation: int = 0  # display rotation, degrees counterclockwise (0, 90, 180 or -90)
     start_s: float = 0.0  # the stream's first timestamp, seconds (0 when it declares none)
-    duration_s: float = 0.0  # the stream's declared duration, seconds (0 when unknown)
+    duration_s: float = 0.0  # the stream's declared duration, else the container's, seconds
+    # (0 when neither is declared)
 
 
 def _quarter_turns(rotation: float) -> int:
@@ -219,7 +220,8 @@ def _seconds(value: int | None, time_base: Fraction | None) -> float:
 
 
 def probe_video_file(path: Path) -> VideoFileInfo:
-    """Read a video file's frame rate, displayed size, rotation and declared frame count.
+    """Read a video file's frame rate, displayed size, rotation, declared frame count, and the
+    video stream's declared start and duration.
 
     Decodes the first frame only (the display rotation travels with decoded frames). Raises
     :class:`MediaError` naming the real reason: no video stream (and what streams there are),
@@ -296,7 +298,8 @@ def iter_video_file(path: Path, start: float = 0.0) -> Iterator[tuple[float, np.
     ``start`` seconds and decodes from there (frames before ``start`` minus half a frame are
     skipped), so reading the end of a long file does not decode all of it; after a seek every
     frame must carry a timestamp. Raises :class:`MediaError` naming the file when it cannot be
-    opened or decoding fails part way (frames already yielded stand).
+    opened or decoding fails part way (frames already yielded stand). Up to
+    ``REORDER_DEPTH + 1`` decoded frames are held at a time, for the reordering of their stamps.
     """
     info = probe_video_file(path)
     last = -np.inf
