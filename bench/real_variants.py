@@ -43,6 +43,7 @@ import av
 import cv2
 import numpy as np
 
+from bench.real_video import read_step
 from egosim.pipeline import media
 from egosim.pipeline.shards import open_shard
 
@@ -434,11 +435,8 @@ def run_variant(source: Path, run: Path, workers: int, full: bool) -> tuple[int,
 
 
 def _rows(run: Path, step: str, columns: list[str]) -> list[dict[str, Any]]:
-    rows: list[dict[str, Any]] = []
-    for path in sorted((run / step).glob("shard-*.parquet")):
-        with open_shard(path) as reader:
-            rows += list(reader.iter_rows(columns=columns))
-    return rows
+    """Rows of every shard of ``step`` in shard order ([] when the step wrote nothing)."""
+    return list(read_step(run, step, columns).values())
 
 
 def ingested_frames(run: Path) -> list[np.ndarray]:
