@@ -226,6 +226,7 @@ def test_egodex_streaming_reader_gives_the_whole_episode_readers_clips(tmp_path:
         np.testing.assert_array_equal(a.world_from_cam, b.world_from_cam)
         np.testing.assert_array_equal(a.hand_joints, b.hand_joints)
         np.testing.assert_array_equal(a.hand_valid, b.hand_valid)
+        np.testing.assert_array_equal(a.hand_confidence, b.hand_confidence)
         assert (a.source_fps, a.source_num_frames) == (b.source_fps, b.source_num_frames)
 
 
