@@ -518,3 +518,14 @@ def test_a_source_track_with_an_undetermined_focal_is_refused(
             with pytest.raises(RuntimeError, match="past the focal check"):
                 st.build_source_track(req, 6, 0, st.DepthCameraConfig())
         assert reached_depth == ([] if refused else [True])
+
+
+def test_focal_verdict_reads_every_factor() -> None:
+    """``focal_undetermined``: determined only when every factor's rise reaches the threshold; a
+    rise that is not a number (a diverged adjustment) does not count as determined."""
+    from egosim.stages.depth_camera.stage import focal_undetermined
+
+    assert focal_undetermined(_fake_sfm(3, [0.1, 0.5]), 0.1) is None  # at the threshold
+    why = focal_undetermined(_fake_sfm(3, [0.5, 0.09]), 0.1)
+    assert why is not None and "+50% at 0.7x, +9% at 1.4x" in why
+    assert focal_undetermined(_fake_sfm(3, [float("nan"), 0.5]), 0.1) is not None

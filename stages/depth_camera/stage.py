@@ -454,7 +454,8 @@ def focal_undetermined(sfm: SfmResult, min_rise: float) -> str | None:
     of its own and bundle-adjusted the same frames and tracks again; when the reprojection error
     rises by less than ``min_rise`` at any of them, another focal fits the frames as well, and the
     model's depth (which scales with the focal along the camera's motion) is not determined
-    either. No check run: None.
+    either. A rise that is not a number (a bundle adjustment that diverged) counts as under
+    ``min_rise``. No check run: None.
     """
     rise = np.asarray(sfm.focal_rise, dtype=np.float64)
     if not len(rise) or float(rise.min()) >= min_rise:
