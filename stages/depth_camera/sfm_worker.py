@@ -34,8 +34,8 @@ Focal check (``focal_check_factors``): the kept model is bundle-adjusted again o
 registered frames and tracks (at most ``focal_check_points`` of its points), once with the focal
 free and once per factor with the focal held at that factor times the model's own. A motion that
 pins the focal (translation with depth variation) makes the held fits clearly worse; a head that
-nearly only turns does not (the EgoDex sample: +1% at 0.7x and 1.4x; DWM and HOT3D +34% or more,
-synthetic +65% or more). The stage reads the rises (``DepthCameraConfig.sfm_focal_min_rise``).
+nearly only turns does not (the EgoDex sample: +1% / +0% at 0.7x / 1.4x; DWM and HOT3D +34% or
+more, synthetic +65% or more). The stage reads the rises (``DepthCameraConfig.sfm_focal_min_rise``).
 """
 
 # numpy before pycolmap: pycolmap bundles a zlib that breaks later deflate calls if it loads first.
