@@ -86,6 +86,22 @@ class Spec:
     hevc: bool = False  # encode H.265 Main 10 (yuv420p10le), as phones record, not H.264
     frames: int = 0  # keep only the first N frames after the time cut; 0 = all
 
+    def __post_init__(self) -> None:
+        problems = []
+        if self.container != "mp4" and self.container not in FORMATS:
+            problems.append(
+                f"container must be mp4 or one of {sorted(FORMATS)}, got {self.container!r}"
+            )
+        if self.rotation % 90:
+            problems.append(f"rotation must be a multiple of 90 degrees, got {self.rotation}")
+        if min(self.start_s, self.duration_s, self.fps, self.aspect, self.frames) < 0:
+            problems.append(
+                "start_s, duration_s, fps, aspect and frames must be >= 0, got "
+                f"{self.start_s}, {self.duration_s}, {self.fps}, {self.aspect}, {self.frames}"
+            )
+        if problems:
+            raise ValueError("Spec: " + "; ".join(problems))
+
 
 @dataclass(frozen=True)
 class Variant:
@@ -99,6 +115,15 @@ class Variant:
     note: str = ""  # what the variant checks
     full: bool = True  # run the whole dataset workflow; False: ingest only (unless --full)
     same_as: str = ""  # a variant whose ingested frames these must equal (same pictures)
+
+    def __post_init__(self) -> None:
+        problems = []
+        if self.expect not in ("clips", "reject"):
+            problems.append(f"expect must be 'clips' or 'reject', got {self.expect!r}")
+        if self.expect == "reject" and not self.reason:
+            problems.append("a 'reject' variant needs the reason fragment its reject must name")
+        if problems:
+            raise ValueError(f"Variant {self.name!r}: " + "; ".join(problems))
 
 
 SHORT_S = 2.2  # seconds of most variants: 35 target frames at 16 fps, one 33-frame clip

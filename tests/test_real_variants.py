@@ -152,3 +152,14 @@ def test_verdicts_say_what_went_wrong() -> None:
     assert verdict(reject, _row(0, packed=1)).startswith("clips where")
     assert verdict(same, _row(0, "ingest", 1, clips_ingested=1, same_psnr_db=41.0)) == "ok"
     assert verdict(same, _row(0, "ingest", 1, same_psnr_db=12.0)).startswith("frames differ")
+
+
+def test_a_mistyped_variant_is_refused_naming_the_value() -> None:
+    with pytest.raises(ValueError, match=r"expect must be 'clips' or 'reject', got 'clip'"):
+        Variant("v", "x.mp4", None, "clip")
+    with pytest.raises(ValueError, match=r"needs the reason fragment"):
+        Variant("r", "x.mp4", None, "reject")
+    with pytest.raises(ValueError, match=r"container must be mp4 or one of .*got 'mp5'"):
+        Spec(container="mp5")
+    with pytest.raises(ValueError, match=r"rotation must be a multiple of 90 degrees, got 45"):
+        Spec(rotation=45)
