@@ -31,6 +31,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import signal
 import subprocess
 import sys
 import time
@@ -442,10 +443,17 @@ def variant_input(variant: Variant, data: Path, out: Path) -> Path:
     return path
 
 
-def run_variant(source: Path, run: Path, workers: int, full: bool) -> tuple[int, float]:
+TIMED_OUT = 124  # exit code recorded for a run stopped at its time limit (as timeout(1) says)
+
+
+def run_variant(
+    source: Path, run: Path, workers: int, full: bool, limit_s: float = 1800.0
+) -> tuple[int, float]:
     """``egosim run`` on ``source`` into ``run``, the dataset workflow (``full``, on ``workers``
     local Dask workers) or ingest's alone (in the subprocess, no cluster), with default
-    settings: (exit code, seconds)."""
+    settings: (exit code, seconds). A run still going after ``limit_s`` seconds is stopped with
+    its whole process group (its Dask workers too) and gets :data:`TIMED_OUT`, so one hung
+    variant does not hang the bench."""
     workflow = WORKFLOW if full else INGEST_WORKFLOW
     cmd = [sys.executable, "-m", "egosim.pipeline.cli", "run", str(workflow)]
     cmd += ["--out", str(run), "--input", str(source)]
@@ -455,7 +463,15 @@ def run_variant(source: Path, run: Path, workers: int, full: bool) -> tuple[int,
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     start = time.perf_counter()
     with open(run / "bench.log", "w") as log:
-        code = subprocess.call(cmd, stdout=log, stderr=subprocess.STDOUT, env=env, cwd=ROOT)
+        proc = subprocess.Popen(
+            cmd, stdout=log, stderr=subprocess.STDOUT, env=env, cwd=ROOT, start_new_session=True
+        )
+        try:
+            code = proc.wait(timeout=limit_s)
+        except subprocess.TimeoutExpired:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+            code = TIMED_OUT
     return code, time.perf_counter() - start
 
 
@@ -535,6 +551,8 @@ def summarise(
 def verdict(variant: Variant, row: dict[str, Any]) -> str:
     """``ok`` when the variant came out as expected, else what went wrong (see module doc)."""
     code = row["exit_code"]
+    if code == TIMED_OUT:
+        return "timed out"
     if code not in (0, 3, 4):
         return f"crash (exit {code})"
     made = row["clips_packed"] if row["workflow"] == "dataset" else row["clips_ingested"]
@@ -597,6 +615,9 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument("--full", action="store_true", help="dataset workflow on every variant")
     parser.add_argument("--workers", type=int, default=1, help="local Dask workers per run")
+    parser.add_argument(
+        "--timeout", type=float, default=1800.0, help="seconds before a variant's run is stopped"
+    )
     parser.add_argument("--no-run", action="store_true", help="only read existing run folders")
     parser.add_argument("--list", action="store_true", help="list the variants and stop")
     args = parser.parse_args(argv)
@@ -622,7 +643,7 @@ def main(argv: list[str] | None = None) -> int:
             code = int(saved.read_text()) if saved.is_file() else 0
         else:
             source = variant_input(variant, args.data, args.out)
-            code, seconds = run_variant(source, run, args.workers, full)
+            code, seconds = run_variant(source, run, args.workers, full, args.timeout)
             (run / "bench_exit_code").write_text(str(code))
         same_db = None
         if variant.same_as:

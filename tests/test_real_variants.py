@@ -11,7 +11,15 @@ import av
 import numpy as np
 import pytest
 
-from bench.real_variants import Spec, Variant, psnr_db, verdict, write_variant
+from bench.real_variants import (
+    TIMED_OUT,
+    Spec,
+    Variant,
+    psnr_db,
+    run_variant,
+    verdict,
+    write_variant,
+)
 from egosim.pipeline import media
 from egosim.pipeline.stage import ClipRejected
 from egosim.stages.ingest.stage import IngestConfig, IngestStage
@@ -152,6 +160,13 @@ def test_verdicts_say_what_went_wrong() -> None:
     assert verdict(reject, _row(0, packed=1)).startswith("clips where")
     assert verdict(same, _row(0, "ingest", 1, clips_ingested=1, same_psnr_db=41.0)) == "ok"
     assert verdict(same, _row(0, "ingest", 1, same_psnr_db=12.0)).startswith("frames differ")
+    assert verdict(clips, _row(TIMED_OUT)) == "timed out"
+
+
+def test_a_run_past_its_time_limit_is_stopped(tmp_path: Path, source: Path) -> None:
+    """The CLI takes seconds to import; a 0.3 s limit stops it and says so, well before it ends."""
+    code, seconds = run_variant(source, tmp_path / "run", 1, False, limit_s=0.3)
+    assert code == TIMED_OUT and seconds < 5.0
 
 
 def test_a_mistyped_variant_is_refused_naming_the_value() -> None:
