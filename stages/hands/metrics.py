@@ -52,11 +52,15 @@ def aligned_mpjpe_mm(pred: np.ndarray, truth: np.ndarray) -> float:
     return float(1000.0 * np.linalg.norm(moved - truth, axis=1).mean())
 
 
+def wrist_relative_errors_mm(pred: np.ndarray, truth: np.ndarray) -> np.ndarray:
+    """``(21,)`` each joint's distance (mm) of ``pred (21, 3)`` and ``truth (21, 3)`` metres,
+    wrists aligned."""
+    return 1000.0 * np.linalg.norm((pred - pred[WRIST]) - (truth - truth[WRIST]), axis=1)
+
+
 def wrist_relative_mpjpe_mm(pred: np.ndarray, truth: np.ndarray) -> float:
     """Mean joint distance (mm) of ``pred (21, 3)`` and ``truth (21, 3)`` metres, wrists aligned."""
-    return float(
-        1000.0 * np.linalg.norm((pred - pred[WRIST]) - (truth - truth[WRIST]), axis=1).mean()
-    )
+    return float(wrist_relative_errors_mm(pred, truth).mean())
 
 
 @dataclass
@@ -182,15 +186,14 @@ def hand_accuracy(
             acc.false_positive += 1
             continue
         acc.found += 1
-        acc.error_2d_px.append(float(np.linalg.norm(diff, axis=1).mean()))
-        acc.joint_error_2d_px.append(np.linalg.norm(diff, axis=1))
-        rel = (joints_cam[f, s] - joints_cam[f, s, WRIST]) - (
-            truth_cam[f, s] - truth_cam[f, s, WRIST]
-        )
-        acc.joint_error_mm.append(1000.0 * np.linalg.norm(rel, axis=1))
+        error_2d = np.linalg.norm(diff, axis=1)  # (21,) px
+        acc.error_2d_px.append(float(error_2d.mean()))
+        acc.joint_error_2d_px.append(error_2d)
+        error_3d = wrist_relative_errors_mm(joints_cam[f, s], truth_cam[f, s])  # (21,)
+        acc.joint_error_mm.append(error_3d)
         acc.offset_2d_px.append(diff.mean(axis=0))
         acc.orientation_deg.append(orientation_error_deg(joints_cam[f, s], truth_cam[f, s]))
-        acc.mpjpe_mm.append(wrist_relative_mpjpe_mm(joints_cam[f, s], truth_cam[f, s]))
+        acc.mpjpe_mm.append(float(error_3d.mean()))
         acc.aligned_mpjpe_mm.append(aligned_mpjpe_mm(joints_cam[f, s], truth_cam[f, s]))
         acc.depth_ratio.append(
             float(np.median(joints_cam[f, s, :, 2]) / np.median(truth_cam[f, s, :, 2]))
