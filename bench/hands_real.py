@@ -57,7 +57,7 @@ from egosim.stages.hands.mediapipe_backend import (
     detect_landmarks,
     hands_from_raw,
 )
-from egosim.stages.hands.metrics import JOINT_NAMES, combine, hand_accuracy
+from egosim.stages.hands.metrics import JOINT_NAMES, combine, hand_accuracy, true_hands_in_view
 from egosim.stages.ingest.stage import CLIP_PRESETS, IngestConfig
 from egosim.stages.ingest.standardise import Window, WindowPolicy, resample_windows
 
@@ -204,19 +204,19 @@ def missed_presence(clip, valid: np.ndarray, model) -> list[float]:
     (``valid (T, 2)`` False where the world's hand is in view: at least 11 joints inside the
     image, as :func:`~egosim.stages.hands.metrics.hand_accuracy` counts it). A high score means a
     search could find the hand there; a low one that the model does not see it even there."""
-    from egosim.pipeline.geometry import invert_se3, project_points, transform_points
     from egosim.stages.common.roi_landmarks import TrackParams, roi_from_landmarks
 
-    cam_from_world = invert_se3(clip.world_from_cam)  # (T, 4, 4)
+    _, truth_uv, in_view = true_hands_in_view(
+        clip.hand_joints.astype(np.float64),
+        clip.hand_valid,
+        clip.world_from_cam,
+        clip.intrinsics,
+        (clip.width, clip.height),
+    )  # the hands hand_accuracy counts as in view
     out = []
-    for f, s in zip(*np.nonzero(clip.hand_valid & ~valid), strict=True):
-        joints = transform_points(cam_from_world[f], clip.hand_joints[f, s].astype(np.float64))
-        uv, depth = project_points(joints, clip.intrinsics)  # (21, 2), (21,)
-        inside = (depth > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < clip.width)
-        inside &= (uv[:, 1] >= 0) & (uv[:, 1] < clip.height)
-        if inside.sum() >= 11:
-            roi = roi_from_landmarks(uv)
-            out.append(model.run(clip.frames[f], roi, TrackParams().max_gain).presence)
+    for f, s in zip(*np.nonzero(in_view & ~valid), strict=True):
+        roi = roi_from_landmarks(truth_uv[f, s])
+        out.append(model.run(clip.frames[f], roi, TrackParams().max_gain).presence)
     return out
 
 

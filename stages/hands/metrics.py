@@ -139,6 +139,34 @@ def combine(parts: list[HandAccuracy]) -> HandAccuracy:
     return out
 
 
+def true_hands_in_view(
+    truth_world: np.ndarray,
+    truth_valid: np.ndarray,
+    world_from_cam: np.ndarray,
+    intrinsics: np.ndarray,
+    size: tuple[int, int],
+    min_visible_joints: int = 11,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The true hands in the camera: ``(joints (T, 2, 21, 3) camera frame, uv (T, 2, 21, 2),
+    in_view (T, 2))``. A hand of ``truth_valid (T, 2)`` is in view when ``min_visible_joints`` of
+    its ``truth_world (T, 2, 21, 3)`` joints project inside the ``(width, height)`` image in front
+    of the camera (``world_from_cam (T, 4, 4)``, ``intrinsics (4,)``)."""
+    t = truth_world.shape[0]
+    w, h = size
+    cam_from_world = invert_se3(world_from_cam)  # (T, 4, 4)
+    truth_cam = np.stack([transform_points(cam_from_world[f], truth_world[f]) for f in range(t)])
+    truth_uv, depth = project_points(truth_cam, intrinsics)  # (T, 2, 21, 2), (T, 2, 21)
+    inside = (
+        (depth > 0)
+        & (truth_uv[..., 0] >= 0)
+        & (truth_uv[..., 0] < w)
+        & (truth_uv[..., 1] >= 0)
+        & (truth_uv[..., 1] < h)
+    )  # (T, 2, 21)
+    in_view = truth_valid & (inside.sum(axis=2) >= min_visible_joints)  # (T, 2)
+    return truth_cam, truth_uv, in_view
+
+
 def hand_accuracy(
     joints_cam: np.ndarray,
     uv: np.ndarray,
@@ -161,19 +189,9 @@ def hand_accuracy(
     ``max_centroid_fraction`` of the true hand's 2D size from the true centroid is a false
     positive, not a find.
     """
-    t = valid.shape[0]
-    w, h = size
-    cam_from_world = invert_se3(world_from_cam)  # (T, 4, 4)
-    truth_cam = np.stack([transform_points(cam_from_world[f], truth_world[f]) for f in range(t)])
-    truth_uv, depth = project_points(truth_cam, intrinsics)  # (T, 2, 21, 2), (T, 2, 21)
-    inside = (
-        (depth > 0)
-        & (truth_uv[..., 0] >= 0)
-        & (truth_uv[..., 0] < w)
-        & (truth_uv[..., 1] >= 0)
-        & (truth_uv[..., 1] < h)
-    )  # (T, 2, 21)
-    in_view = truth_valid & (inside.sum(axis=2) >= min_visible_joints)  # (T, 2)
+    truth_cam, truth_uv, in_view = true_hands_in_view(
+        truth_world, truth_valid, world_from_cam, intrinsics, size, min_visible_joints
+    )
     acc = HandAccuracy(int(in_view.sum()), 0, 0, 0, [], [], [], [])
     acc.false_positive = int((valid & ~in_view).sum())
     for f, s in zip(*np.nonzero(in_view), strict=True):
