@@ -21,7 +21,10 @@ Backends:
   tracking, joined to their own mask (see ``propagate``): a hand still missed, an arm that
   enters later or the arm of a carried hand is masked there too; only the certain seeds
   (keypoint skeleton, arm strip) travel with confidence, so a background patch wrongly joined
-  to a hand in one frame is not carried into frames without a hand.
+  to a hand in one frame is not carried into frames without a hand. Last, each hand's mask
+  grows by at most ``grow_margin_m`` (at the hand's scale) into the pixels round it whose colour
+  is more like the hand's than the nearby background's (see ``grow``): the few-pixel band that
+  average-sized capsules, GrabCut's downscaling and motion blur leave round a real hand.
 - ``sam``: a SAM-family model from ``sam_model_path`` through transformers, prompted with the
   keypoints and the capsule mask's box (see ``sam``).
 
@@ -57,6 +60,7 @@ from egosim.stages.common.cameras import CAMERA_COLUMNS, CAMERA_ROLES, resolve_c
 from egosim.stages.hand_mask.arm_region import ArmParams, hand_arm_masks
 from egosim.stages.hand_mask.capsules import CapsuleParams, draw_hands
 from egosim.stages.hand_mask.carry import CarryParams, carry_keypoints
+from egosim.stages.hand_mask.grow import GrowParams, grow_masks
 from egosim.stages.hand_mask.propagate import PropagationParams, propagate_hands
 from egosim.stages.hand_mask.sam import SamSegmenter, mask_box
 
@@ -76,6 +80,9 @@ class HandMaskConfig(StageConfig):
     # that found it, backwards and forwards (0: off; see carry)
     propagate_frames: int = 8  # carry each hand's mask this many frames backwards and forwards
     # in time by optical flow, into frames that missed that hand (0: off; see propagate)
+    grow_margin_m: float = 0.012  # each hand's mask grows this far (metres at the hand's
+    # scale) into pixels of the hand's colour rather than the nearby background's (0: off;
+    # see grow)
     min_joint_confidence: float = 0.0  # joints with lower confidence are ignored
     sam_model_path: str = ""  # local folder of a SAM model (backend "sam")
     sam_device: str = "cpu"  # torch device of the SAM model
@@ -92,6 +99,8 @@ class HandMaskConfig(StageConfig):
             problems.append(f"carry_frames must be in [0, 1000], got {self.carry_frames}")
         if not 0 <= self.propagate_frames <= 1000:
             problems.append(f"propagate_frames must be in [0, 1000], got {self.propagate_frames}")
+        if not 0.0 <= self.grow_margin_m <= 0.025:
+            problems.append(f"grow_margin_m must be in [0, 0.025], got {self.grow_margin_m}")
         if self.grabcut_max_side < 16:
             problems.append(f"grabcut_max_side must be >= 16, got {self.grabcut_max_side}")
         if not 0.0 <= self.min_joint_confidence <= 1.0:
@@ -142,6 +151,8 @@ def masks_from_keypoints(
         # A frame whose hand was carried there still receives that hand's mask from its
         # neighbours (its arm, from frames where the search found it), joined to its own.
         masks = propagate_hands(frames, masks, per_hand, certain, params, carried)
+    if config.grow_margin_m > 0 and config.colour_refine:
+        masks = grow_masks(frames, masks, keypoints, valid, GrowParams(config.grow_margin_m))
     return masks
 
 
@@ -217,7 +228,7 @@ class HandMaskStage(ClipStage):
     # cleaned joints and a replacement camera (see the module docstring)
     optional_inputs: ClassVar[Mapping[str, ShardSchema]] = {**CAMERA_ROLES, "hands": HANDS}
     output = HAND_MASK
-    version = 13  # 2: image-space arm masks (no world axis). 3: arm found by a colour walk, masks
+    version = 14  # 2: image-space arm masks (no world axis). 3: arm found by a colour walk, masks
     # carried into frames whose hands were missed. 4: arm re-aimed along its colour region.
     # 5: that region is probably arm wherever it runs. 6: each hand carried into the frames that
     # missed it, and only its certain seeds (skeleton, arm strip) carried with confidence.
@@ -231,6 +242,7 @@ class HandMaskStage(ClipStage):
     # colour region when that turns more than refine_slack_deg past the searched direction
     # 12: a frame whose hand was carried there still receives that hand's propagated mask
     # 13: a found hand without a wrist is no longer replaced by a carried one (nor crossed)
+    # 14: each hand's mask grows by up to grow_margin_m into pixels of its own colour (grow)
     backends = ("keypoints", "sam")
     # What process reads (the executor decodes nothing else): the frames, joints and camera
     # of the clip, the robot arm's mask, the cleaned joints.
