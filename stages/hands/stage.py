@@ -186,7 +186,9 @@ class HandsStage(ClipStage):
     # 5: the palm lift re-estimates finger joint depths from bone lengths (hand_lift).
     # 6: a followed hand replaces a small fit on its own fingers, and a hand lost at the clip's
     # first/last frame is carried there by the flow (mediapipe); MANO fits stored (regressor).
-    version = 6
+    # 7: a followed hand's world landmarks are turned from its crop's axes into the frame's, as
+    # MediaPipe's own graph does (roi_landmarks.world_in_frame_axes), before smoothing and lifting.
+    version = 7
     description = "3D hand joints per frame from the clip's labels, de-duplicated and de-spiked"
     config_class = HandsConfig
     inputs: ClassVar[Mapping[str, ShardSchema]] = {"clips": CLIPS}
