@@ -280,15 +280,18 @@ MIN_PRESENCE = 0.5  # the landmark model's answer on a hand's ROI counts from th
 
 
 def interhand_depth_figures(folder: Path) -> list[dict[str, float]]:
-    """Per real InterHand hand: true median joint depth and each lift's depth / truth."""
+    """Per real InterHand hand: true median joint depth, each lift's depth / truth, and the
+    palm-PnP lift's wrist-relative MPJPE (mm) and orientation error (degrees) once placed at the
+    true median depth (``scale_to_depth``; NaN where the palm PnP fails)."""
     import json
 
     import cv2
 
     from egosim.pipeline.geometry import project_points
     from egosim.stages.common.hand_landmarks import place_in_camera
-    from egosim.stages.common.hand_lift import palm_pnp_pose
+    from egosim.stages.common.hand_lift import palm_pnp_pose, scale_to_depth
     from egosim.stages.common.roi_landmarks import LandmarkModel, roi_from_landmarks
+    from egosim.stages.hands.metrics import orientation_error_deg, wrist_relative_mpjpe_mm
 
     cams = json.loads((folder / "test_interhand2.6m_camera.json").read_text())
     joints3d = json.loads((folder / "test_interhand2.6m_joint_3d.json").read_text())
@@ -316,7 +319,20 @@ def interhand_depth_figures(folder: Path) -> list[dict[str, float]]:
             pose = palm_pnp_pose(found.uv, found.world, k, which == 0, prefer_fingers_away=False)
             palm = float(np.median(pose[0][:, 2])) / truth if pose is not None else float("nan")
             moved = float(np.median(place_in_camera(found.uv, found.world, k)[:, 2])) / truth
-            out.append({"true_depth_m": truth, "palm_pnp": palm, "translation": moved})
+            mpjpe = turn = float("nan")
+            if pose is not None:
+                placed = scale_to_depth(pose[0], truth)  # (21, 3) at the true median depth
+                mpjpe = wrist_relative_mpjpe_mm(placed, hand)
+                turn = orientation_error_deg(placed, hand)
+            out.append(
+                {
+                    "true_depth_m": truth,
+                    "palm_pnp": palm,
+                    "translation": moved,
+                    "palm_pnp_mpjpe_mm": mpjpe,
+                    "palm_pnp_orientation_deg": turn,
+                }
+            )
     return out
 
 
@@ -351,6 +367,8 @@ def main(argv: list[str] | None = None) -> None:
             print(_line(f"hand {i}", fig))
         for lift in ("palm_pnp", "translation"):
             print(f"median {lift}: {np.nanmedian([f[lift] for f in figures]):.3f}")
+        for key in ("palm_pnp_mpjpe_mm", "palm_pnp_orientation_deg"):
+            print(f"mean {key}: {np.nanmean([f[key] for f in figures]):.1f}")
     if not args.skip_synthetic:
         for variant in args.variants:
             held = " (held out)" if variant != "default" else ""
