@@ -7,8 +7,11 @@ the figures and ``OUT/<config>_<case>.png`` the sheets (frame 0 | fill | truth |
 
 Masks are computed once and cached in ``OUT/cache`` (the ``hand_mask`` stage's masks from the
 true joints on the synthetic world, MediaPipe-landmark masks on the DWM clips, as
-``bench.hand_free_real`` makes them), so configs are compared on the same masks and a change of
-the mask code does not move the fill figures (delete the cache to refresh it).
+``bench.hand_free_real`` makes them), so configs are compared on the same masks. The cache file
+names carry the ``hand_mask`` stage's version (``_hm13``): a new mask version is computed afresh
+rather than read from another version's cache (figures of earlier sessions came from stale
+masks this way); a change of the mask code without a version bump does not move the fill
+figures (delete the cache to refresh it).
 
 Synthetic world (``[variant:]mode:seed``): ``tuned`` = default-variant cases (the fill is tuned
 on these); ``held`` = ``alt`` tabletop 7 / wild 8 (held out by ``bench.hand_free_real``), alt
@@ -82,7 +85,8 @@ def world_masks(case: str, size: tuple[int, int], frames: int, cache: Path):
     extra = {} if variant == "default" else {"variant": variant}
     clip = render_clip(WorldConfig(seed=int(seed), mode=mode, height=size[0], width=size[1],
                                    num_frames=frames, **extra))  # fmt: skip
-    path = cache / f"world_{variant}_{mode}_{seed}_{size[0]}x{size[1]}x{frames}.npz"
+    name = f"world_{variant}_{mode}_{seed}_{size[0]}x{size[1]}x{frames}_hm{HandMaskStage.version}"
+    path = cache / f"{name}.npz"
     if path.exists():
         masks = np.load(path)["masks"]
     else:
@@ -121,7 +125,7 @@ def world_rows(case: str, configs, size, frames, out: Path, aligned: bool = Fals
 def dwm_rows(cid: str, configs, data: Path, out: Path) -> list[dict]:
     """Figures of one real DWM clip under every config (see the module docstring)."""
     video, static, inside, hands, _ = dwm_truth(cid, data)
-    path = out / "cache" / f"dwm_{cid}.npz"
+    path = out / "cache" / f"dwm_{cid}_hm{HandMaskStage.version}.npz"
     if path.exists():
         masks = np.load(path)["masks"]
     else:
