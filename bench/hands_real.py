@@ -22,7 +22,9 @@ with the default :class:`~egosim.stages.hands.mediapipe_backend.MediaPipeParams`
   with any and the first frame with each hand (no ground truth there).
 - **Synthetic world** (``render_clip(WorldConfig(seed, mode))``, true joints known): recall, 2D
   error, 3D orientation error and wrist-relative MPJPE (:mod:`egosim.stages.hands.metrics`),
-  for the palm-PnP lift and the old translation-only lift on the same detections; with
+  for the palm-PnP lift, the same with its palm poses refined on the reprojection error
+  (``palm_pnp_refined``: ``MediaPipeParams.refine_palm``) and the old translation-only lift on
+  the same detections; with
   ``--per-joint``, each joint's mean wrist-relative error (mm) and 2D error (px) for the palm-PnP
   lift (which joints carry the MPJPE: on the drawn hands the wrist and thumb, whose 2D points
   MediaPipe puts 24-40 px from the world's joints where the fingers are 4-9 px off); with
@@ -234,7 +236,12 @@ def synthetic_figures(
     from egosim.world.clip import render_clip
     from egosim.world.config import WorldConfig
 
-    parts: dict[str, list] = {"palm_pnp": [], "translation": []}
+    lifts = {
+        "palm_pnp": {"lift": "palm_pnp"},
+        "palm_pnp_refined": {"lift": "palm_pnp", "refine_palm": True},
+        "translation": {"lift": "translation"},
+    }  # bench row -> MediaPipeParams fields
+    parts: dict[str, list] = {name: [] for name in lifts}
     seconds = []
     for seed in seeds:
         mode = "tabletop" if seed % 2 else "wild"
@@ -247,7 +254,7 @@ def synthetic_figures(
             clip.hand_valid if clip.hand_valid is not None else np.ones((clip.num_frames, 2), bool)
         )
         for lift in parts:
-            p = replace(params, lift=lift)
+            p = replace(params, **lifts[lift])
             res = hands_from_raw(raw, clip.width, clip.intrinsics, None, None, p)
             if misses is not None and lift == "palm_pnp":
                 from egosim.stages.common.roi_landmarks import LandmarkModel
@@ -282,7 +289,8 @@ MIN_PRESENCE = 0.5  # the landmark model's answer on a hand's ROI counts from th
 def interhand_depth_figures(folder: Path) -> list[dict[str, float]]:
     """Per real InterHand hand: true median joint depth, each lift's depth / truth, and the
     palm-PnP lift's wrist-relative MPJPE (mm) and orientation error (degrees) once placed at the
-    true median depth (``scale_to_depth``; NaN where the palm PnP fails)."""
+    true median depth (``scale_to_depth``; NaN where the palm PnP fails), with IPPE's palm poses
+    as they are and refined (``palm_pnp_refined``, ``MediaPipeParams.refine_palm``)."""
     import json
 
     import cv2
@@ -319,20 +327,16 @@ def interhand_depth_figures(folder: Path) -> list[dict[str, float]]:
             pose = palm_pnp_pose(found.uv, found.world, k, which == 0, prefer_fingers_away=False)
             palm = float(np.median(pose[0][:, 2])) / truth if pose is not None else float("nan")
             moved = float(np.median(place_in_camera(found.uv, found.world, k)[:, 2])) / truth
-            mpjpe = turn = float("nan")
-            if pose is not None:
-                placed = scale_to_depth(pose[0], truth)  # (21, 3) at the true median depth
-                mpjpe = wrist_relative_mpjpe_mm(placed, hand)
-                turn = orientation_error_deg(placed, hand)
-            out.append(
-                {
-                    "true_depth_m": truth,
-                    "palm_pnp": palm,
-                    "translation": moved,
-                    "palm_pnp_mpjpe_mm": mpjpe,
-                    "palm_pnp_orientation_deg": turn,
-                }
-            )
+            fig = {"true_depth_m": truth, "palm_pnp": palm, "translation": moved}
+            for name, refine in (("palm_pnp", False), ("palm_pnp_refined", True)):
+                pose = palm_pnp_pose(found.uv, found.world, k, which == 0, False, refine)
+                mpjpe = turn = float("nan")
+                if pose is not None:
+                    placed = scale_to_depth(pose[0], truth)  # (21, 3) at the true median depth
+                    mpjpe = wrist_relative_mpjpe_mm(placed, hand)
+                    turn = orientation_error_deg(placed, hand)
+                fig[f"{name}_mpjpe_mm"], fig[f"{name}_orientation_deg"] = mpjpe, turn
+            out.append(fig)
     return out
 
 
@@ -367,8 +371,9 @@ def main(argv: list[str] | None = None) -> None:
             print(_line(f"hand {i}", fig))
         for lift in ("palm_pnp", "translation"):
             print(f"median {lift}: {np.nanmedian([f[lift] for f in figures]):.3f}")
-        for key in ("palm_pnp_mpjpe_mm", "palm_pnp_orientation_deg"):
-            print(f"mean {key}: {np.nanmean([f[key] for f in figures]):.1f}")
+        for name in ("palm_pnp", "palm_pnp_refined"):
+            for key in (f"{name}_mpjpe_mm", f"{name}_orientation_deg"):
+                print(f"mean {key}: {np.nanmean([f[key] for f in figures]):.1f}")
     if not args.skip_synthetic:
         for variant in args.variants:
             held = " (held out)" if variant != "default" else ""

@@ -94,6 +94,8 @@ class MediaPipeParams(HandLandmarkParams):
     lift: str = "palm_pnp"  # 3D lift: "palm_pnp" (template palm PnP) or "translation" (old)
     prefer_fingers_away: bool = True  # palm PnP: of its two poses take knuckles beyond the wrist
     min_track_frames: int = 3  # a shorter track wanting a side a longer one holds then is dropped
+    refine_palm: bool = False  # palm PnP: refine IPPE's poses on the reprojection error (hand_lift
+    # palm_candidates; off by default, see "Hands v8" in docs/design.md)
 
 
 @dataclass
@@ -266,6 +268,7 @@ def lift_to_camera(
     right: bool = True,
     method: str = "palm_pnp",
     prefer_fingers_away: bool = True,
+    refine: bool = False,
 ) -> np.ndarray:
     """Camera joints ``(21, 3)`` from 2D ``uv (21, 2)`` and metric ``world_landmarks (21, 3)``.
 
@@ -286,11 +289,12 @@ def lift_to_camera(
       method, kept for comparison.
 
     When ``observed_depth`` (metres) is given, the points are then scaled about the camera centre
-    so that their median depth equals it; the scaling keeps every projection.
+    so that their median depth equals it; the scaling keeps every projection. ``refine``: the
+    palm poses refined on the reprojection error (``MediaPipeParams.refine_palm``).
     """
     points = None
     if method == "palm_pnp":
-        points = _palm_pnp_lift(uv, world_landmarks, intrinsics, right, prefer_fingers_away)
+        points = _palm_pnp_lift(uv, world_landmarks, intrinsics, right, prefer_fingers_away, refine)
     elif method != "translation":
         raise ValueError(f"lift method must be 'palm_pnp' or 'translation', got {method!r}")
     if points is None:  # translation asked for, or the PnP failed
@@ -304,9 +308,10 @@ def _palm_pnp_lift(
     intrinsics: np.ndarray,
     right: bool,
     prefer_fingers_away: bool,
+    refine: bool = False,
 ) -> np.ndarray | None:
     """The ``"palm_pnp"`` lift of :func:`lift_to_camera` (no depth scaling); None on failure."""
-    pose = palm_pnp_pose(uv, world_landmarks, intrinsics, right, prefer_fingers_away)
+    pose = palm_pnp_pose(uv, world_landmarks, intrinsics, right, prefer_fingers_away, refine)
     return None if pose is None else pose[0]
 
 
@@ -383,6 +388,7 @@ def hands_from_raw(
                 right=bool(s == RIGHT),
                 method=params.lift,
                 prefer_fingers_away=params.prefer_fingers_away,
+                refine=params.refine_palm,
             )
         if world_from_cam is not None:
             points_cam = transform_points(world_from_cam[f], points_cam)  # now world
@@ -401,7 +407,12 @@ def _palm_poses(
     out = {}
     for f, s in zip(*np.nonzero(lm.present), strict=True):
         pose = palm_pnp_pose(
-            lm.uv[f, s], lm.world[f, s], intrinsics, bool(s == RIGHT), params.prefer_fingers_away
+            lm.uv[f, s],
+            lm.world[f, s],
+            intrinsics,
+            bool(s == RIGHT),
+            params.prefer_fingers_away,
+            params.refine_palm,
         )
         if pose is not None and float(pose[0][:, 2].min()) >= MIN_POSE_DEPTH:
             out[(int(f), int(s))] = pose
