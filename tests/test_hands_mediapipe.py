@@ -34,6 +34,7 @@ from egosim.stages.common.hand_lift import (
     FINGER_CHAINS,
     PALM_JOINTS,
     PALM_TEMPLATE,
+    best_rotation,
     bone_lengths,
     lift_with_rotation,
     on_rays,
@@ -182,6 +183,41 @@ def test_refined_palm_pnp_is_exact_on_a_template_palm_and_side_free() -> None:
             np.testing.assert_allclose(right[0], left[0], atol=1e-7)
             placed += 1
     assert placed >= 15
+
+
+def test_refined_palm_poses_that_tilt_the_same_way_give_way_to_ippe() -> None:
+    """A planar pose's two answers tilt the palm opposite ways; when both refined answers tilt it
+    the same way (they fell into one minimum), IPPE's two are returned instead. The landmarks are
+    the MediaPipe palm of alt world seed 3, frame 0, left hand (true depth step 55 mm; IPPE's
+    answers 48 / -14 mm, refined without this check 23 / 13 mm)."""
+    from egosim.pipeline.geometry import intrinsics_matrix
+
+    k = np.array([561.046, 561.046, 416.0, 240.0])
+    uv = np.zeros((21, 2))
+    uv[list(PALM_JOINTS)] = [
+        [215.2, 387.4],
+        [247.5, 318.2],
+        [230.0, 315.0],
+        [214.5, 318.0],
+        [201.7, 324.4],
+    ]
+    plain = palm_candidates(uv, k, False)
+    assert len(plain) == 2
+    template = PALM_TEMPLATE * np.array([1.0, -1.0, 1.0])  # the left palm
+    image = uv[list(PALM_JOINTS)]  # (5, 2)
+    steps = []
+    for points in plain:  # refined here without the check: both tilt the same way
+        rot, pos = best_rotation(template, points), points.mean(0) - template.mean(0)
+        rvec, tvec = cv2.solvePnPRefineLM(
+            template, image, intrinsics_matrix(k), None, cv2.Rodrigues(rot)[0], pos[:, None]
+        )
+        moved = template @ cv2.Rodrigues(rvec)[0].T + tvec.ravel()  # (5, 3)
+        steps.append(np.sign(moved[2, 2] - moved[0, 2]))
+    assert steps[0] == steps[1]
+    refined = palm_candidates(uv, k, False, refine=True)
+    assert len(refined) == 2
+    for a, b in zip(refined, plain, strict=True):
+        np.testing.assert_allclose(a, b)
 
 
 def test_refined_palm_pnp_on_real_interhand_hands(mediapipe: object) -> None:

@@ -73,8 +73,10 @@ def palm_candidates(
     (mean 1.6-4.4 px on the synthetic world's hands, up to 38 px on InterHand's; 0.6-3.2 px
     refined). The refined pitch is nearer the truth: the chosen pose's wrist-to-middle-knuckle
     depth step, median 74 -> 56 mm on the held-out alt world (true 53); the palm's own pose error
-    on 5 real InterHand hands 30 -> 18 degrees (mean). Off by default: see "Hands v8" in
-    docs/design.md for why (one real hand's whole-hand orientation gets worse)."""
+    on 5 real InterHand hands 30 -> 18 degrees (mean). When the two refined poses tilt the palm
+    the same way (one minimum: seen on alt seed 3, where refining raised the MPJPE 19.7 -> 33.4
+    mm), IPPE's poses are returned. Off by default: one real InterHand hand's whole-hand
+    orientation goes 18.7 -> 27.3 degrees (figures in "Hands v8", docs/design.md)."""
     camera_matrix = intrinsics_matrix(intrinsics)  # (3, 3)
     template = PALM_TEMPLATE * np.array([1.0, 1.0 if right else -1.0, 1.0])  # (5, 3)
     image = np.ascontiguousarray(uv[list(PALM_JOINTS)], dtype=np.float64)  # (5, 2)
@@ -86,9 +88,10 @@ def palm_candidates(
         )
     except cv2.error:
         return []
-    out = []
+    ippe, refined = [], []  # (5, 3) camera points of each pose
     for rvec, tvec in zip(rvecs[:count], tvecs[:count], strict=True):
         rot = cv2.Rodrigues(rvec)[0]  # (3, 3) cam_from_template
+        ippe.append(template @ rot.T + tvec.ravel())
         if refine:  # IPPE's pose is not the rigid template's least-squares reprojection optimum
             # Refined on the right template whatever the side: the flat mirrored template is the
             # right one turned half a turn about its x axis, so both sides reach the same points.
@@ -103,10 +106,13 @@ def palm_candidates(
                 REFINE_CRITERIA,
             )
             rot = cv2.Rodrigues(rvec)[0] @ flip  # (3, 3) cam_from_template (this side's)
-        points = template @ rot.T + tvec.ravel()  # (5, 3) camera metres
-        if np.all(points[:, 2] > 0):
-            out.append(points)
-    return out
+            refined.append(template @ rot.T + tvec.ravel())
+    # A planar pose's two answers tilt the palm opposite ways (knuckles beyond the wrist or
+    # before it); refined answers that tilt the same way fell into one minimum, and the choice
+    # between them is lost: IPPE's are kept then.
+    steps = {float(np.sign(p[2, 2] - p[0, 2])) for p in refined}  # PALM_JOINTS[2]: middle
+    poses = refined if refined and (len(refined) < 2 or len(steps) == 2) else ippe
+    return [points for points in poses if np.all(points[:, 2] > 0)]
 
 
 def scale_to_depth(points: np.ndarray, observed_depth: float | None) -> np.ndarray:
