@@ -15,7 +15,8 @@ pictures as another (``same_as``) must ingest to frames within :data:`SAME_MIN_P
 that one's (as ingest makes them in this process).
 
 It prints per variant: the workflow, exit code, clips ingested -> packed, frames posed by
-estimation / all frames and the camera model (dataset runs), the first clip's frame count, fps,
+estimation / all frames and the camera model (dataset runs), the share of frames where the
+hands step kept the left / right hand (dataset runs), the first clip's frame count, fps,
 size and policy, the PSNR against ``same_as``, seconds and a verdict, then every reject with its
 step and reason; ``OUT/real_variants.json`` holds the rows.
 
@@ -515,6 +516,9 @@ def summarise(
     clips = _rows(run, "ingest", ["clip_id", "num_frames", "fps", "width", "height", "clip_policy"])
     cams = _rows(run, "cameras", ["clip_id", "camera_model", "registered", "num_frames"])
     packed = _rows(run, "pack", ["clip_id"])
+    hands = _rows(run, "hands", ["clip_id", "hand_valid"])
+    valid = [np.asarray(h["hand_valid"], dtype=bool).reshape(-1, 2) for h in hands]
+    kept = np.concatenate(valid) if valid else np.zeros((0, 2), bool)  # (frames, 2) left, right
     rejects: list[str] = []
     if (run / "rejects.parquet").is_file():
         with open_shard(run / "rejects.parquet") as reader:
@@ -537,6 +541,8 @@ def summarise(
         "camera_models": [c.get("camera_model") or "?" for c in cams],
         "frames_posed": int(sum(int(np.sum(c["registered"])) for c in cams)),
         "frames_total": int(sum(int(c["num_frames"]) for c in cams)),
+        "hands_left": float(kept[:, 0].mean()) if len(kept) else None,
+        "hands_right": float(kept[:, 1].mean()) if len(kept) else None,
         "same_as": variant.same_as,
         "same_psnr_db": same_db,
         "rejects": rejects,
@@ -578,7 +584,7 @@ def print_table(rows: list[dict[str, Any]]) -> None:
     """One line per variant, then every reject and every unexpected outcome."""
     head = (
         f"{'variant':<19} {'run':<7} {'exit':>4} {'clips':>6} {'posed':>7} {'model':<8} "
-        f"{'clip':<32} {'same dB':>7} {'s':>4}  verdict"
+        f"{'hands L/R':<9} {'clip':<32} {'same dB':>7} {'s':>4}  verdict"
     )
     print(head)
     print("-" * len(head))
@@ -594,9 +600,12 @@ def print_table(rows: list[dict[str, Any]]) -> None:
             else (f"{r['clips_ingested']}")
         )
         same = f"{r['same_psnr_db']:.1f}" if r["same_psnr_db"] is not None else "-"
+        hands = "-"
+        if r.get("hands_left") is not None:
+            hands = f"{r['hands_left']:.2f}/{r['hands_right']:.2f}"
         print(
             f"{r['variant']:<19} {r['workflow']:<7} {r['exit_code']:>4} {clips:>6} {posed:>7} "
-            f"{models:<8} {clip:<32} {same:>7} {r['seconds']:>4.0f}  {r['verdict']}"
+            f"{models:<8} {hands:<9} {clip:<32} {same:>7} {r['seconds']:>4.0f}  {r['verdict']}"
         )
     for r in rows:
         for reason in r["rejects"]:
