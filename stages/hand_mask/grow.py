@@ -54,13 +54,14 @@ def _disk(radius: int) -> np.ndarray:
 
 
 def _histogram(codes: np.ndarray, bins: int) -> np.ndarray:
-    """Normalised histogram ``(bins**3,)`` of colour ``codes (N,)``, smoothed by a
-    ``[1, 2, 1] / 4`` kernel along each Lab axis (a colour between two bins counts for both)."""
+    """Normalised histogram ``(bins**3,)`` of Lab colour ``codes (N,)``, smoothed along the
+    lightness axis only by a ``[1, 2, 1] / 4`` kernel: shading moves a hand's lightness from
+    pixel to pixel more than its chroma, which is what tells it from the background (smoothing
+    the chroma axes as well let hands grow into held objects: tuned default world true-joint
+    IoU 0.815 against 0.824 with lightness only)."""
     hist = np.bincount(codes, minlength=bins**3).astype(np.float64).reshape(bins, bins, bins)
-    for axis in range(3):
-        padded = np.pad(hist, [(1, 1) if a == axis else (0, 0) for a in range(3)])
-        lo, mid, hi = (np.take(padded, range(i, i + bins), axis=axis) for i in range(3))
-        hist = 0.25 * lo + 0.5 * mid + 0.25 * hi
+    padded = np.pad(hist, [(1, 1), (0, 0), (0, 0)])
+    hist = 0.25 * padded[:-2] + 0.5 * padded[1:-1] + 0.25 * padded[2:]
     return (hist / max(float(hist.sum()), 1e-12)).reshape(-1)
 
 

@@ -228,7 +228,7 @@ class HandMaskStage(ClipStage):
     # cleaned joints and a replacement camera (see the module docstring)
     optional_inputs: ClassVar[Mapping[str, ShardSchema]] = {**CAMERA_ROLES, "hands": HANDS}
     output = HAND_MASK
-    version = 14  # 2: image-space arm masks (no world axis). 3: arm found by a colour walk, masks
+    version = 15  # 2: image-space arm masks (no world axis). 3: arm found by a colour walk, masks
     # carried into frames whose hands were missed. 4: arm re-aimed along its colour region.
     # 5: that region is probably arm wherever it runs. 6: each hand carried into the frames that
     # missed it, and only its certain seeds (skeleton, arm strip) carried with confidence.
@@ -243,6 +243,7 @@ class HandMaskStage(ClipStage):
     # 12: a frame whose hand was carried there still receives that hand's propagated mask
     # 13: a found hand without a wrist is no longer replaced by a carried one (nor crossed)
     # 14: each hand's mask grows by up to grow_margin_m into pixels of its own colour (grow)
+    # 15: grow's colour histograms smoothed along lightness only (not into held objects)
     backends = ("keypoints", "sam")
     # What process reads (the executor decodes nothing else): the frames, joints and camera
     # of the clip, the robot arm's mask, the cleaned joints.
