@@ -2,7 +2,7 @@
 
 For clips without depth, a static camera above all (the ``depth_camera`` stage gives a static
 camera no depth): each later frame is aligned to frame 0 by a homography fitted to features
-outside the hand masks (SIFT matches, RANSAC), or by the identity when the camera is known to be
+outside the hand masks (ORB matches, RANSAC), or by the identity when the camera is known to be
 static. A masked pixel of frame 0 then takes the per-channel **median** of the colours that the
 first ``candidates`` aligned frames show there unoccluded (their own masks, dilated): with a still
 camera this is the plain temporal median, and a median over several frames leaves no ghost of a
@@ -31,20 +31,12 @@ from egosim.stages.inpaint.reproject_fill import (
 )
 
 MIN_MATCHES = 12  # fewer good feature matches than this: the frame is not used
-MAX_FEATURES = 2000  # SIFT keypoints per frame
-# SIFT, not ORB (inpaint v10): on DWM 00013's dark, blurred wooden floor ORB kept 616 corners in
-# frame 0 and from frame 7 on 4-11 RANSAC inliers, too few for a homography, so most of the hole
-# went to OpenCV; SIFT aligns those frames (bench.inpaint_margin --aligned, hand_mask v15 masks:
-# DWM 00013 +0.70 -> +4.85 dB, 00017 +1.64 -> +1.76; synthetic tuned +4.25 both, held out
-# +1.82 -> +1.45, given the true masks +1.78 -> +1.88: more frames align, including ones whose
-# masks missed a sleeve).
 
 
-def image_features(image: np.ndarray, mask: np.ndarray) -> tuple[tuple, np.ndarray | None]:
-    """SIFT keypoints and descriptors of ``image (H, W, 3)`` RGB off ``mask (H, W)`` (hands)."""
+def orb_features(image: np.ndarray, mask: np.ndarray) -> tuple[tuple, np.ndarray | None]:
+    """ORB keypoints and descriptors of ``image (H, W, 3)`` RGB off ``mask (H, W)`` (hands)."""
     grey = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
-    sift = cv2.SIFT_create(MAX_FEATURES)
-    return sift.detectAndCompute(grey, (mask == 0).astype(np.uint8) * 255)
+    return cv2.ORB_create(1500).detectAndCompute(grey, (mask == 0).astype(np.uint8) * 255)
 
 
 def homography_to_first(
@@ -52,15 +44,15 @@ def homography_to_first(
 ) -> np.ndarray | None:
     """Homography ``(3, 3)`` taking pixels of ``frame`` to frame 0 (OpenCV coordinates).
 
-    ``first``: frame 0's :func:`image_features` (off its hands, computed once per clip); features
+    ``first``: frame 0's :func:`orb_features` (off its hands, computed once per clip); features
     under ``mask`` (this frame's hands) are ignored. None when too few matches or RANSAC inliers
     support one.
     """
-    kp_a, des_a = image_features(frame, mask)
+    kp_a, des_a = orb_features(frame, mask)
     kp_b, des_b = first
     if des_a is None or des_b is None or len(kp_a) < MIN_MATCHES or len(kp_b) < MIN_MATCHES:
         return None
-    matches = cv2.BFMatcher(cv2.NORM_L2, crossCheck=True).match(des_a, des_b)
+    matches = cv2.BFMatcher(cv2.NORM_HAMMING, crossCheck=True).match(des_a, des_b)
     if len(matches) < MIN_MATCHES:
         return None
     src = np.float32([kp_a[m.queryIdx].pt for m in matches])  # (M, 2)
@@ -109,7 +101,7 @@ def aligned_fill(
     if occluder_ratio > 0:
         occluders = OccluderColours(frames[0], hand_mask[0] > 0, target, occluder_ratio)
     grey0 = cv2.cvtColor(frames[0], cv2.COLOR_RGB2GRAY).astype(np.int16)  # (H, W)
-    first = None if static_camera else image_features(frames[0], masks[0])
+    first = None if static_camera else orb_features(frames[0], masks[0])
     samples = np.zeros((candidates, len(ys), 3), np.float32)  # colours per candidate slot
     count = np.zeros(len(ys), np.int32)  # (M,) slots used per pixel
     first_frame = np.zeros(len(ys), np.uint16)  # (M,) earliest frame that filled the pixel

@@ -138,13 +138,12 @@ class InpaintStage(ClipStage):
     """Remove hands from the first frame: reprojected later frames, then OpenCV inpainting."""
 
     name = "inpaint"
-    version = 10  # 3: median of several frames; clips without depth aligned in the image. 4: more
+    version = 9  # 3: median of several frames; clips without depth aligned in the image. 4: more
     # frames in the median, dilation with the image size. 5: hand-coloured samples not used.
     # 6: large holes no longer rejected (chunked sampling). 7: the image-aligned fill checks
     # each homography near every hole pixel (local_residual). 8: a hand a later frame's mask
     # dropped is carried in from nearby frames before sampling (carry_lost_hands). 9: the
-    # depth fill checks each frame's reprojected ring near every hole pixel (local_residual).
-    # 10: the image-aligned fill matches SIFT features instead of ORB
+    # depth fill checks each frame's reprojected ring near every hole pixel (local_residual)
 
     description = "remove hands from the first frame (reprojected frames + OpenCV inpainting)"
     config_class = InpaintConfig
