@@ -84,3 +84,23 @@ def test_grow_leaves_frames_without_hands_and_is_configurable() -> None:
         GrowParams(margin_m=0.05)
     with pytest.raises(ConfigError, match="grow_margin_m"):
         HandMaskConfig(grow_margin_m=-0.01)
+
+
+def test_stage_grows_only_outwards_and_not_past_the_margin() -> None:
+    from egosim.stages.hand_mask.stage import HandMaskStage, project_keypoints
+    from egosim.world import WorldConfig, render_clip
+
+    clip = render_clip(WorldConfig(seed=1, height=96, width=160, num_frames=6))
+    off = HandMaskStage(HandMaskConfig(grow_margin_m=0.0)).masks_for_clip(clip) > 0
+    on = HandMaskStage().masks_for_clip(clip) > 0
+    kp = project_keypoints(clip)  # (T, 2, 21, 2)
+    scales = [hand_scale_px(kp[t, k]) for t, k in zip(*np.nonzero(clip.hand_valid), strict=True)]
+    margin = 0.012 * max(scales)  # measured: 3.1 px; 280 px added over 6 frames, none removed
+    assert not (off & ~on).any()  # growth only adds pixels
+    added = 0
+    for a, b in zip(off, on, strict=True):
+        if (b & ~a).any():
+            added += int((b & ~a).sum())
+            dist = cv2.distanceTransform((~a).astype(np.uint8), cv2.DIST_L2, 5)
+            assert float(dist[b & ~a].max()) <= round(margin) + 1.5
+    assert added > 0
