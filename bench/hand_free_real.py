@@ -31,7 +31,8 @@ landmarks, fill by the image-aligned path). Hand truth: ``videos_hands`` pixels 
   within 3 px of it. The render is a hand mesh drawn without the scene: it covers fingers hidden
   under a held object (00013 t=17-20, under the cushion) and sits a few px off the real hand in
   places, so part of what ``recall`` misses is not visible hand (00013, hand_mask v11: recall
-  0.836, within 3 / 6 / 10 px 0.911 / 0.950 / 0.976);
+  0.836, within 3 / 6 / 10 px 0.911 / 0.950 / 0.976; v15, whose hands grow into the pixels of
+  their own colour round them: 0.870, within 3 / 6 px 0.938 / 0.967);
 - ``far_px``: mask pixels per frame farther than 50 px from the allowed region: hand truth plus,
   for each hand blob, the cone from it down to the bottom border within 45 degrees of vertical
   (where an egocentric arm comes from; see :func:`allowed_region`), dilated by 50 px; taken on
