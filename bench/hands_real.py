@@ -35,7 +35,9 @@ with the default :class:`~egosim.stages.hands.mediapipe_backend.MediaPipeParams`
   landmark model run on the ROI of each true hand (the palm detector finds 1 of 6 in these tight
   crops), then the depth each lift gives against the true median joint depth: the palm-PnP lift
   the hands stage and the metric scale share (``prefer_fingers_away=False``: no head-mounted
-  prior in a studio) and the translation-only fit of MediaPipe's world landmarks.
+  prior in a studio), the same with its palm poses refined, and the translation-only fit of
+  MediaPipe's world landmarks; and each palm-PnP lift's wrist-relative MPJPE and orientation
+  error once placed at the true median depth.
 - Seconds per clip of the whole backend (detection, tracking, sides, smoothing, lift): wall clock
   and this process's CPU time (``cpu_s``; the wall clock counts other work on a shared machine).
 """
@@ -228,9 +230,10 @@ def synthetic_figures(
     per_joint: dict | None = None,
     misses: list | None = None,
 ) -> dict[str, dict[str, float]]:
-    """Accuracy against the synthetic world's true joints, palm-PnP vs translation-only lift, on
-    the world ``variant`` ("default": the one the backend was tuned on; "alt": held out). Given a
-    ``per_joint`` dict, each lift's ``(21, 2)`` per-joint table (mm, px) is put in it
+    """Accuracy against the synthetic world's true joints, palm-PnP (as it is and with its palm
+    poses refined) vs translation-only lift, on the world ``variant`` ("default": the one the
+    backend was tuned on; "alt": held out). Given a ``per_joint`` dict, each lift's ``(21, 2)``
+    per-joint table (mm, px) is put in it
     (:meth:`~egosim.stages.hands.metrics.HandAccuracy.per_joint`); given a ``misses`` list, the
     landmark model's presence on each missed true hand (:func:`missed_presence`) is added to it."""
     from egosim.world.clip import render_clip
@@ -289,8 +292,9 @@ MIN_PRESENCE = 0.5  # the landmark model's answer on a hand's ROI counts from th
 def interhand_depth_figures(folder: Path) -> list[dict[str, float]]:
     """Per real InterHand hand: true median joint depth, each lift's depth / truth, and the
     palm-PnP lift's wrist-relative MPJPE (mm) and orientation error (degrees) once placed at the
-    true median depth (``scale_to_depth``; NaN where the palm PnP fails), with IPPE's palm poses
-    as they are and refined (``palm_pnp_refined``, ``MediaPipeParams.refine_palm``)."""
+    true median depth (``scale_to_depth``), with IPPE's palm poses as they are (``palm_pnp``)
+    and refined (``palm_pnp_refined``, ``MediaPipeParams.refine_palm``); NaN where the palm PnP
+    fails."""
     import json
 
     import cv2
@@ -324,17 +328,17 @@ def interhand_depth_figures(folder: Path) -> list[dict[str, float]]:
             if found.presence < MIN_PRESENCE:
                 continue
             truth = float(np.median(hand[:, 2]))
-            pose = palm_pnp_pose(found.uv, found.world, k, which == 0, prefer_fingers_away=False)
-            palm = float(np.median(pose[0][:, 2])) / truth if pose is not None else float("nan")
             moved = float(np.median(place_in_camera(found.uv, found.world, k)[:, 2])) / truth
-            fig = {"true_depth_m": truth, "palm_pnp": palm, "translation": moved}
+            fig = {"true_depth_m": truth, "translation": moved}
             for name, refine in (("palm_pnp", False), ("palm_pnp_refined", True)):
                 pose = palm_pnp_pose(found.uv, found.world, k, which == 0, False, refine)
-                mpjpe = turn = float("nan")
+                depth = mpjpe = turn = float("nan")
                 if pose is not None:
+                    depth = float(np.median(pose[0][:, 2])) / truth
                     placed = scale_to_depth(pose[0], truth)  # (21, 3) at the true median depth
                     mpjpe = wrist_relative_mpjpe_mm(placed, hand)
                     turn = orientation_error_deg(placed, hand)
+                fig[name] = depth
                 fig[f"{name}_mpjpe_mm"], fig[f"{name}_orientation_deg"] = mpjpe, turn
             out.append(fig)
     return out
@@ -369,7 +373,7 @@ def main(argv: list[str] | None = None) -> None:
         figures = interhand_depth_figures(args.data / "interhand_fixture")
         for i, fig in enumerate(figures):
             print(_line(f"hand {i}", fig))
-        for lift in ("palm_pnp", "translation"):
+        for lift in ("palm_pnp", "palm_pnp_refined", "translation"):
             print(f"median {lift}: {np.nanmedian([f[lift] for f in figures]):.3f}")
         for name in ("palm_pnp", "palm_pnp_refined"):
             for key in (f"{name}_mpjpe_mm", f"{name}_orientation_deg"):
