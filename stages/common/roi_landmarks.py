@@ -53,12 +53,17 @@ class Roi:
         """Affine ``(2, 3)`` taking frame pixels to crop pixels (``INPUT_SIZE`` square)."""
         return cv2.invertAffineTransform(self.frame_from_crop())
 
+    def crop_axes(self) -> np.ndarray:
+        """Rotation ``(2, 2)`` whose columns are the crop's x (right) and y (down) axes in the
+        frame: crop directions to frame directions."""
+        ex = np.array([-self.up[1], self.up[0]])  # (2,) crop x axis in the frame
+        ey = -self.up  # (2,) crop y axis (down) in the frame
+        return np.stack([ex, ey], axis=1)  # (2, 2)
+
     def frame_from_crop(self) -> np.ndarray:
         """Affine ``(2, 3)`` taking crop pixels to frame pixels."""
         s = self.side / INPUT_SIZE
-        ex = np.array([-self.up[1], self.up[0]])  # (2,) crop x axis in the frame
-        ey = -self.up  # (2,) crop y axis (down) in the frame
-        lin = s * np.stack([ex, ey], axis=1)  # (2, 2) columns: crop axes in the frame
+        lin = s * self.crop_axes()  # (2, 2) columns: crop axes in the frame
         offset = self.centre - lin @ np.array([INPUT_SIZE / 2, INPUT_SIZE / 2])  # (2,)
         return np.concatenate([lin, offset[:, None]], axis=1)
 
@@ -94,10 +99,8 @@ def world_in_frame_axes(world: np.ndarray, roi: Roi) -> np.ndarray:
     bridging over time mixed differently turned shapes; on the InterHand hands the world
     landmarks' orientation error was 14-85 degrees (mean 54) as the crop gave them and 4-34
     (mean 16) in the frame's axes."""
-    ex = np.array([-roi.up[1], roi.up[0]])  # (2,) crop x axis in the frame
-    turn = np.stack([ex, -roi.up], axis=1)  # (2, 2) columns: crop x, y (down) in the frame
     out = np.array(world, dtype=np.float64)  # (21, 3)
-    out[:, :2] = out[:, :2] @ turn.T  # (21, 2) frame axes
+    out[:, :2] = out[:, :2] @ roi.crop_axes().T  # (21, 2) frame axes
     return out
 
 
