@@ -88,14 +88,14 @@ def palm_candidates(
         )
     except cv2.error:
         return []
+    # Refined on the right template whatever the side: the flat mirrored template is the right
+    # one turned half a turn about its x axis, so both sides reach the same points.
+    flip = np.diag([1.0, 1.0 if right else -1.0, 1.0 if right else -1.0])  # (3, 3)
     ippe, refined = [], []  # (5, 3) camera points of each pose
     for rvec, tvec in zip(rvecs[:count], tvecs[:count], strict=True):
         rot = cv2.Rodrigues(rvec)[0]  # (3, 3) cam_from_template
         ippe.append(template @ rot.T + tvec.ravel())
         if refine:  # IPPE's pose is not the rigid template's least-squares reprojection optimum
-            # Refined on the right template whatever the side: the flat mirrored template is the
-            # right one turned half a turn about its x axis, so both sides reach the same points.
-            flip = np.diag([1.0, 1.0 if right else -1.0, 1.0 if right else -1.0])  # (3, 3)
             rvec, tvec = cv2.solvePnPRefineLM(
                 PALM_TEMPLATE,
                 image,
@@ -109,9 +109,9 @@ def palm_candidates(
             refined.append(template @ rot.T + tvec.ravel())
     # A planar pose's two answers tilt the palm opposite ways (knuckles beyond the wrist or
     # before it); refined answers that tilt the same way fell into one minimum, and the choice
-    # between them is lost: IPPE's are kept then.
+    # between them is lost: IPPE's are kept then. (OpenCV's IPPE gives two poses or none.)
     steps = {float(np.sign(p[2, 2] - p[0, 2])) for p in refined}  # PALM_JOINTS[2]: middle
-    poses = refined if refined and (len(refined) < 2 or len(steps) == 2) else ippe
+    poses = refined if len(steps) == 2 else ippe
     return [points for points in poses if np.all(points[:, 2] > 0)]
 
 
