@@ -8,10 +8,11 @@ the figures and ``OUT/<config>_<case>.png`` the sheets (frame 0 | fill | truth |
 Masks are computed once and cached in ``OUT/cache`` (the ``hand_mask`` stage's masks from the
 true joints on the synthetic world, MediaPipe-landmark masks on the DWM clips, as
 ``bench.hand_free_real`` makes them), so configs are compared on the same masks. The cache file
-names carry the ``hand_mask`` stage's version (``_hm13``): a new mask version is computed afresh
-rather than read from another version's cache (figures of earlier sessions came from stale
-masks this way); a change of the mask code without a version bump does not move the fill
-figures (delete the cache to refresh it).
+names carry the ``hand_mask`` stage's version (``_hm<version>``), and the DWM ones the ``hands``
+stage's too (``_hands<version>``: their keypoints come from its MediaPipe backend): a new mask
+or keypoint version is computed afresh rather than read from another version's cache (figures
+of earlier sessions came from stale masks this way); a change of the mask code without a
+version bump does not move the fill figures (delete the cache to refresh it).
 
 Synthetic world (``[variant:]mode:seed``): ``tuned`` = default-variant cases (the fill is tuned
 on these); ``held`` = ``alt`` tabletop 7 / wild 8 (held out by ``bench.hand_free_real``), alt
@@ -53,6 +54,7 @@ from bench.real_video import (
     _psnr,
 )
 from egosim.stages.hand_mask.stage import HandMaskConfig, HandMaskStage, masks_from_keypoints
+from egosim.stages.hands.stage import HandsStage
 from egosim.stages.inpaint.reproject_fill import dilate, opencv_fill
 from egosim.stages.inpaint.stage import InpaintConfig, InpaintStage
 from egosim.world import WorldConfig, render_clip
@@ -125,7 +127,8 @@ def world_rows(case: str, configs, size, frames, out: Path, aligned: bool = Fals
 def dwm_rows(cid: str, configs, data: Path, out: Path) -> list[dict]:
     """Figures of one real DWM clip under every config (see the module docstring)."""
     video, static, inside, hands, _ = dwm_truth(cid, data)
-    path = out / "cache" / f"dwm_{cid}_hm{HandMaskStage.version}.npz"
+    versions = f"hm{HandMaskStage.version}_hands{HandsStage.version}"  # masks, keypoints
+    path = out / "cache" / f"dwm_{cid}_{versions}.npz"
     if path.exists():
         masks = np.load(path)["masks"]
     else:
