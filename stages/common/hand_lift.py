@@ -72,7 +72,8 @@ def palm_candidates(
     from the rigid template, so its poses do not minimise the template's reprojection error
     (mean 1.6-4.4 px on the synthetic world's hands, up to 38 px on InterHand's; 0.6-3.2 px
     refined). The refined pitch is nearer the truth: the chosen pose's wrist-to-middle-knuckle
-    depth step, median 74 -> 56 mm on the held-out alt world (true 53); the palm's own pose error
+    depth step, median 74 -> 56 mm on the held-out alt world (seeds 11, 13, 163 found
+    hand-frames; true 53; the lifted joints' own step 81 -> 61); the palm's own pose error
     on 5 real InterHand hands 30 -> 18 degrees (mean). When the two refined poses tilt the palm
     the same way (one minimum: seen on alt seed 3, where refining raised the MPJPE 19.7 -> 33.4
     mm), IPPE's poses are returned. Off by default: one real InterHand hand's whole-hand
