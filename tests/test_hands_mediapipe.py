@@ -220,6 +220,38 @@ def test_refined_palm_poses_that_tilt_the_same_way_give_way_to_ippe() -> None:
         np.testing.assert_allclose(a, b)
 
 
+def test_hands_from_raw_lifts_with_refined_palm_poses_when_asked() -> None:
+    """``MediaPipeParams.refine_palm`` reaches the lift of every frame: a right hand held still
+    for 5 frames, its palm landmarks 2-3 px off the template (as real palms are), is lifted by
+    ``hands_from_raw`` exactly as ``palm_pnp_pose`` lifts it with and without refinement, and
+    the two differ (a dropped flag would give IPPE's poses both times)."""
+    from egosim.stages.hands.mediapipe_backend import hands_from_raw
+
+    k = np.array([540.0, 540.0, 416.0, 240.0])
+    rot = cv2.Rodrigues(np.array([0.6, -0.3, 0.2]))[0]  # (3, 3) cam_from_hand
+    base = np.stack([[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0]], axis=1)
+    hand = _template_hand(True) @ (rot @ base).T + np.array([0.08, 0.05, 0.45])  # (21, 3)
+    uv = project_points(hand, k)[0]  # (21, 2)
+    uv[list(PALM_JOINTS)] += np.random.default_rng(4).normal(0.0, 2.5, (5, 2))
+    world = hand - hand.mean(axis=0)  # (21, 3) metric shape about its centre
+    t = 5
+    raw = RawLandmarks(
+        uv=np.stack([np.stack([uv, np.full_like(uv, np.nan)])] * t),  # (T, 2, 21, 2)
+        world=np.stack([np.stack([world, np.zeros_like(world)])] * t),  # (T, 2, 21, 3)
+        label_right=np.tile([0.9, 0.5], (t, 1)),
+        present=np.tile([True, False], (t, 1)),
+    )
+    lifted = {}
+    for refine in (False, True):
+        res = hands_from_raw(raw, 832, k, None, None, MediaPipeParams(refine_palm=refine))
+        assert res.valid[:, 1].all() and not res.valid[:, 0].any()
+        expected = palm_pnp_pose(res.landmarks.uv[2, 1], res.landmarks.world[2, 1], k, True,
+                                 True, refine)[0]  # fmt: skip
+        np.testing.assert_allclose(res.joints[2, 1], expected, atol=1e-9)
+        lifted[refine] = res.joints[2, 1]
+    assert np.abs(lifted[True] - lifted[False]).max() > 1e-3  # metres
+
+
 def test_refined_palm_pnp_on_real_interhand_hands(mediapipe: object) -> None:
     """Real hands with 3D truth (InterHand, the landmark model on each true hand's ROI, placed at
     the true median depth; ``bench.hands_real``). Measured on the 5 hands with a palm pose: mean
