@@ -768,3 +768,84 @@ def test_stage_masks_a_missed_hand_where_carry_puts_it() -> None:
         assert score > 0.9, f"frame {t}: IoU {score:.2f} with the moved hand"
     off = masks_from_keypoints(frames, kp, valid, HandMaskConfig(carry_frames=0, **plain))
     assert not off[1:].any()
+
+
+def _two_sleeves() -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """``(lab (200, 200, 3), wrist, sleeve direction, sleeve Lab, table Lab)``: a plain table, a
+    knitted sleeve (Lab noise 12) 44 px wide leaving the wrist 35 degrees off "down", and the
+    other arm's sleeve (the same knit) filling the lower left, so that a smooth strip of table
+    runs between the two arms (EgoDex t=24, hand_mask v16)."""
+    rng = np.random.default_rng(0)
+    h = w = 200
+    table = np.array([128.0, 143.0, 173.0], np.float32)
+    knit = np.array([100.0, 165.0, 168.0], np.float32)
+    lab = np.tile(table, (h, w, 1))
+    yy, xx = np.mgrid[0:h, 0:w] + 0.5
+    wrist = np.array([100.0, 60.0])
+    other = (xx < 86) & (yy > 70)
+    lab[other] = knit + rng.normal(0, 12, (int(other.sum()), 3)).astype(np.float32)
+    d = np.array([np.sin(np.radians(35.0)), np.cos(np.radians(35.0))])  # (2,) the sleeve
+    rel = np.stack([xx - wrist[0], yy - wrist[1]], -1)  # (H, W, 2)
+    sleeve = (rel @ d > 0) & (np.abs(rel @ np.array([-d[1], d[0]])) < 22)
+    lab[sleeve] = knit + rng.normal(0, 12, (int(sleeve.sum()), 3)).astype(np.float32)
+    return lab, wrist, d, knit, table
+
+
+def test_arm_search_other_arm_colour() -> None:
+    """Alone, the search takes the smooth table between two knitted sleeves (it stands out from
+    its sides, the arms; the sleeve's sides lie on itself); given the other arm's colour it
+    follows the sleeve (within 30 degrees, its colour within 10 Lab units of the knit's); a
+    colour far from every strip changes nothing."""
+    from egosim.stages.hand_mask.arm_region import arm_search
+
+    lab, wrist, sleeve, knit, table = _two_sleeves()
+    none = np.zeros(lab.shape[:2], np.uint8)
+    down = np.array([0.0, 1.0])
+    alone, colour, score = arm_search(lab, wrist, down, 30.0, none, 90.0, 3.0, 7.0)
+    assert np.linalg.norm(colour - table) < 3.0, colour  # the gap between the arms
+    assert np.isfinite(score)
+    told, colour, _ = arm_search(lab, wrist, down, 30.0, none, 90.0, 3.0, 7.0, knit)
+    assert np.degrees(np.arccos(np.clip(told @ sleeve, -1, 1))) <= 30.0, told
+    assert np.linalg.norm(colour - knit) < 10.0, colour
+    far, _, far_score = arm_search(lab, wrist, down, 30.0, none, 90.0, 3.0, 7.0, table + 60)
+    assert np.allclose(far, alone) and far_score == score
+
+
+def test_other_arm_colours_from_the_surer_hand() -> None:
+    """Only the less certain of two hands is given the other's arm colour (that arm's strip
+    colour), and only while its own score is above ``other_arm_unsure`` and that colour is rare
+    in the frame; a hand alone, or an invalid other hand, gives none."""
+    from egosim.stages.hand_mask.arm_region import ArmParams, arm_search, other_arm_colours
+
+    h, w = 160, 240
+    image = np.full((h, w, 3), (200, 200, 200), np.uint8)  # a plain grey table
+    cv2.line(image, (60, 60), (60, 159), (150, 40, 160), 20)  # hand 0's arm: straight down
+    cv2.line(image, (180, 60), (239, 159), (150, 40, 160), 20)  # hand 1's: turned, sideways
+    lab = cv2.cvtColor(image, cv2.COLOR_RGB2LAB).astype(np.float32)
+    kps = []
+    for x in (60.5, 180.5):
+        kp = np.full((21, 2), np.nan)
+        kp[0] = [x, 60.5]
+        for j, dx in zip((5, 9, 13, 17), (-9.0, -3.0, 3.0, 9.0), strict=True):
+            kp[j] = [x + dx, 30.5]  # knuckles above the wrist: the arm is searched "down"
+        kps.append(kp)
+    kps = np.stack(kps)  # (2, 21, 2)
+    capsule, arm = CapsuleParams(), ArmParams(other_arm_unsure=0.0)
+    scores = []
+    for kp in kps:
+        scale = hand_scale_px(kp)
+        mask, _ = draw_hand(kp, 0, h, w, CapsuleParams(forearm=False))
+        hand_len = max(30.0, 0.092 * scale)
+        scores.append(arm_search(lab, kp[0], np.array([0.0, 1.0]), hand_len, mask, 90.0, 3.0,
+                                 0.027 * scale))  # fmt: skip
+    assert scores[0][2] < scores[1][2]  # the straight arm is the surer one
+    given = other_arm_colours(lab, kps, np.array([True, True]), capsule, arm)
+    assert given[0] is None
+    assert given[1] is not None and np.allclose(given[1], scores[0][1])
+    assert other_arm_colours(lab, kps, np.array([False, True]), capsule, arm) == [None, None]
+    # the arms' purple covers 12% of the frame: too common for a limit of 5%
+    common = dataclasses.replace(arm, other_arm_rare=0.05)
+    assert other_arm_colours(lab, kps, np.array([True, True]), capsule, common) == [None, None]
+    # hand 1's arm, found clearly enough on its own, keeps its own choice
+    sure = dataclasses.replace(arm, other_arm_unsure=scores[1][2] * 1.01)
+    assert other_arm_colours(lab, kps, np.array([True, True]), capsule, sure) == [None, None]

@@ -11,6 +11,10 @@ hand with 2D keypoints (MANO order, pixels, pixel centres at integer + 0.5):
   average length at the hand's scale (a hand pointing into the view is short in the image,
   its arm often is not); when the hand's own direction leaves the image within
   ``out_of_view`` hand lengths, its arm is out of view and the direction is not searched;
+- with two hands, a hand whose search is unsure (best score above ``other_arm_unsure``)
+  prefers strips of the surer hand's arm colour, when that colour is rare in the frame
+  (:func:`other_arm_colours`): alone, the smooth table between two knitted sleeves stands out
+  from its sides (the arms) better than a sleeve whose sides lie on itself (EgoDex);
 - a thin strip beyond the wrist along ``d`` (``seed_start``..``seed_end`` hand lengths) is
   certainly arm, extended by a walk along ``d`` while the colour holds and still stands out from
   the sides (:func:`arm_extent`); where the strip does not stand out from either side there is
@@ -86,6 +90,16 @@ class ArmParams:
     # from the hand's direction than the searched direction did (180: no limit)
     hand_ring: float = 0.03  # probably-background ring round the hand (GrabCut may grow the
     # hand into it), times its scale in px per metre: 3 cm at the hand's depth (0: none)
+    other_arm: float = 18.0  # Lab distance within which a candidate strip's colour counts as
+    # the colour of the other hand's arm (searched first, when more certain): one shirt, or bare
+    # skin, on both arms (0: off)
+    other_arm_floor: float = 0.1  # the score is multiplied by ((distance + 1) / (other_arm +
+    # 1)) squared, at least this, when the colour is within ``other_arm``
+    other_arm_unsure: float = 0.15  # ... only for a hand whose own best score (spread + 1 over
+    # contrast + 1, times the turn cost) is above this: an arm found clearly on its own keeps it
+    other_arm_rare: float = 0.15  # ... only when at most this fraction of the frame is within
+    # ``other_arm`` of that colour: a shared colour tells the arm from a grey table or floor only
+    # when little else in the view has it
 
     def __post_init__(self) -> None:
         problems = []
@@ -111,7 +125,11 @@ class ArmParams:
             problems.append(f"max_turn_deg must be in [0, 180], got {self.max_turn_deg}")
         if not 0.0 <= self.refine_slack_deg <= 180.0:
             problems.append(f"refine_slack_deg must be in [0, 180], got {self.refine_slack_deg}")
-        for name in ("turn_cost", "out_of_view", "hand_ring"):
+        if not 0.0 <= self.other_arm_rare <= 1.0:
+            problems.append(f"other_arm_rare must be in [0, 1], got {self.other_arm_rare}")
+        if not 0.0 < self.other_arm_floor <= 1.0:
+            problems.append(f"other_arm_floor must be in (0, 1], got {self.other_arm_floor}")
+        for name in ("turn_cost", "out_of_view", "hand_ring", "other_arm", "other_arm_unsure"):
             if not 0.0 <= getattr(self, name) <= 100.0:
                 problems.append(f"{name} must be in [0, 100], got {getattr(self, name)}")
         if problems:
@@ -166,8 +184,33 @@ def arm_direction(
     max_turn_deg: float = 90.0,
     turn_cost: float = 0.15,
     radius: float | None = None,
+    other: np.ndarray | None = None,
+    other_tolerance: float = 18.0,
+    other_floor: float = 0.1,
 ) -> np.ndarray:
     """Unit image direction ``(2,)`` of the forearm from ``wrist``, chosen by colour.
+
+    See :func:`arm_search` (this is its direction).
+    """
+    found = arm_search(lab, wrist, hand_dir, hand_len, exclude, max_turn_deg, turn_cost, radius,
+                       other, other_tolerance, other_floor)  # fmt: skip
+    return found[0]
+
+
+def arm_search(
+    lab: np.ndarray,
+    wrist: np.ndarray,
+    hand_dir: np.ndarray,
+    hand_len: float,
+    exclude: np.ndarray,
+    max_turn_deg: float = 90.0,
+    turn_cost: float = 0.15,
+    radius: float | None = None,
+    other: np.ndarray | None = None,
+    other_tolerance: float = 18.0,
+    other_floor: float = 0.1,
+) -> tuple[np.ndarray, np.ndarray | None, float]:
+    """``(direction (2,), strip colour (3,) or None, score)`` of the forearm from ``wrist``.
 
     Candidate directions within ``max_turn_deg`` of ``hand_dir`` (every 5 degrees) are scored on
     a strip from 0.3 to 1.5 hand lengths past the wrist in ``lab (H, W, 3)``, the float32 Lab
@@ -176,8 +219,13 @@ def arm_direction(
     differs from two side strips ``2 * radius`` off the axis (``radius``: the forearm's
     half-width in pixels, default a third of ``hand_len``), times ``1 + turn_cost`` per radian
     of turn: a forearm (skin or sleeve) is one smooth colour that stands out from what lies
-    beside it; a strip across a table or objects is not. The hand's direction is kept when no
-    candidate has enough samples.
+    beside it; a strip across a table or objects is not. With ``other (3,)``, the Lab colour of
+    the other hand's arm, a strip within ``other_tolerance`` of it has its score multiplied by
+    ``((distance + 1) / (other_tolerance + 1)) ** 2``, at least ``other_floor``: both arms wear
+    one shirt (or bare skin), while a smooth strip of table between the two arms stands out
+    from its sides (the arms) better than a knitted sleeve whose sides lie on itself. The
+    lowest score wins (lower is better); the hand's direction is kept, with no colour and an
+    infinite score, when no candidate has enough samples.
     """
     radius = hand_len / 3.0 if radius is None else radius
     steps = np.linspace(0.3, 1.5, 24) * hand_len  # (S,)
@@ -188,7 +236,7 @@ def arm_direction(
         colours = _sample(lab, exclude, pts)  # (N, 3) NaN outside or on the hand
         return colours[np.isfinite(colours[:, 0])]
 
-    best, best_score = hand_dir, np.inf
+    best, best_colour, best_score = hand_dir, None, np.inf
     for turn in np.arange(-max_turn_deg, max_turn_deg + 1e-6, 5.0):
         d = _rotate(hand_dir, float(turn))
         n = np.array([-d[1], d[0]])
@@ -206,9 +254,13 @@ def arm_direction(
         away = float(np.mean(contrast)) if contrast else 0.0
         # +1 Lab unit of noise floor, so that a perfectly uniform strip still prefers no turn
         score = (spread + 1.0) / (away + 1.0) * (1.0 + turn_cost * abs(np.radians(turn)))
+        if other is not None and other_tolerance > 0:
+            gap = float(np.linalg.norm(centre - other))
+            if gap <= other_tolerance:
+                score *= max(other_floor, ((gap + 1.0) / (other_tolerance + 1.0)) ** 2)
         if score < best_score:
-            best, best_score = d, score
-    return best
+            best, best_colour, best_score = d, centre, score
+    return best, best_colour, float(best_score)
 
 
 def arm_extent(
@@ -309,17 +361,45 @@ def _rotate(v: np.ndarray, degrees: float) -> np.ndarray:
     return np.array([np.cos(a) * v[0] - np.sin(a) * v[1], np.sin(a) * v[0] + np.cos(a) * v[1]])
 
 
+def _arm_start(
+    keypoints: np.ndarray, capsule: CapsuleParams, arm: ArmParams, height: int, width: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, float, bool] | None:
+    """``(mask, wrist, hand direction, hand length, forearm half-width, search)`` of one hand.
+
+    ``mask (H, W)`` uint8 is the hand's capsules; lengths are in pixels; ``search`` says whether
+    the arm's direction is searched (not when the hand's direction leaves the image within
+    ``out_of_view`` hand lengths). None without a scale or a direction, or without a forearm.
+    """
+    scale = hand_scale_px(keypoints)
+    found = hand_direction(keypoints)
+    if not np.isfinite(scale) or scale <= 0 or not capsule.forearm or found is None:
+        return None
+    mask, _ = draw_hand(
+        keypoints, 0, height, width, CapsuleParams(capsule.radius_scale, forearm=False)
+    )
+    wrist, d, hand_len = found
+    if arm.unforeshortened:
+        # A hand pointing into the view is short in the image, its arm often is not: lengths
+        # along the arm come from the hand's scale (its least foreshortened palm bone).
+        hand_len = max(hand_len, PALM_LENGTH_M * scale * capsule.radius_scale)
+    r_wrist = FOREARM_RADIUS_M[0] * scale * capsule.radius_scale
+    leaves = _exit_distance(wrist, d, width, height) < arm.out_of_view * hand_len
+    return mask, wrist, d, hand_len, r_wrist, arm.max_turn_deg > 0 and not leaves
+
+
 def draw_arm_labels(
     labels: np.ndarray,
     keypoints: np.ndarray,
     capsule: CapsuleParams,
     arm: ArmParams,
     lab: np.ndarray | None = None,
+    other: np.ndarray | None = None,
 ) -> None:
     """Paint one hand's GrabCut labels into ``labels (H, W)`` uint8 in place (see module doc).
 
     With ``lab (H, W, 3)``, the image in float32 Lab, the forearm's direction is searched round
-    the hand's own (:func:`arm_direction`); without it, the hand's direction is used. Regions
+    the hand's own (:func:`arm_direction`, with ``other (3,)``, the Lab colour of the other
+    hand's arm, when given); without it, the hand's direction is used. Regions
     only ever move towards the foreground: a pixel already labelled more certainly hand (by
     another hand) keeps its label. Labels: ``cv2.GC_BGD`` < ``GC_PR_BGD`` < ``GC_PR_FGD`` <
     ``GC_FGD`` in certainty of being hand, painted in that order.
@@ -332,17 +412,14 @@ def draw_arm_labels(
     fan = np.zeros((h, w), np.uint8)
     band = np.zeros((h, w), np.uint8)
     seed = np.zeros((h, w), np.uint8)
-    found = hand_direction(keypoints)
-    if capsule.forearm and found is not None:
-        wrist, d, hand_len = found
-        if arm.unforeshortened:
-            # A hand pointing into the view is short in the image, its arm often is not: lengths
-            # along the arm come from the hand's scale (its least foreshortened palm bone).
-            hand_len = max(hand_len, PALM_LENGTH_M * scale * capsule.radius_scale)
-        r_wrist = FOREARM_RADIUS_M[0] * scale * capsule.radius_scale
-        leaves = _exit_distance(wrist, d, *labels.shape[::-1]) < arm.out_of_view * hand_len
+    start = _arm_start(keypoints, capsule, arm, h, w)
+    if start is not None:
+        _, wrist, d, hand_len, r_wrist, search = start
         hand_dir = d
-        if lab is not None and arm.max_turn_deg > 0 and not leaves:
+        if lab is not None and search:
+            extra = {} if other is None else {
+                "other": other, "other_tolerance": arm.other_arm, "other_floor": arm.other_arm_floor
+            }  # fmt: skip
             d = arm_direction(
                 lab,
                 wrist,
@@ -352,6 +429,7 @@ def draw_arm_labels(
                 max_turn_deg=arm.max_turn_deg,
                 turn_cost=arm.turn_cost,
                 radius=r_wrist,
+                **extra,
             )
         fan, band, seed, region = _arm_regions(lab, mask, wrist, d, hand_len, scale, capsule, arm)
         if region is not None and arm.refine_direction:
@@ -375,6 +453,42 @@ def draw_arm_labels(
         (seed | core, cv2.GC_FGD),
     ):
         _raise_labels(labels, region > 0, label)
+
+
+def other_arm_colours(
+    lab: np.ndarray, keypoints: np.ndarray, valid: np.ndarray, capsule: CapsuleParams,
+    arm: ArmParams,
+) -> list[np.ndarray | None]:  # fmt: skip
+    """Per hand, the Lab colour ``(3,)`` of the other hand's arm to prefer, or None.
+
+    Each searched hand's arm is first searched alone (:func:`arm_search`); a hand is given the
+    strip colour of the other hand with the lowest (most certain) score, when its own score is
+    above ``other_arm_unsure`` (no clear arm found alone), the other's score is lower than its
+    own and at most ``other_arm_rare`` of the frame (sampled every 4 px) lies
+    within ``other_arm`` of that colour: the surer arm tells the other which colour the arms
+    are, when that colour is rare enough to mean arm.
+    """
+    h, w = lab.shape[:2]
+    alone: list[tuple[np.ndarray, float] | None] = []
+    for hand, ok in zip(keypoints, valid, strict=True):
+        start = _arm_start(np.asarray(hand, np.float64), capsule, arm, h, w) if ok else None
+        if start is None or not start[5]:
+            alone.append(None)
+            continue
+        mask, wrist, d, hand_len, r_wrist, _ = start
+        _, colour, score = arm_search(lab, wrist, d, hand_len, mask, arm.max_turn_deg,
+                                      arm.turn_cost, r_wrist)  # fmt: skip
+        alone.append(None if colour is None else (colour, score))
+    out: list[np.ndarray | None] = []
+    for k, own in enumerate(alone):
+        others = [a for j, a in enumerate(alone) if j != k and a is not None]
+        surest = min(others, key=lambda a: a[1]) if others else None
+        if own is None or surest is None or own[1] <= arm.other_arm_unsure or surest[1] >= own[1]:
+            out.append(None)
+            continue
+        share = np.linalg.norm(lab[2::4, 2::4] - surest[0], axis=2) <= arm.other_arm  # (H', W')
+        out.append(surest[0] if float(share.mean()) <= arm.other_arm_rare else None)
+    return out
 
 
 def _arm_regions(
@@ -561,11 +675,14 @@ def hand_arm_masks(
     lab = None  # (H, W, 3) the image in Lab, converted once for every hand's arm search
     if capsule.forearm and np.any(valid):
         lab = cv2.cvtColor(image, cv2.COLOR_RGB2LAB).astype(np.float32)
+    others: list[np.ndarray | None] = [None] * len(keypoints)
+    if lab is not None and arm.other_arm > 0 and int(np.sum(valid)) > 1:
+        others = other_arm_colours(lab, keypoints, valid, capsule, arm)
     for k, (hand, ok) in enumerate(zip(keypoints, valid, strict=True)):
         if not ok:
             continue
         own = np.full((h, w), cv2.GC_BGD, np.uint8)
-        draw_arm_labels(own, np.asarray(hand, dtype=np.float64), capsule, arm, lab)
+        draw_arm_labels(own, np.asarray(hand, dtype=np.float64), capsule, arm, lab, others[k])
         certain[k] = own == cv2.GC_FGD
         for label in (cv2.GC_PR_BGD, cv2.GC_PR_FGD, cv2.GC_FGD):
             _raise_labels(labels, own == label, label)

@@ -228,7 +228,7 @@ class HandMaskStage(ClipStage):
     # cleaned joints and a replacement camera (see the module docstring)
     optional_inputs: ClassVar[Mapping[str, ShardSchema]] = {**CAMERA_ROLES, "hands": HANDS}
     output = HAND_MASK
-    version = 15  # 2: image-space arm masks (no world axis). 3: arm found by a colour walk, masks
+    version = 16  # 2: image-space arm masks (no world axis). 3: arm found by a colour walk, masks
     # carried into frames whose hands were missed. 4: arm re-aimed along its colour region.
     # 5: that region is probably arm wherever it runs. 6: each hand carried into the frames that
     # missed it, and only its certain seeds (skeleton, arm strip) carried with confidence.
@@ -244,6 +244,7 @@ class HandMaskStage(ClipStage):
     # 13: a found hand without a wrist is no longer replaced by a carried one (nor crossed)
     # 14: each hand's mask grows by up to grow_margin_m into pixels of its own colour (grow)
     # 15: grow's colour histograms smoothed along lightness only (not into held objects)
+    # 16: a hand whose arm search is unsure prefers the other hand's arm colour, when rare
     backends = ("keypoints", "sam")
     # What process reads (the executor decodes nothing else): the frames, joints and camera
     # of the clip, the robot arm's mask, the cleaned joints.
