@@ -32,6 +32,8 @@ class GrowParams:
     bins: int = 16  # histogram bins per Lab channel
     min_probability: float = 0.5  # a pixel joins when P(hand | colour) exceeds this
     min_samples: int = 30  # pixels each sample needs, or the hand is left as it is
+    radius_scale: float = 1.0  # the hand's capsules' radii, times the average adult's (the
+    # stage's radius_scale: the hand's part of the mask is looked for round those capsules)
 
     def __post_init__(self) -> None:
         problems = []
@@ -43,6 +45,8 @@ class GrowParams:
             problems.append(f"bins must be in [2, 64], got {self.bins}")
         if not 0.0 < self.min_probability < 1.0:
             problems.append(f"min_probability must be in (0, 1), got {self.min_probability}")
+        if not 0.1 <= self.radius_scale <= 10.0:
+            problems.append(f"radius_scale must be in [0.1, 10], got {self.radius_scale}")
         if self.min_samples < 1:
             problems.append(f"min_samples must be >= 1, got {self.min_samples}")
         if problems:
@@ -78,7 +82,7 @@ def grow_hand(
         return np.zeros((h, w), bool)
     margin = max(1, round(p.margin_m * scale))
     outer = max(margin + 2, round(p.background_m * scale))
-    capsule, _ = draw_hand(keypoints, 0, h, w, CapsuleParams(forearm=False))  # (H, W)
+    capsule, _ = draw_hand(keypoints, 0, h, w, CapsuleParams(p.radius_scale, forearm=False))
     own = (cv2.dilate(capsule, _disk(margin)) > 0) & (mask > 0)  # the hand's part of the mask
     if own.sum() < p.min_samples:
         return np.zeros((h, w), bool)

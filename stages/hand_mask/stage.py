@@ -79,10 +79,11 @@ class HandMaskConfig(StageConfig):
     carry_frames: int = 8  # track a missed hand's keypoints this many frames from a frame
     # that found it, backwards and forwards (0: off; see carry)
     propagate_frames: int = 8  # carry each hand's mask this many frames backwards and forwards
-    # in time by optical flow, into frames that missed that hand (0: off; see propagate)
+    # in time by optical flow, into frames that missed that hand (0 or colour_refine False:
+    # off; see propagate)
     grow_margin_m: float = 0.012  # each hand's mask grows this far (metres at the hand's
-    # scale) into pixels of the hand's colour rather than the nearby background's (0: off;
-    # see grow)
+    # scale) into pixels of the hand's colour rather than the nearby background's (0 or
+    # colour_refine False: off; see grow)
     min_joint_confidence: float = 0.0  # joints with lower confidence are ignored
     sam_model_path: str = ""  # local folder of a SAM model (backend "sam")
     sam_device: str = "cpu"  # torch device of the SAM model
@@ -152,7 +153,8 @@ def masks_from_keypoints(
         # neighbours (its arm, from frames where the search found it), joined to its own.
         masks = propagate_hands(frames, masks, per_hand, certain, params, carried)
     if config.grow_margin_m > 0 and config.colour_refine:
-        masks = grow_masks(frames, masks, keypoints, valid, GrowParams(config.grow_margin_m))
+        grow = GrowParams(config.grow_margin_m, radius_scale=config.radius_scale)
+        masks = grow_masks(frames, masks, keypoints, valid, grow)
     return masks
 
 
