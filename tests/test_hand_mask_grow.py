@@ -11,18 +11,7 @@ from egosim.pipeline.stage import ConfigError
 from egosim.stages.hand_mask.capsules import CapsuleParams, draw_hand, hand_scale_px
 from egosim.stages.hand_mask.grow import GrowParams, grow_masks
 from egosim.stages.hand_mask.stage import HandMaskConfig
-
-
-def _open_hand(wrist: tuple[float, float]) -> np.ndarray:
-    """21 keypoints ``(21, 2)`` of an open hand pointing up, wrist at ``wrist`` (pixels)."""
-    kp = np.zeros((21, 2))
-    for j, (dx, angle) in enumerate(((-14.0, -150.0), (-7, -100), (0, -90), (7, -80), (13, -70))):
-        base = 1 + 4 * j
-        start = np.array([dx * 0.5, -10.0]) if j == 0 else np.array([dx, -30.0])
-        step = 10.0 * np.array([np.cos(np.radians(angle)), np.sin(np.radians(angle))])
-        for i in range(4):
-            kp[base + i] = start + i * step
-    return kp + np.asarray(wrist)
+from tests.test_hand_mask import _drawn_hand as _open_hand  # an open hand pointing up
 
 
 def _disk(r: int) -> np.ndarray:
