@@ -48,6 +48,7 @@ import numpy as np
 from bench.real_video import read_step
 from egosim.pipeline import media
 from egosim.pipeline.shards import open_shard
+from egosim.stages.common.frame_plan import plan_resize
 
 ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_DATA = ROOT.parent / "shared" / "data"
@@ -614,6 +615,34 @@ def print_table(rows: list[dict[str, Any]]) -> None:
             print(f"{r['variant']}: log tail:\n{r['log_tail']}")
 
 
+def crop_recall(name: str, path: Path, step: int = 2) -> str:
+    """How many of the hands of video ``path`` the clip's crop keeps: MediaPipe (per image, at
+    the size ingest's crop search uses) on every ``step``-th frame of the whole source frame;
+    a hand counts as kept when 11 of its 21 landmarks lie inside the crop's source region. For
+    the centre crop and for the crop ingest's default config picks (``crop=hands``), which
+    looks at 8 of these frames itself."""
+    from egosim.stages.common.hand_landmarks import detect_hand_landmarks
+    from egosim.stages.ingest import crop_anchor
+    from egosim.stages.ingest.stage import IngestConfig
+
+    cfg = IngestConfig()
+    info = media.probe_video_file(path)
+    frames, _ = media.read_video_file(path)  # (T, H, W, 3)
+    sample = crop_anchor.sample_video(path, info)
+    anchor = crop_anchor.choose_anchor(cfg, info.width, info.height, sample, name)
+    small = np.stack([crop_anchor.shrink(f) for f in frames[::step]])  # (N, h, w, 3)
+    raw = detect_hand_landmarks(small, crop_anchor.DETECT_PARAMS)
+    size = np.array([info.width, info.height]) / small.shape[2:0:-1]  # source px per small px
+    uv = raw.uv[raw.present] * size  # (K, 21, 2) source pixels
+    parts = [f"{name}: {len(uv)} hands on {len(small)} frames"]
+    for label, a in (("centre", (0.5, 0.5)), ("ingest", anchor)):
+        x0, y0, x1, y1 = plan_resize(info.width, info.height, cfg.width, cfg.height, a).source_crop
+        inside = (uv[..., 0] >= x0) & (uv[..., 0] <= x1) & (uv[..., 1] >= y0) & (uv[..., 1] <= y1)
+        kept = float((inside.sum(axis=1) >= 11).mean()) if len(uv) else float("nan")
+        parts.append(f"{label} anchor ({a[0]:.3f}, {a[1]:.3f}) keeps {kept:.2f}")
+    return "; ".join(parts)
+
+
 def main(argv: list[str] | None = None) -> int:
     """Write and run every variant (or ``--only``); exit 1 when one came out unexpectedly."""
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -629,10 +658,20 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument("--no-run", action="store_true", help="only read existing run folders")
     parser.add_argument("--list", action="store_true", help="list the variants and stop")
+    parser.add_argument(
+        "--crop-recall",
+        action="store_true",
+        help="print the share of hands the centre crop and ingest's crop keep per variant, stop",
+    )
     args = parser.parse_args(argv)
     wanted = [s for s in args.only.split(",") if s]
     chosen = [v for v in VARIANTS if not wanted or any(s in v.name for s in wanted)]
     by_name = {v.name: v for v in VARIANTS}
+    if args.crop_recall:
+        for v in chosen:
+            if v.spec is not None and (args.data / v.source).exists():
+                print(crop_recall(v.name, variant_input(v, args.data, args.out)), flush=True)
+        return 0
     if args.list:
         for v in chosen:
             run = "dataset" if v.full else "ingest"

@@ -65,6 +65,7 @@ def row_from_clip(clip: Clip, crf: int = media.DEFAULT_CRF) -> dict[str, Any]:
         ),
         "clip_policy": clip.clip_policy,
         "gripper_opening": _opt(clip.gripper_opening, lambda a: a.astype(np.float32).tolist()),
+        "source_crop": _opt(clip.source_crop, lambda a: np.asarray(a, dtype=np.float64).tolist()),
     }
 
 
@@ -143,6 +144,7 @@ def clip_from_row(row: Mapping[str, Any]) -> Clip:
         source_frame_indices=_opt(get("source_frame_indices"), lambda v: _arr(v, np.int64)),
         clip_policy=get("clip_policy"),
         gripper_opening=_opt(get("gripper_opening"), lambda v: _arr(v, np.float32).reshape(t, 2)),
+        source_crop=_opt(get("source_crop"), lambda v: _arr(v, np.float64)),
     )
     return clip.check()
 

@@ -87,6 +87,8 @@ class Clip:
     clip_policy: str | None = None  # what ingest's clip policy did: "full|short|tail[:preset]"
     gripper_opening: np.ndarray | None = None  # (T, 2) float32 metres per hand slot, NaN = none
     embodiment_mask: np.ndarray | None = None  # (T, H, W) uint8 1 = robot arm (URDF + joints)
+    source_crop: np.ndarray | None = None  # (4,) float64 x0, y0, x1, y1: the source region the
+    # frames show, source pixels (ingest's crop; frame_plan.plan_from_crop rebuilds its plan)
 
     @property
     def num_frames(self) -> int:
@@ -148,6 +150,18 @@ class Clip:
                 )
             elif t and (idx.min() < 0 or np.any(np.diff(idx) < 0)):
                 out.append("source_frame_indices must be >= 0 and non-decreasing")
+        if self.source_crop is not None:
+            c = np.asarray(self.source_crop, dtype=np.float64)
+            if (
+                c.shape != (4,)
+                or not np.all(np.isfinite(c))
+                or not (0 <= c[0] < c[2])
+                or not (0 <= c[1] < c[3])
+            ):
+                out.append(
+                    f"source_crop must be x0, y0, x1, y1 with 0 <= x0 < x1, 0 <= y0 < y1, got "
+                    f"{c.tolist()}"
+                )
         if self.source_fps is not None and not (
             np.isfinite(self.source_fps) and self.source_fps > 0
         ):

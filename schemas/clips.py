@@ -16,6 +16,11 @@ Version 3 adds ``gripper_opening`` (robot clips: the opening of the gripper in e
 Version 4 adds ``embodiment_mask`` (robot clips: the arm's silhouette derived at ingest from the
 log's URDF and joint states; ``hand_mask`` unions it into its output). Version 3 shards are
 refused the same way: re-run ``ingest``.
+
+Version 5 adds ``source_crop`` (the region of the source frame the clip's frames show, source
+pixels: ingest's cover crop, placed by its crop anchor, over the hands for portrait footage; see
+``docs/design.md``, "Crop anchor"); ``depth_camera``'s source track rebuilds the crop from it.
+Version 4 shards are refused the same way: re-run ``ingest``.
 """
 
 from __future__ import annotations
@@ -65,9 +70,26 @@ def _check_camera(row: Mapping[str, Any]) -> list[str]:
     fx, fy, cx, cy = row["intrinsics"]
     if not np.all(np.isfinite([fx, fy, cx, cy])) or fx <= 0 or fy <= 0:
         problems.append(f"intrinsics must be finite with fx, fy > 0, got {[fx, fy, cx, cy]}")
-    elif not (0 < cx < w and 0 < cy < h):
-        problems.append(f"principal point ({cx}, {cy}) lies outside the {w}x{h} image")
+    elif not (0 < cx < w and 0 < cy < h) and not _in_source(row, cx, cy):
+        crop = row.get("source_crop")
+        where = f"the {w}x{h} image" + ("" if crop is None else f" and its source crop {crop}")
+        problems.append(f"principal point ({cx}, {cy}) lies outside {where}")
     return problems
+
+
+def _in_source(row: Mapping[str, Any], cx: float, cy: float) -> bool:
+    """Whether the principal point ``(cx, cy)`` (clip pixels) lies in the source frame that the
+    row's ``source_crop`` was cut from. An off-centre crop (a band low in a portrait frame) puts
+    the source's principal point outside the clip's image; the source's far edges are not
+    recorded, so only its left and top edges bound it."""
+    crop = row.get("source_crop")
+    c = np.asarray(crop if crop is not None else [], dtype=np.float64)
+    if c.shape != (4,) or not np.all(np.isfinite(c)):
+        return False  # no crop, or a bad one (_check_crop names it)
+    x0, y0, x1, y1 = c
+    u = x0 + cx * (x1 - x0) / row["width"]  # source pixels
+    v = y0 + cy * (y1 - y0) / row["height"]
+    return u > 0 and v > 0
 
 
 def _check_poses(row: Mapping[str, Any]) -> list[str]:
@@ -95,6 +117,16 @@ def _check_hands(row: Mapping[str, Any]) -> list[str]:
         if np.any((c < 0) | (c > 1)):
             problems.append("hand_confidence outside [0, 1]")
     return problems
+
+
+def _check_crop(row: Mapping[str, Any]) -> list[str]:
+    value = row.get("source_crop")
+    if value is None:
+        return []
+    c = np.asarray(value, dtype=np.float64)
+    if c.shape != (4,) or not np.all(np.isfinite(c)) or not (0 <= c[0] < c[2] and 0 <= c[1] < c[3]):
+        return [f"source_crop must be x0, y0, x1, y1 with 0 <= x0 < x1, 0 <= y0 < y1, got {value}"]
+    return []
 
 
 def _check_gripper(row: Mapping[str, Any]) -> list[str]:
@@ -147,7 +179,7 @@ def _check_policy(row: Mapping[str, Any]) -> list[str]:
 
 CLIPS = ShardSchema(
     name="clips",
-    version=4,
+    version=5,
     doc="Standardised clips: video, timing, intrinsics and optional ground truth, one per row.",
     columns=(
         Column("clip_id", pa.string(), "Unique clip id within the dataset."),
@@ -233,6 +265,14 @@ CLIPS = ShardSchema(
             "and joint states (not ground truth); null for human clips and logs without them.",
             True,
         ),
+        Column(
+            "source_crop",
+            pa.list_(pa.float64(), 4),
+            "x0, y0, x1, y1: the region of the source frame the stored frames show, source pixels "
+            "(ingest scaled it to width x height; edges, so a whole W x H frame is 0, 0, W, H). "
+            "Null in rows written without it (read as the centre crop).",
+            True,
+        ),
     ),
     validators=(
         _check_counts,
@@ -241,5 +281,6 @@ CLIPS = ShardSchema(
         _check_hands,
         _check_policy,
         _check_gripper,
+        _check_crop,
     ),
 )

@@ -44,14 +44,26 @@ def _check_counts(row: Mapping[str, Any]) -> list[str]:
     return problems + frame_size_problems(row)
 
 
+# How far outside the image (in image sizes) the principal point may lie: ingest's crop placed
+# off-centre (a band low in a portrait frame) leaves the source's principal point outside the
+# clip's image (the bottom band of a 1080x1920 video in 832x480: cy = -134.5, 0.28 heights).
+PRINCIPAL_POINT_REACH = 2.0
+
+
 def _check_camera(row: Mapping[str, Any]) -> list[str]:
     problems: list[str] = []
     w, h = row["width"], row["height"]
     fx, fy, cx, cy = row["intrinsics"]
     if not np.all(np.isfinite([fx, fy, cx, cy])) or fx <= 0 or fy <= 0:
         problems.append(f"intrinsics must be finite with fx, fy > 0, got {[fx, fy, cx, cy]}")
-    elif not (0 < cx < w and 0 < cy < h):
-        problems.append(f"principal point ({cx}, {cy}) lies outside the {w}x{h} image")
+    elif not (
+        -PRINCIPAL_POINT_REACH * w < cx < (1 + PRINCIPAL_POINT_REACH) * w
+        and -PRINCIPAL_POINT_REACH * h < cy < (1 + PRINCIPAL_POINT_REACH) * h
+    ):
+        problems.append(
+            f"principal point ({cx}, {cy}) lies more than {PRINCIPAL_POINT_REACH:g} image sizes "
+            f"outside the {w}x{h} image"
+        )
     mats = np.asarray(row["world_from_cam"], dtype=np.float64).reshape(-1, 4, 4)
     problems.extend(f"world_from_cam: {p}" for p in se3_problems(mats))
     return problems

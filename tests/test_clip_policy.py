@@ -159,13 +159,14 @@ def test_clips_v1_shards_are_refused_with_a_compatibility_error(tmp_path: Path) 
     new = {"source_fps", "source_num_frames", "source_frame_indices", "clip_policy"}
     new |= {"gripper_opening"}  # clips v3
     new |= {"embodiment_mask"}  # clips v4
+    new |= {"source_crop"}  # clips v5
     v1_fields = [f for f in CLIPS.arrow if f.name not in new]
     v1 = pa.schema(
         v1_fields, metadata={b"egosim.schema.name": b"clips", b"egosim.schema.version": b"1"}
     )
     pq.write_table(pa.Table.from_pylist([], schema=v1), tmp_path / "v1.parquet")
     with pytest.raises(
-        SchemaCompatibilityError, match="'clips' version 1, expected 'clips' version 4"
+        SchemaCompatibilityError, match="'clips' version 1, expected 'clips' version 5"
     ):
         list(read_clips(tmp_path / "v1.parquet"))
 

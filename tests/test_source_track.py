@@ -14,6 +14,7 @@ from egosim.pipeline.clip_io import row_from_clip
 from egosim.pipeline.records import ClipsRecord
 from egosim.stages.depth_camera.source_track import (
     SourceTrack,
+    SourceTrackError,
     read_track_frames,
     thumbnail,
 )
@@ -22,17 +23,21 @@ from egosim.stages.ingest.stage import IngestConfig
 from egosim.stages.ingest.video_source import read_video_clips
 
 
-def _small_video(tmp_path: Path, n: int = 45, fps: float = 30.0) -> Path:
+def _small_video(
+    tmp_path: Path, n: int = 45, fps: float = 30.0, size: tuple[int, int] = (72, 120)
+) -> Path:
     rng = np.random.default_rng(3)
-    base = rng.integers(0, 255, (72, 120, 3), dtype=np.uint8)
-    frames = np.stack([np.roll(base, i, axis=1) for i in range(n)])  # (n, 72, 120, 3)
+    base = rng.integers(0, 255, (*size, 3), dtype=np.uint8)
+    frames = np.stack([np.roll(base, i, axis=1) for i in range(n)])  # (n, H, W, 3)
     path = tmp_path / "long.mp4"
     media.write_video_file(path, frames, fps)
     return path
 
 
-def _ingest(path: Path) -> list:
-    cfg = IngestConfig(source="video", height=32, width=48, num_frames=9, min_frames=5, fps=16.0)
+def _ingest(path: Path, **crop) -> list:
+    cfg = IngestConfig(
+        source="video", height=32, width=48, num_frames=9, min_frames=5, fps=16.0, **crop
+    )
     return list(read_video_clips(path, cfg))
 
 
@@ -56,6 +61,32 @@ def test_track_frames_are_ingests_window_frames(tmp_path: Path, source_fps: floa
     assert len(picks2) == 18
     assert np.array_equal(picks[:18], picks2)
     assert np.array_equal(chunk, frames[9:18])
+
+
+@pytest.mark.parametrize("anchor", [(0.5, 0.9), (0.5, 0.0), (0.5, 1.0)])
+def test_track_frames_follow_an_off_centre_crop(tmp_path: Path, anchor: tuple) -> None:
+    """A portrait source (120x72 -> 48x80 scaled, 32 of 80 rows kept) cut with an off-centre
+    anchor: the track, given the crop the row recorded (through the clips row and
+    track_request), reads ingest's window frames exactly; the centre crop does not."""
+    path = _small_video(tmp_path, size=(120, 72))
+    clips = _ingest(path, crop="anchor", crop_anchor=anchor)
+    rows = [ClipsRecord.of(row_from_clip(c)) for c in clips]
+    reqs = [track_request(r) for r in rows]
+    assert len(clips) >= 2 and all(r is not None for r in reqs)
+    y0 = round(anchor[1] * (80 - 32)) * 120 / 80  # the window's top row in source pixels
+    assert reqs[0].source_crop == pytest.approx((0.0, y0, 72.0, y0 + 32 * 120 / 80))
+    picks, frames = read_track_frames(
+        "video", str(path), 16.0, 30.0, (32, 48), 0, 1000, source_crop=reqs[0].source_crop
+    )
+    _, centre = read_track_frames("video", str(path), 16.0, 30.0, (32, 48), 0, 1000)
+    for clip, req in zip(clips, reqs, strict=True):
+        k0, t = req.first_target, clip.num_frames
+        assert np.array_equal(picks[k0 : k0 + t], clip.source_frame_indices)
+        assert np.array_equal(frames[k0 : k0 + t], clip.frames)
+        assert not np.array_equal(centre[k0 : k0 + t], clip.frames)
+    # A crop that is not a window of this source (it was replaced by another size) is refused.
+    with pytest.raises(SourceTrackError, match="is not a 48x32 window"):
+        read_track_frames("video", str(path), 16.0, 30.0, (32, 48), 0, 9, (0, 5, 72, 53.3))
 
 
 def test_which_windows_take_the_source_track(tmp_path: Path) -> None:

@@ -100,7 +100,7 @@ def test_workflow_reports_every_problem_before_running() -> None:
         "parameter 'fps'",
         "unknown step 'nostep'",
         "unknown stage 'no_such_stage'",
-        "needs schema 'rejects' v1 but step 'ingest' writes 'clips' v4",
+        "needs schema 'rejects' v1 but step 'ingest' writes 'clips' v5",
         "unknown step 'missing_step'",
     ):
         assert expected in message, expected

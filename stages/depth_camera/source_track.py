@@ -4,11 +4,11 @@ window (depth_camera v9; ``docs/design.md``, "Cameras per source video").
 Ingest cuts a long source into windows; estimating each window on its own gave every window its
 own world frame, focal and metric scale. Here the source is read again (video file or frame
 folder named by the clip's ``source_uri``), every frame resized to the clip's size by ingest's
-rule, and the frames ingest's rate rule picks become the *track frames*: every
-window frame is one of them. SfM runs on every ``keyframe_stride``-th track frame and KLT + PnP
-poses the rest (:func:`estimate_track`): one model, one focal, one world frame per source. The
-metric scale is pooled over segments of the track (:func:`pooled_scale`), so every window of a
-source gets the same one.
+rule (the crop the clip recorded, ``source_crop``), and the frames ingest's rate rule picks
+become the *track frames*: every window frame is one of them. SfM runs on every
+``keyframe_stride``-th track frame and KLT + PnP poses the rest (:func:`estimate_track`): one
+model, one focal, one world frame per source. The metric scale is pooled over segments of the track
+(:func:`pooled_scale`), so every window of a source gets the same one.
 
 Frames are held only while the track is built; a :class:`SourceTrack` keeps poses, the model
 points each track frame sees and the segments' depth maps.
@@ -30,9 +30,10 @@ from egosim.pipeline.media import MediaError, iter_video_file
 from egosim.schemas.depth_camera import POSED_BY_INTERPOLATION
 from egosim.stages.common.frame_plan import (
     RATE_TOLERANCE,
+    CropError,
     ResizePlan,
     frame_files,
-    plan_resize,
+    plan_from_crop,
     targets_reached,
 )
 from egosim.stages.depth_camera.sfm import (
@@ -80,15 +81,19 @@ def read_track_frames(
     size: tuple[int, int],
     first: int,
     count: int,
+    source_crop: tuple[float, ...] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """``(picks (N,), frames (M, H, W, 3))``: the source's track frames up to the chunk's end
     and the pixels of those at track positions ``first .. first + count - 1`` (the chunk),
-    resized to ``size = (H, W)``. The source is decoded only up to the chunk's last frame.
+    resized to ``size = (H, W)`` and cropped to ``source_crop`` (the clip's recorded crop,
+    ``x0, y0, x1, y1`` source pixels; None: the centre crop, as rows without one were cut).
+    The source is decoded only up to the chunk's last frame.
 
     ``kind`` is the clip's ``source`` (``video`` or ``frames``), ``uri`` its ``source_uri``.
     Streams the source through ingest's rate rule (``frame_plan.targets_reached``), holding
     one chunk.
-    Raises :class:`SourceTrackError` for another kind or an unreadable source.
+    Raises :class:`SourceTrackError` for another kind, an unreadable source, or a recorded crop
+    that does not fit the source's size (the file was replaced).
     """
     height, width = size
     times: list[float] = []
@@ -105,7 +110,10 @@ def read_track_frames(
         if first <= k < first + count:
             rgb = _rgb(frame)
             if plan is None:
-                plan = plan_resize(rgb.shape[1], rgb.shape[0], width, height)
+                try:
+                    plan = plan_from_crop(rgb.shape[1], rgb.shape[0], width, height, source_crop)
+                except CropError as exc:
+                    raise SourceTrackError(f"source {uri!r}: {exc}") from exc
             kept.append(plan.apply(rgb))
 
     try:

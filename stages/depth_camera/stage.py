@@ -672,6 +672,8 @@ class TrackRequest:
     intrinsics: tuple[float, ...]  # the clip's (prior) intrinsics
     source_indices: np.ndarray  # (T,) the window's source frames
     first_target: int  # the window's first track position, from its timestamps
+    source_crop: tuple[float, ...] | None = None  # the clip's crop (x0, y0, x1, y1 source
+    # pixels); None = ingest's centre crop (rows written before clips v5)
 
     def key(self, chunk: int) -> tuple:
         """Cache key of chunk ``chunk`` of this source's track (file size and time included)."""
@@ -682,7 +684,7 @@ class TrackRequest:
         except OSError:
             stamp = (-1, -1)
         return (self.kind, str(path), stamp, self.fps, self.source_fps, self.size,
-                self.intrinsics, chunk)  # fmt: skip
+                self.intrinsics, self.source_crop, chunk)  # fmt: skip
 
 
 def track_request(row: ClipsRecord) -> TrackRequest | None:
@@ -708,6 +710,7 @@ def track_request(row: ClipsRecord) -> TrackRequest | None:
         return None  # the window holds the whole source
     keep_rate = source_fps is not None and 0 < source_fps < fps * (1 - 1e-6)
     ts = np.asarray(row["timestamps"], dtype=np.float64)
+    crop = row.get("source_crop")
     first_target = int(idx[0]) if keep_rate else round(float(ts[0]) * fps)
     return TrackRequest(
         kind=row["source"],
@@ -718,6 +721,7 @@ def track_request(row: ClipsRecord) -> TrackRequest | None:
         intrinsics=tuple(float(v) for v in row.intrinsics),
         source_indices=idx,
         first_target=first_target,
+        source_crop=None if crop is None else tuple(float(v) for v in crop),
     )
 
 
@@ -729,7 +733,14 @@ def build_source_track(
     :class:`SourceTrackError` when the source cannot be read or tracked."""
     length = max(1, config.track_max_frames // segment) * segment
     picks, frames = read_track_frames(
-        req.kind, req.uri, req.fps, req.source_fps, req.size, chunk * length, length
+        req.kind,
+        req.uri,
+        req.fps,
+        req.source_fps,
+        req.size,
+        chunk * length,
+        length,
+        source_crop=req.source_crop,
     )
     prior = req.intrinsics[0]
     intrinsics, cam_from_world, posed_by, points, sfm = estimate_track(
@@ -1004,6 +1015,7 @@ class DepthCameraStage(ClipStage):
             "source_num_frames",
             "source_frame_indices",
             "clip_policy",
+            "source_crop",
         )
     }
     config: DepthCameraConfig

@@ -23,6 +23,7 @@ from egosim.pipeline.media import MediaError, iter_video_file, probe_video_file,
 from egosim.pipeline.records import NUM_HAND_JOINTS, Clip
 from egosim.pipeline.stage import ClipRejected
 from egosim.stages.common.frame_plan import plan_resize
+from egosim.stages.ingest.crop_anchor import choose_anchor, sample_video
 from egosim.stages.ingest.standardise import resample_windows
 from egosim.stages.ingest.video_source import ClipFormat, window_policy
 
@@ -246,7 +247,9 @@ def read_egodex_clips(
         raise ClipRejected(f"{hdf5_path}: {exc}") from exc
     if info.num_frames and info.num_frames != t:
         raise _count_mismatch(hdf5_path, mp4_path, t, info.num_frames)
-    plan = plan_resize(info.width, info.height, cfg.width, cfg.height)
+    sample = sample_video(mp4_path, info)
+    anchor = choose_anchor(cfg, info.width, info.height, sample, f"EgoDex episode {hdf5_path}")
+    plan = plan_resize(info.width, info.height, cfg.width, cfg.height, anchor)
     policy = window_policy(cfg)
     decoded = 0
 
@@ -280,6 +283,7 @@ def read_egodex_clips(
                 source_num_frames=t,
                 source_frame_indices=idx,
                 clip_policy=policy.label(window.kind),
+                source_crop=np.array(plan.source_crop),
             ).check()
     except MediaError as exc:
         raise ClipRejected(f"{hdf5_path}: {exc}") from exc

@@ -12,6 +12,7 @@ import numpy as np
 from egosim.pipeline.records import Clip
 from egosim.pipeline.stage import ClipRejected
 from egosim.stages.common.frame_plan import frame_files, plan_resize
+from egosim.stages.ingest.crop_anchor import choose_anchor, sample_frames
 from egosim.stages.ingest.standardise import resample_windows
 from egosim.stages.ingest.video_source import ClipFormat, source_intrinsics, window_policy
 
@@ -62,7 +63,9 @@ def read_frame_clips(folder: Path, cfg: FramesFormat) -> Iterator[Clip]:
         )
     first = _read_rgb(files[0])
     height, width = first.shape[:2]
-    plan = plan_resize(width, height, cfg.width, cfg.height)
+    sample = sample_frames(len(files), lambda i: first if i == 0 else _read_rgb(files[i]))
+    anchor = choose_anchor(cfg, width, height, sample, f"frame folder {folder}")
+    plan = plan_resize(width, height, cfg.width, cfg.height, anchor)
     intrinsics = plan.intrinsics(source_intrinsics(cfg, width, height))
 
     def frames() -> Iterator[tuple[float, np.ndarray]]:
@@ -86,4 +89,5 @@ def read_frame_clips(folder: Path, cfg: FramesFormat) -> Iterator[Clip]:
             source_num_frames=len(files),
             source_frame_indices=window.source_indices,
             clip_policy=policy.label(window.kind),
+            source_crop=np.array(plan.source_crop),
         ).check()

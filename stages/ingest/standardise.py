@@ -19,9 +19,12 @@ Time (the clip policy, :class:`WindowPolicy`):
 Every window records the index of each of its frames in the source and what the policy did
 (``full``, ``short`` or ``tail``).
 
-Space: the frame is scaled to cover the target size, then centre-cropped; the intrinsics are
-scaled and shifted the same way (:func:`egosim.pipeline.geometry.scale_intrinsics`,
-:func:`~egosim.pipeline.geometry.crop_intrinsics`).
+Space: the frame is scaled to cover the target size, then cropped to a window placed by the
+config's crop anchor (the centre, or over the hands: :mod:`egosim.stages.ingest.crop_anchor`);
+the intrinsics are scaled and shifted the same way
+(:func:`egosim.pipeline.geometry.scale_intrinsics`,
+:func:`~egosim.pipeline.geometry.crop_intrinsics`) and each clip records the window in source
+pixels (``source_crop``).
 """
 
 from __future__ import annotations

@@ -87,6 +87,7 @@ def render_unit(spec: str, cfg: SyntheticFormat) -> Clip:
         source_num_frames=clip.num_frames,
         source_frame_indices=np.arange(clip.num_frames),
         clip_policy=f"full:{cfg.preset}" if cfg.preset else "full",
+        source_crop=np.array([0.0, 0.0, clip.width, clip.height]),  # rendered at the clip size
     ).check()
 
 
@@ -138,4 +139,5 @@ def _robot_clip(world: WorldConfig, cfg: SyntheticFormat) -> Clip:
         source_num_frames=t,
         source_frame_indices=np.arange(t),
         clip_policy=f"full:{cfg.preset}" if cfg.preset else "full",
+        source_crop=np.array([0.0, 0.0, world.width, world.height]),  # rendered at the clip size
     ).check()

@@ -18,7 +18,8 @@ from egosim.pipeline.geometry import intrinsics_from_fov
 from egosim.pipeline.media import MediaError, VideoFileInfo, iter_video_file, probe_video_file
 from egosim.pipeline.records import Clip
 from egosim.pipeline.stage import ClipRejected
-from egosim.stages.common.frame_plan import plan_resize
+from egosim.stages.common.frame_plan import ResizePlan, plan_resize
+from egosim.stages.ingest.crop_anchor import choose_anchor, sample_frames, sample_video
 from egosim.stages.ingest.standardise import WindowPolicy, resample_windows
 
 # Video files ingest lists (any case): phones (.mp4 .mov .3gp), cameras and camcorders (.mts
@@ -48,6 +49,8 @@ class ClipFormat(Protocol):
     max_clips_per_source: int
     horizontal_fov_deg: float
     intrinsics: tuple[float, ...]
+    crop: str
+    crop_anchor: tuple[float, ...]
 
 
 def window_policy(cfg: ClipFormat) -> WindowPolicy:
@@ -90,7 +93,9 @@ def read_video_clips(path: Path, cfg: ClipFormat) -> Iterator[Clip]:
             f"video file {path} is {info.width}x{info.height}, smaller than the minimum "
             f"{MIN_SOURCE_SIDE} pixels a side"
         )
-    plan = plan_resize(info.width, info.height, cfg.width, cfg.height)
+    sample = sample_video(path, info)
+    anchor = choose_anchor(cfg, info.width, info.height, sample, f"video file {path}")
+    plan = plan_resize(info.width, info.height, cfg.width, cfg.height, anchor)
     intrinsics = plan.intrinsics(source_intrinsics(cfg, info.width, info.height))
     decoded, exhausted = 0, False  # frames decoded; True once the decoder reached the end
     span = [np.inf, -np.inf]  # first and last decoded frame times, seconds
@@ -121,6 +126,7 @@ def read_video_clips(path: Path, cfg: ClipFormat) -> Iterator[Clip]:
                 source_num_frames=info.num_frames or None,
                 source_frame_indices=window.source_indices,
                 clip_policy=policy.label(window.kind),
+                source_crop=np.array(plan.source_crop),
             ).check()
     except MediaError as exc:
         raise ClipRejected(f"{exc} (after {count} complete clip(s))") from exc
@@ -160,9 +166,14 @@ def standardise_clip(clip: Clip, cfg: ClipFormat) -> Iterator[Clip]:
 
     Every per-frame array (frames, poses, depth, hands, masks, object poses) is picked with the
     same source indices, so ground truth stays aligned with the frames. A clip that already
-    records its source (``source_frame_indices``) keeps indices into that original source.
+    records its source (``source_frame_indices``, ``source_crop``) keeps indices and a crop
+    into that original source. The crop's anchor is chosen on the clip's frames
+    (:func:`~egosim.stages.ingest.crop_anchor.choose_anchor`).
     """
-    plan = plan_resize(clip.width, clip.height, cfg.width, cfg.height)
+    frames = clip.frames
+    sample = sample_frames(clip.num_frames, lambda i: frames[i])
+    anchor = choose_anchor(cfg, clip.width, clip.height, sample, f"clip {clip.clip_id}")
+    plan = plan_resize(clip.width, clip.height, cfg.width, cfg.height, anchor)
     policy = window_policy(cfg)
     pairs = zip(clip.timestamps.tolist(), range(clip.num_frames), strict=True)
     windows = resample_windows(
@@ -208,4 +219,17 @@ def standardise_clip(clip: Clip, cfg: ClipFormat) -> Iterator[Clip]:
             source_num_frames=clip.source_num_frames or clip.num_frames,
             source_frame_indices=idx if origin is None else np.asarray(origin)[idx],
             clip_policy=policy.label(window.kind),
+            source_crop=crop_in_source(plan, clip.source_crop),
         ).check()
+
+
+def crop_in_source(plan: ResizePlan, outer: np.ndarray | None) -> np.ndarray:
+    """``(4,)`` the crop of ``plan`` in the pixels of the original source: ``plan``'s own when
+    its input is the source (``outer`` None), else mapped through ``outer``, the input's crop
+    of the source (``x0, y0, x1, y1``)."""
+    x0, y0, x1, y1 = plan.source_crop  # pixels of plan's input frame
+    if outer is None:
+        return np.array([x0, y0, x1, y1])
+    ox0, oy0, ox1, oy1 = (float(v) for v in outer)
+    sx, sy = (ox1 - ox0) / plan.src_width, (oy1 - oy0) / plan.src_height
+    return np.array([ox0 + x0 * sx, oy0 + y0 * sy, ox0 + x1 * sx, oy0 + y1 * sy])
