@@ -62,6 +62,7 @@ from egosim.stages.hands.mediapipe_backend import (
     hands_from_raw,
 )
 from egosim.stages.hands.metrics import JOINT_NAMES, combine, hand_accuracy, true_hands_in_view
+from egosim.stages.ingest.crop_anchor import choose_anchor, sample_video
 from egosim.stages.ingest.stage import CLIP_PRESETS, IngestConfig
 from egosim.stages.ingest.standardise import Window, WindowPolicy, resample_windows
 
@@ -169,10 +170,15 @@ def _run(frames: np.ndarray, params: MediaPipeParams | None = None):
 
 def ingest_windows(path: Path) -> list[Window]:
     """The clips ingest's egosim preset cuts from a video (16 fps by nearest timestamp, scaled to
-    cover 480x832 and centre-cropped, full windows then a ``1 + 4k`` tail): ingest's own
+    cover 480x832 and cropped where ingest's default ``crop="hands"`` puts the window, full
+    windows then a ``1 + 4k`` tail): ingest's own
+    :func:`~egosim.stages.ingest.crop_anchor.choose_anchor` and
     :func:`~egosim.stages.ingest.standardise.resample_windows`; none when it rejects the video."""
     frames, stamps = read_video_file(path)
-    plan = plan_resize(frames.shape[2], frames.shape[1], EGOSIM.width, EGOSIM.height)
+    cfg = IngestConfig(preset="egosim")
+    sample = sample_video(path, media.probe_video_file(path))
+    anchor = choose_anchor(cfg, frames.shape[2], frames.shape[1], sample, path.name)
+    plan = plan_resize(frames.shape[2], frames.shape[1], EGOSIM.width, EGOSIM.height, anchor)
     policy = WindowPolicy(EGOSIM.fps, EGOSIM.num_frames, EGOSIM.min_frames, preset="egosim")
     pairs = ((float(t), plan.apply(frame)) for t, frame in zip(stamps, frames, strict=True))
     try:
