@@ -15,7 +15,7 @@ import pytest
 from egosim.pipeline.clip_io import clip_from_row, row_from_clip
 from egosim.pipeline.geometry import intrinsics_from_fov, project_points
 from egosim.pipeline.media import write_video_file
-from egosim.pipeline.stage import ConfigError
+from egosim.pipeline.stage import ClipRejected, ConfigError
 from egosim.stages.common.frame_plan import plan_from_crop, plan_resize
 from egosim.stages.ingest import crop_anchor
 from egosim.stages.ingest.frames_source import read_frame_clips
@@ -271,3 +271,27 @@ def test_clips_schema_checks_the_crop_and_the_principal_point_it_moves(tmp_path:
     assert any("principal point" in p and "lies outside the 104x60 image" in p for p in problems)
     bad = CLIPS.row_problems({**row, "source_crop": [0.0, 500.0, 360.0, 400.0]})
     assert any("source_crop must be x0, y0, x1, y1" in p for p in bad)
+
+
+def test_an_odd_sized_frame_among_the_crop_samples_rejects_the_folder(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A frame folder whose odd-sized image is one of the crop search's samples is rejected
+    naming that file, as when the clip's frames meet it (it was a bare ValueError from
+    stacking the samples)."""
+
+    def no_hands(frames: list[np.ndarray]) -> list:
+        np.stack(frames)  # as the detector's input is stacked: one size
+        return []
+
+    monkeypatch.setattr(crop_anchor, "hand_boxes", no_hands)
+    n = 20
+    odd = crop_anchor.sample_indices(n, crop_anchor.SAMPLE_FRAMES)[4]  # index 11: sampled
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    for i in range(n):
+        h = SRC_H - 40 if i == odd else SRC_H
+        cv2.imwrite(str(folder / f"{i:04d}.png"), np.full((h, SRC_W, 3), 100, np.uint8))
+    cfg = IngestConfig(frames_fps=15.0, **CLIP)
+    with pytest.raises(ClipRejected, match=rf"{odd:04d}\.png: size \(600, 360\) differs"):
+        list(read_frame_clips(folder, cfg))

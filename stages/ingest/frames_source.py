@@ -63,17 +63,23 @@ def read_frame_clips(folder: Path, cfg: FramesFormat) -> Iterator[Clip]:
         )
     first = _read_rgb(files[0])
     height, width = first.shape[:2]
-    sample = sample_frames(len(files), lambda i: first if i == 0 else _read_rgb(files[i]))
+
+    def image_at(i: int) -> np.ndarray:
+        """Frame ``i``, rejected when its size is not the first frame's."""
+        image = first if i == 0 else _read_rgb(files[i])
+        if image.shape[:2] != (height, width):
+            raise ClipRejected(f"{files[i]}: size {image.shape[:2]} differs from {(height, width)}")
+        return image
+
+    # The crop search's samples are size-checked too (one odd frame among them was a ValueError).
+    sample = sample_frames(len(files), image_at)
     anchor = choose_anchor(cfg, width, height, sample, f"frame folder {folder}")
     plan = plan_resize(width, height, cfg.width, cfg.height, anchor)
     intrinsics = plan.intrinsics(source_intrinsics(cfg, width, height))
 
     def frames() -> Iterator[tuple[float, np.ndarray]]:
-        for i, f in enumerate(files):
-            image = first if i == 0 else _read_rgb(f)
-            if image.shape[:2] != (height, width):
-                raise ClipRejected(f"{f}: size {image.shape[:2]} differs from {(height, width)}")
-            yield i / cfg.frames_fps, plan.apply(image)
+        for i in range(len(files)):
+            yield i / cfg.frames_fps, plan.apply(image_at(i))
 
     what = f"frame folder {folder}"
     for window in resample_windows(frames(), policy, cfg.frames_fps, what):
