@@ -295,3 +295,22 @@ def test_an_odd_sized_frame_among_the_crop_samples_rejects_the_folder(
     cfg = IngestConfig(frames_fps=15.0, **CLIP)
     with pytest.raises(ClipRejected, match=rf"{odd:04d}\.png: size \(600, 360\) differs"):
         list(read_frame_clips(folder, cfg))
+
+
+def test_without_mediapipe_the_crop_stays_at_the_anchor_with_a_warning(
+    monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    """MediaPipe not installed: ``crop=hands`` keeps ``crop_anchor`` and says why (a warning),
+    rather than failing the source."""
+    from egosim.stages.common.hand_landmarks import MediaPipeUnavailableError
+
+    def missing(frames: list[np.ndarray]) -> list:
+        raise MediaPipeUnavailableError("hand landmarks need mediapipe")
+
+    monkeypatch.setattr(crop_anchor, "hand_boxes", missing)
+    frames = [np.zeros((64, 36, 3), np.uint8)] * crop_anchor.SAMPLE_FRAMES
+    cfg = IngestConfig(crop_anchor=(0.5, 0.75))
+    with caplog.at_level(logging.WARNING, logger=crop_anchor.__name__):
+        anchor = crop_anchor.choose_anchor(cfg, 1080, 1920, lambda n: frames[:n], "portrait")
+    assert anchor == (0.5, 0.75)
+    assert "portrait: crop at anchor (0.5, 0.75), hands not looked for" in caplog.text
