@@ -314,3 +314,25 @@ def test_without_mediapipe_the_crop_stays_at_the_anchor_with_a_warning(
         anchor = crop_anchor.choose_anchor(cfg, 1080, 1920, lambda n: frames[:n], "portrait")
     assert anchor == (0.5, 0.75)
     assert "portrait: crop at anchor (0.5, 0.75), hands not looked for" in caplog.text
+
+
+def test_a_failed_seek_samples_by_one_pass_instead(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A long video whose seeking fails (no frame timestamps, a broken index) still gets its 8
+    spread samples, by one decoding pass."""
+    from egosim.pipeline.media import MediaError, probe_video_file
+
+    n = 40
+    frames = np.stack([np.full((64, 48, 3), 5 * i, np.uint8) for i in range(n)])
+    path = tmp_path / "ramp.mp4"
+    write_video_file(path, frames, 30.0)
+    monkeypatch.setattr(crop_anchor, "SEEK_AFTER_S", 0.5)  # 1.33 s: a "long" video
+
+    def broken(*args: object) -> list:
+        raise MediaError("cannot seek in video file: no frame timestamps")
+
+    monkeypatch.setattr(crop_anchor, "_seek_frames", broken)
+    sample = crop_anchor.sample_video(path, probe_video_file(path))(8)
+    got = [round(float(f.mean()) / 5) for f in sample]
+    assert got == [int((k + 0.5) * n / 8) for k in range(8)]  # 2, 7, 12, ... 37
