@@ -33,6 +33,7 @@ from egosim.schemas import (
     SIMULATION,
     ShardSchema,
 )
+from egosim.schemas.clips import source_crop_problems
 from egosim.schemas.poses import POSES
 from egosim.schemas.scene import SCENE_RENDER
 
@@ -150,18 +151,7 @@ class Clip:
                 )
             elif t and (idx.min() < 0 or np.any(np.diff(idx) < 0)):
                 out.append("source_frame_indices must be >= 0 and non-decreasing")
-        if self.source_crop is not None:
-            c = np.asarray(self.source_crop, dtype=np.float64)
-            if (
-                c.shape != (4,)
-                or not np.all(np.isfinite(c))
-                or not (0 <= c[0] < c[2])
-                or not (0 <= c[1] < c[3])
-            ):
-                out.append(
-                    f"source_crop must be x0, y0, x1, y1 with 0 <= x0 < x1, 0 <= y0 < y1, got "
-                    f"{c.tolist()}"
-                )
+        out.extend(source_crop_problems(self.source_crop))
         if self.source_fps is not None and not (
             np.isfinite(self.source_fps) and self.source_fps > 0
         ):

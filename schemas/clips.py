@@ -119,14 +119,21 @@ def _check_hands(row: Mapping[str, Any]) -> list[str]:
     return problems
 
 
-def _check_crop(row: Mapping[str, Any]) -> list[str]:
-    value = row.get("source_crop")
+def source_crop_problems(value: Any) -> list[str]:
+    """What is wrong with a ``source_crop`` (``x0, y0, x1, y1`` source pixels; None: none
+    recorded, fine). The clips schema and ``Clip.problems`` (pipeline/records.py) share it."""
     if value is None:
         return []
     c = np.asarray(value, dtype=np.float64)
     if c.shape != (4,) or not np.all(np.isfinite(c)) or not (0 <= c[0] < c[2] and 0 <= c[1] < c[3]):
-        return [f"source_crop must be x0, y0, x1, y1 with 0 <= x0 < x1, 0 <= y0 < y1, got {value}"]
+        return [
+            f"source_crop must be x0, y0, x1, y1 with 0 <= x0 < x1, 0 <= y0 < y1, got {c.tolist()}"
+        ]
     return []
+
+
+def _check_crop(row: Mapping[str, Any]) -> list[str]:
+    return source_crop_problems(row.get("source_crop"))
 
 
 def _check_gripper(row: Mapping[str, Any]) -> list[str]:

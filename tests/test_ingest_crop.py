@@ -271,6 +271,12 @@ def test_clips_schema_checks_the_crop_and_the_principal_point_it_moves(tmp_path:
     assert any("principal point" in p and "lies outside the 104x60 image" in p for p in problems)
     bad = CLIPS.row_problems({**row, "source_crop": [0.0, 500.0, 360.0, 400.0]})
     assert any("source_crop must be x0, y0, x1, y1" in p for p in bad)
+    # The Clip record checks the same (one shared rule, schemas.clips.source_crop_problems).
+    from dataclasses import replace
+
+    assert clip.problems() == []
+    bad_clip = replace(clip, source_crop=np.array([0.0, 500.0, 360.0, 400.0]))
+    assert any("source_crop must be x0, y0, x1, y1" in p for p in bad_clip.problems())
 
 
 def test_an_odd_sized_frame_among_the_crop_samples_rejects_the_folder(
