@@ -46,7 +46,8 @@ def _check_counts(row: Mapping[str, Any]) -> list[str]:
 
 # How far outside the image (in image sizes) the principal point may lie: ingest's crop placed
 # off-centre (a band low in a portrait frame) leaves the source's principal point outside the
-# clip's image (the bottom band of a 1080x1920 video in 832x480: cy = -134.5, 0.28 heights).
+# clip's image (a 1080x1920 video into 832x480: cy = -134.5 at the hands anchor y 0.875, 0.28
+# heights; -259.5 at the very bottom, y 1, 0.54 heights).
 PRINCIPAL_POINT_REACH = 2.0
 
 

@@ -13,7 +13,7 @@ from egosim.schemas.depth_camera import DEPTH_CAMERA, PRINCIPAL_POINT_REACH
 def test_cameras_schema_takes_a_principal_point_outside_the_image() -> None:
     row = {"width": 832, "height": 480, "world_from_cam": [np.eye(4).ravel().tolist()]}
     check = DEPTH_CAMERA.validators[1]  # _check_camera
-    # The bottom band of a 1080x1920 video in 832x480 (ingest's hands crop): cy = -134.5.
+    # The hands band (anchor y 0.875) of a 1080x1920 video in 832x480: cy = -134.5.
     assert check({**row, "intrinsics": [594.0, 594.0, 416.0, -134.5]}) == []
     assert check({**row, "intrinsics": [594.0, 594.0, 416.0, 240.0]}) == []
     assert PRINCIPAL_POINT_REACH == 2.0
