@@ -194,7 +194,9 @@ def shrink(frame: np.ndarray) -> np.ndarray:
 
 
 def _seek_frames(path: Path, info: VideoFileInfo, count: int) -> list[np.ndarray]:
-    """The first frame at or after each of ``count`` evenly spread times (seeking)."""
+    """The first frame from half a frame before each of ``count`` evenly spread times on
+    (seeking: :func:`~egosim.pipeline.media.iter_video_file` with ``start``), the same frames
+    as :func:`_pass_frames` picks by index."""
     out = []
     for k in range(count):
         start = info.start_s + (k + 0.5) * info.duration_s / count
