@@ -221,11 +221,14 @@ def _video_frames(path: Path) -> np.ndarray:
     return frames
 
 
-def _fit(frames: np.ndarray, indices: np.ndarray, hw: tuple[int, int]) -> np.ndarray:
-    """Source frames at ``indices`` scaled to cover ``hw`` and centre-cropped (ingest's rule)."""
-    from egosim.stages.common.frame_plan import plan_resize
+def _fit(
+    frames: np.ndarray, indices: np.ndarray, hw: tuple[int, int], source_crop=None
+) -> np.ndarray:
+    """Source frames at ``indices`` cut as ingest cut the clip: scaled to cover ``hw`` and cropped
+    to the clip row's recorded ``source_crop`` (the centre crop when None: rows before clips v5)."""
+    from egosim.stages.common.frame_plan import plan_from_crop
 
-    plan = plan_resize(frames.shape[2], frames.shape[1], hw[1], hw[0])
+    plan = plan_from_crop(frames.shape[2], frames.shape[1], hw[1], hw[0], source_crop)
     return np.stack([plan.apply(frames[min(i, len(frames) - 1)]) for i in indices])
 
 
@@ -281,8 +284,9 @@ def scene_vs_truth(
     if indices is None:  # clips v1: the source rate equals the clip rate
         indices = np.arange(len(scene))
     indices = np.asarray(indices, dtype=np.int64)
-    truth = _fit(_video_frames(data / case.static_truth), indices, (h, w))
-    hands = _fit(_video_frames(data / case.hands_truth), indices, (h, w))
+    crop = clip.get("source_crop")
+    truth = _fit(_video_frames(data / case.static_truth), indices, (h, w), crop)
+    hands = _fit(_video_frames(data / case.hands_truth), indices, (h, w), crop)
     kernel = cv2.getStructuringElement(
         cv2.MORPH_ELLIPSE, (2 * HAND_DILATE_PX + 1, 2 * HAND_DILATE_PX + 1)
     )

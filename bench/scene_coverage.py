@@ -216,8 +216,9 @@ def real_case(
         if case.static_truth:
             indices = clip.get("source_frame_indices")
             indices = np.arange(len(video)) if indices is None else np.asarray(indices, np.int64)
-            truth = _fit(_video_frames(data / case.static_truth), indices, (h, w))
-            hands = _fit(_video_frames(data / case.hands_truth), indices, (h, w))
+            crop = clip.get("source_crop")
+            truth = _fit(_video_frames(data / case.static_truth), indices, (h, w), crop)
+            hands = _fit(_video_frames(data / case.hands_truth), indices, (h, w), crop)
             hand = hands.max(axis=3) > HAND_RENDER_THRESHOLD  # (T, H, W)
             # registered like bench.real_video: videos_static is offset by its principal point
             dx, dy = truth_shift(real[0], truth[0])
