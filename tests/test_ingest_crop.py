@@ -4,6 +4,7 @@ recorded ``source_crop`` (clips v5)."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 from pathlib import Path
@@ -342,3 +343,30 @@ def test_a_failed_seek_samples_by_one_pass_instead(
     sample = crop_anchor.sample_video(path, probe_video_file(path))(8)
     got = [round(float(f.mean()) / 5) for f in sample]
     assert got == [int((k + 0.5) * n / 8) for k in range(8)]  # 2, 7, 12, ... 37
+
+
+def test_robot_clips_keep_the_configured_anchor(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A robot clip (a gripper opening) is not searched for human hands: with ``crop="hands"`` it
+    is cut at ``crop_anchor`` even where the detector would report a hand elsewhere, while the
+    same clip without the gripper follows the detector."""
+    from egosim.pipeline.records import Clip
+
+    frames = _background(9)
+    monkeypatch.setattr(crop_anchor, "hand_boxes", lambda f: [(0.3, 0.0, 0.6, 0.1)] * len(f))
+    clip = Clip(
+        clip_id="c",
+        source="lerobot",
+        source_uri="x",
+        fps=8.0,
+        timestamps=np.arange(9) / 8.0,
+        intrinsics=intrinsics_from_fov(SRC_W, SRC_H, 70.0),
+        frames=frames,
+    )
+    cfg = IngestConfig(crop="hands", crop_anchor=(0.5, 0.5), **CLIP)
+    top = plan_resize(SRC_W, SRC_H, 104, 60, (0.5, 0.0)).source_crop
+    centre = plan_resize(SRC_W, SRC_H, 104, 60, (0.5, 0.5)).source_crop
+    (human,) = standardise_clip(clip, cfg)
+    np.testing.assert_allclose(human.source_crop, top)  # the detector's hand is at the top
+    robot = dataclasses.replace(clip, gripper_opening=np.full((9, 2), 0.04, np.float32))
+    (cut,) = standardise_clip(robot, cfg)
+    np.testing.assert_allclose(cut.source_crop, centre)

@@ -197,7 +197,9 @@ class IngestStage(SourceStage):
     #    window over the hands in sources that lose >= 10% of a side (portrait, 4:3, 720x480 into
     #    832x480): their frames and intrinsics change. Sources losing less (16:9) keep the centre
     #    crop: the same frames.
-    version = 7
+    # 8: robot clips (a gripper or an embodiment mask) keep crop_anchor: the human-hand search
+    #    is not run on them.
+    version = 8
     config: IngestConfig
 
     def list_units(self, source: str | None) -> list[str]:

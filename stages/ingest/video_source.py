@@ -19,7 +19,12 @@ from egosim.pipeline.media import MediaError, VideoFileInfo, iter_video_file, pr
 from egosim.pipeline.records import Clip
 from egosim.pipeline.stage import ClipRejected
 from egosim.stages.common.frame_plan import ResizePlan, plan_resize
-from egosim.stages.ingest.crop_anchor import choose_anchor, sample_frames, sample_video
+from egosim.stages.ingest.crop_anchor import (
+    choose_anchor,
+    configured,
+    sample_frames,
+    sample_video,
+)
 from egosim.stages.ingest.standardise import WindowPolicy, resample_windows
 
 # Video files ingest lists (any case): phones (.mp4 .mov .3gp), cameras and camcorders (.mts
@@ -168,11 +173,16 @@ def standardise_clip(clip: Clip, cfg: ClipFormat) -> Iterator[Clip]:
     same source indices, so ground truth stays aligned with the frames. A clip that already
     records its source (``source_frame_indices``, ``source_crop``) keeps indices and a crop
     into that original source. The crop's anchor is chosen on the clip's frames
-    (:func:`~egosim.stages.ingest.crop_anchor.choose_anchor`).
+    (:func:`~egosim.stages.ingest.crop_anchor.choose_anchor`), except for robot clips (a gripper
+    or an embodiment mask): the human-hand search would take a gripper or a bystander's hand for
+    the action, so they keep the configured ``crop_anchor``.
     """
     frames = clip.frames
-    sample = sample_frames(clip.num_frames, lambda i: frames[i])
-    anchor = choose_anchor(cfg, clip.width, clip.height, sample, f"clip {clip.clip_id}")
+    if clip.gripper_opening is not None or clip.embodiment_mask is not None:
+        anchor = configured(cfg)
+    else:
+        sample = sample_frames(clip.num_frames, lambda i: frames[i])
+        anchor = choose_anchor(cfg, clip.width, clip.height, sample, f"clip {clip.clip_id}")
     plan = plan_resize(clip.width, clip.height, cfg.width, cfg.height, anchor)
     policy = window_policy(cfg)
     pairs = zip(clip.timestamps.tolist(), range(clip.num_frames), strict=True)
