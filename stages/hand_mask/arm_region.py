@@ -41,6 +41,7 @@ are what ``propagate`` carries into other frames with confidence.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import cv2
 import numpy as np
@@ -175,26 +176,10 @@ def _sample(lab: np.ndarray, exclude: np.ndarray, points: np.ndarray) -> np.ndar
     return out
 
 
-def arm_direction(
-    lab: np.ndarray,
-    wrist: np.ndarray,
-    hand_dir: np.ndarray,
-    hand_len: float,
-    exclude: np.ndarray,
-    max_turn_deg: float = 90.0,
-    turn_cost: float = 0.15,
-    radius: float | None = None,
-    other: np.ndarray | None = None,
-    other_tolerance: float = 18.0,
-    other_floor: float = 0.1,
-) -> np.ndarray:
-    """Unit image direction ``(2,)`` of the forearm from ``wrist``, chosen by colour.
-
-    See :func:`arm_search` (this is its direction).
-    """
-    found = arm_search(lab, wrist, hand_dir, hand_len, exclude, max_turn_deg, turn_cost, radius,
-                       other, other_tolerance, other_floor)  # fmt: skip
-    return found[0]
+def arm_direction(*args: Any, **kwargs: Any) -> np.ndarray:
+    """Unit image direction ``(2,)`` of the forearm from the wrist, chosen by colour: the
+    direction of :func:`arm_search`, which takes the same arguments."""
+    return arm_search(*args, **kwargs)[0]
 
 
 def arm_search(
