@@ -83,6 +83,23 @@ def grow_hand(
     margin = max(1, round(p.margin_m * scale))
     outer = max(margin + 2, round(p.background_m * scale))
     capsule, _ = draw_hand(keypoints, 0, h, w, CapsuleParams(p.radius_scale, forearm=False))
+    # Everything below lies within margin + outer of the capsules: work in that window only.
+    x, y, bw, bh = cv2.boundingRect(capsule)
+    pad = 2 * margin + outer + 2
+    window = np.s_[max(0, y - pad) : min(h, y + bh + pad), max(0, x - pad) : min(w, x + bw + pad)]
+    added = np.zeros((h, w), bool)
+    if bw == 0 or bh == 0:
+        return added
+    added[window] = _grow_in(codes[window], mask[window], capsule[window], margin, outer, p)
+    return added
+
+
+def _grow_in(
+    codes: np.ndarray, mask: np.ndarray, capsule: np.ndarray, margin: int, outer: int, p: GrowParams
+) -> np.ndarray:
+    """:func:`grow_hand` inside a window holding the hand's capsules and ``margin + outer`` round
+    them: the pixels ``(h, w)`` bool it adds."""
+    h, w = mask.shape
     own = (cv2.dilate(capsule, _disk(margin)) > 0) & (mask > 0)  # the hand's part of the mask
     if own.sum() < p.min_samples:
         return np.zeros((h, w), bool)
