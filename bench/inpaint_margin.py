@@ -1,9 +1,11 @@
 """Frame-0 inpainting against OpenCV Telea, the fill alone (issue 9), several configs at once.
 
 ``python -m bench.inpaint_margin [--set default] [--config 'name:key=value,key=value' ...]
-[--skip-real] [--out runs/inpaint_margin]`` prints, per case and config, the fill's PSNR in the
-true hand(+arm) region of frame 0 and the margin over Telea; ``OUT/inpaint_margin.json`` holds
-the figures and ``OUT/<config>_<case>.png`` the sheets (frame 0 | fill | truth | Telea).
+[--skip-real] [--runs runs/real_s24b] [--out runs/inpaint_margin]`` prints, per case and config,
+the fill's PSNR in the true hand(+arm) region of frame 0 and the margin over Telea;
+``OUT/inpaint_margin.json`` holds the figures and ``OUT/<config>_<case>.png`` the sheets
+(synthetic: frame 0 | fill | fill given the true mask | truth | Telea; DWM: frame 0 | mask |
+fill | truth | Telea).
 
 Masks are computed once and cached in ``OUT/cache`` (the ``hand_mask`` stage's masks from the
 true joints on the synthetic world, MediaPipe-landmark masks on the DWM clips, as
@@ -28,6 +30,21 @@ the sub-clip from the first frame with a visible hand, image-aligned fill, ``vid
 registered to the real frames, PSNR in the hand truth dilated 15 px, Telea with the same mask.
 ``--aligned`` runs the synthetic cases without depth and poses too (the fill DWM gets: later
 frames aligned by homographies), so that path has cases to tune on that are not the real ones.
+
+The real dataset workflow (``bench.real_video``: ``workflows/dataset.yaml``, preset ``dwm``) gives
+the DWM clips cameras from SfM and a plane-sweep depth, so what it ships on them is the **depth**
+fill, not the image-aligned one. ``--runs RUNS`` (default ``runs/real_s24b``, a finished
+``bench.real_video --out RUNS``) adds those rows, read from each clip's run ``RUNS/dwm_<id>``:
+
+- ``dwm-depth:<id>``: the same sub-clip, masks and Telea as the aligned row, filled by the depth
+  path with the run's cameras: intrinsics from its ``cameras`` step, poses from its ``poses``
+  step (pose_clean, as the workflow's ``inpaint`` reads them), and the sub-clip's frame-0 depth
+  made by the run's ``depth_camera`` code and parameters (:func:`window_depth` on the sub-clip,
+  with the cameras step's poses; no hand exclusion, as that step had no masks; depth range and
+  sources from the run's frame-0 depth lifted to the world). The run's own depth is frame 0's, where
+  neither clip shows a hand, so the sub-clip's first frame needs its own;
+- ``dwm-run:<id>``: the same, with the masks of the run's ``hand_mask`` step (from its
+  ``hands`` stage's joints: the masks the workflow ships) instead of the bench's.
 """
 
 from __future__ import annotations
@@ -39,6 +56,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import yaml
 
 from bench.hand_free_real import (
     DWM,
@@ -52,7 +70,11 @@ from bench.real_video import (
     HAND_DILATE_PX,
     ROOT,
     _psnr,
+    read_step,
 )
+from egosim.pipeline.geometry import invert_se3, transform_points, unproject_depth
+from egosim.pipeline.records import DepthCameraRecord, HandMaskRecord, PosesRecord
+from egosim.stages.depth_camera.stage import DepthCameraStage, window_depth
 from egosim.stages.hand_mask.stage import HandMaskConfig, HandMaskStage, masks_from_keypoints
 from egosim.stages.hands.stage import HandsStage
 from egosim.stages.inpaint.reproject_fill import dilate, opencv_fill
@@ -124,8 +146,12 @@ def world_rows(case: str, configs, size, frames, out: Path, aligned: bool = Fals
     return rows
 
 
-def dwm_rows(cid: str, configs, data: Path, out: Path) -> list[dict]:
-    """Figures of one real DWM clip under every config (see the module docstring)."""
+def dwm_rows(cid: str, configs, data: Path, out: Path, runs: Path | None = None) -> list[dict]:
+    """Figures of one real DWM clip under every config (see the module docstring).
+
+    ``runs``: a ``bench.real_video`` output folder; when it holds this clip's run, the depth
+    fill with that run's cameras is measured too (``dwm-depth`` and ``dwm-run`` rows).
+    """
     video, static, inside, hands, _ = dwm_truth(cid, data)
     versions = f"hm{HandMaskStage.version}_hands{HandsStage.version}"  # masks, keypoints
     path = out / "cache" / f"dwm_{cid}_{versions}.npz"
@@ -138,22 +164,81 @@ def dwm_rows(cid: str, configs, data: Path, out: Path) -> list[dict]:
     shown = np.nonzero(hands.reshape(len(hands), -1).mean(axis=1) >= MIN_HAND_FRACTION)[0]
     s = int(shown[0]) if len(shown) else 0
     region = (dilate(hands[s], HAND_DILATE_PX) > 0) & inside
+    # case -> (masks, poses, intrinsics, depth of the sub-clip's first frame)
+    paths: dict[str, tuple] = {f"dwm:{cid}": (masks, None, np.zeros(4), None)}
+    run = None if runs is None else runs / f"dwm_{cid}"
+    if run is not None and (run / "cameras").is_dir():
+        poses, intrinsics, depth, run_masks = run_cameras(run, video, s)
+        paths[f"dwm-depth:{cid}"] = (masks, poses, intrinsics, depth)
+        paths[f"dwm-run:{cid}"] = (run_masks, poses, intrinsics, depth)
+    elif run is not None:
+        print(f"no run of dwm_{cid} in {runs}: depth-path rows left out", flush=True)
     rows = []
-    for name, cfg in configs:
-        start = time.perf_counter()
-        result = InpaintStage(cfg).fill(video[s:], masks[s:], None, np.zeros(4), None)
-        secs = time.perf_counter() - start
-        telea = opencv_fill(video[s], result.filled.astype(np.uint8))
-        contact_sheet(out / f"{name}_dwm_{cid}.png", [video[s], result.image, static[s], telea])
-        rows.append({
-            "config": name, "case": f"dwm:{cid}",
-            "pred": _psnr(result.image, static[s], region),
-            "telea": _psnr(telea, static[s], region),
-            "frame": _psnr(result.image, static[s], inside),
-            "telea_frame": _psnr(telea, static[s], inside),
-            "fill_s": secs,
-        })  # fmt: skip
+    for case, (case_masks, poses, intrinsics, depth) in paths.items():
+        for name, cfg in configs:
+            start = time.perf_counter()
+            result = InpaintStage(cfg).fill(video[s:], case_masks[s:], poses, intrinsics, depth)
+            secs = time.perf_counter() - start
+            telea = opencv_fill(video[s], result.filled.astype(np.uint8))
+            label = case.replace(":", "_")
+            contact_sheet(
+                out / f"{name}_{label}.png",
+                [video[s], case_masks[s], result.image, static[s], telea],
+            )
+            rows.append({
+                "config": name, "case": case,
+                "pred": _psnr(result.image, static[s], region),
+                "telea": _psnr(telea, static[s], region),
+                "frame": _psnr(result.image, static[s], inside),
+                "telea_frame": _psnr(telea, static[s], inside),
+                "fill_s": secs,
+            })  # fmt: skip
     return rows
+
+
+def run_cameras(
+    run: Path, video: np.ndarray, s: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """What the dataset workflow's run ``run`` gives the depth fill of ``video[s:]``.
+
+    Returns the run's cleaned poses ``(T - s, 4, 4)`` and intrinsics ``(4,)``, the depth
+    ``(H, W)`` of frame ``s`` made by the run's ``depth_camera`` parameters (see the module
+    docstring) and the run's hand masks ``(T, H, W)``. The run's frames must be the video's.
+    """
+    cams = DepthCameraRecord.of(_one_row(run, "cameras"))
+    world_from_cam = PosesRecord.of(_one_row(run, "poses")).world_from_cam  # (T, 4, 4)
+    run_masks = HandMaskRecord.of(_one_row(run, "hand_mask")).hand_mask  # (T, H, W)
+    if world_from_cam is None or cams.depth0 is None:
+        raise SystemExit(f"{run}: the run has no poses or no depth (not the SfM path)")
+    if len(world_from_cam) != len(video) or run_masks.shape != video.shape[:3]:
+        raise SystemExit(f"{run}: the run's clip is not the whole video ({len(world_from_cam)} "
+                         f"poses, masks {run_masks.shape}, video {video.shape[:3]})")  # fmt: skip
+    workflow = yaml.safe_load((run / "workflow.resolved.yaml").read_text())
+    config = DepthCameraStage.from_params(workflow["steps"]["cameras"]["params"]).config
+    intrinsics = cams.intrinsics
+    depth0 = cams.depth0  # (H, W) frame 0's, in the poses' scale
+    ys, xs = np.nonzero(depth0 > 0)
+    pick = np.random.default_rng(0).choice(len(ys), min(len(ys), 4000), replace=False)
+    points = transform_points(
+        cams.world_from_cam[0], unproject_depth(depth0, intrinsics)[ys[pick], xs[pick]]
+    )
+    registered = np.asarray(cams["registered"], dtype=bool)
+    # The sweep uses the cameras step's own poses, as that step does; the fill the cleaned ones.
+    cam_from_world = invert_se3(cams.world_from_cam[s:])  # (T - s, 4, 4)
+    depth = window_depth(
+        video[s:], None, intrinsics, cam_from_world, registered[s:], points, config
+    )
+    if isinstance(depth, str):
+        raise SystemExit(f"{run}: no depth for frame {s}{depth}")
+    return world_from_cam[s:], intrinsics, depth[0], run_masks
+
+
+def _one_row(run: Path, step: str) -> dict:
+    """The one row of ``step`` in ``run`` (a DWM clip ingests as one window)."""
+    rows = read_step(run, step)
+    if len(rows) != 1:
+        raise SystemExit(f"{run}/{step}: {len(rows)} rows, expected one clip")
+    return next(iter(rows.values()))
 
 
 def main() -> int:
@@ -169,6 +254,12 @@ def main() -> int:
         "--aligned", action="store_true", help="synthetic cases without depth and poses"
     )
     parser.add_argument("--data", type=Path, default=DEFAULT_DATA, help="the shared data folder")
+    parser.add_argument(
+        "--runs",
+        type=Path,
+        default=ROOT / "runs" / "real_s24b",
+        help="bench.real_video output with dwm_<id> runs (depth-path DWM rows; 'none': off)",
+    )
     parser.add_argument("--out", type=Path, default=ROOT / "runs" / "inpaint_margin", help="output")
     args = parser.parse_args()
     (args.out / "cache").mkdir(parents=True, exist_ok=True)
@@ -185,13 +276,16 @@ def main() -> int:
                 print(_line(row), flush=True)
     if not args.skip_real and (args.data / DWM).is_dir():
         for cid in ("00013", "00017"):
-            for row in dwm_rows(cid, configs, args.data, args.out):
+            runs = None if str(args.runs) == "none" else args.runs
+            for row in dwm_rows(cid, configs, args.data, args.out, runs):
                 rows.append(row)
                 print(_line(row), flush=True)
     groups = {  # case -> in the group: default-world cases, alt cases, DWM clips
-        "tuned": lambda case: not case.startswith(("alt:", "dwm:")),
+        "tuned": lambda case: not case.startswith(("alt:", "dwm")),
         "held": lambda case: case.startswith("alt:"),
         "dwm": lambda case: case.startswith("dwm:"),
+        "dwm-depth": lambda case: case.startswith("dwm-depth:"),
+        "dwm-run": lambda case: case.startswith("dwm-run:"),
     }
     for name, _ in configs:
         for group, member in groups.items():
@@ -202,7 +296,7 @@ def main() -> int:
                 if "true" in sel[0]:
                     gain = np.nanmean([r["true"] - r["telea"] for r in sel])
                     extra = f" true-mask margin {gain:+.2f}"
-                print(f"{name:>12} {group:>5}: pred margin {margin:+.2f} dB{extra}")
+                print(f"{name:>12} {group:>9}: pred margin {margin:+.2f} dB{extra}")
     (args.out / "inpaint_margin.json").write_text(json.dumps(rows, indent=1))
     return 0
 
