@@ -94,14 +94,15 @@ def test_a_low_anchor_keeps_the_hands_of_a_portrait_video(tmp_path: Path) -> Non
     assert plan_from_crop(SRC_W, SRC_H, 104, 60, back.source_crop) == plan
 
 
-def _red_boxes(frames: list[np.ndarray]) -> list[tuple[float, float, float, float]]:
-    """A stand-in detector: the box of the red pixels of each frame, as fractions."""
+def _red_boxes(frames: list[np.ndarray]) -> list[list[tuple[float, float, float, float]]]:
+    """A stand-in detector (for ``frame_hand_boxes``): per frame, the box of its red pixels as
+    fractions (none where it has no red)."""
     boxes = []
     for f in frames:
         ys, xs = np.nonzero(np.all(np.abs(f.astype(int) - RED) < 60, axis=-1))
-        if len(xs):
-            h, w = f.shape[:2]
-            boxes.append((xs.min() / w, ys.min() / h, (xs.max() + 1) / w, (ys.max() + 1) / h))
+        h, w = f.shape[:2]
+        found = [(xs.min() / w, ys.min() / h, (xs.max() + 1) / w, (ys.max() + 1) / h)]
+        boxes.append(found if len(xs) else [])
     return boxes
 
 
@@ -117,7 +118,7 @@ def test_hands_mode_places_the_band_over_what_the_detector_finds(
         assert max(frames[0].shape[:2]) <= crop_anchor.DETECT_LONG_SIDE
         return _red_boxes(frames)
 
-    monkeypatch.setattr(crop_anchor, "hand_boxes", boxes)
+    monkeypatch.setattr(crop_anchor, "frame_hand_boxes", boxes)
     path = _portrait_video(tmp_path)
     (clip,) = read_video_clips(path, IngestConfig(**CLIP))  # crop="hands" is the default
     assert calls == [crop_anchor.SAMPLE_FRAMES]
@@ -140,7 +141,7 @@ def test_hands_mode_without_hands_or_cut_keeps_the_anchor(
 ) -> None:
     """No hand found: the configured anchor (centre), said in a log line. A source whose crop
     cuts under MIN_CUT_FRACTION (16:9 into 832x480: 2.5%) is not searched at all."""
-    monkeypatch.setattr(crop_anchor, "hand_boxes", lambda frames: [])
+    monkeypatch.setattr(crop_anchor, "frame_hand_boxes", lambda frames: [])
     path = _portrait_video(tmp_path)
     with caplog.at_level(logging.INFO, logger=crop_anchor.__name__):
         (clip,) = read_video_clips(path, IngestConfig(**CLIP))
@@ -250,11 +251,13 @@ def test_crop_samples_spread_over_the_video(
             raise AssertionError("decoded in one pass, not by seeking")
 
         monkeypatch.setattr(crop_anchor, "_pass_frames", no_pass)
-    sample = crop_anchor.sample_video(path, probe_video_file(path))(8)
-    got = [round(float(f.mean()) / 5) for f in sample]
+    sample = crop_anchor.sample_video(path, probe_video_file(path))
+    got = [round(float(f.mean()) / 5) for f in sample(8)]
     # Seeking takes the first frame from half a frame before each time (k + 0.5) / 8 of the
     # duration: the same frames as the pass's indices.
     assert got == [int((k + 0.5) * n / 8) for k in range(8)]  # 2, 7, 12, ... 37
+    # ... and the static-scene count's partner of each is the next source frame.
+    assert [round(float(f.mean()) / 5) for f in sample.following(8)] == [i + 1 for i in got]
 
 
 def test_clips_schema_checks_the_crop_and_the_principal_point_it_moves(tmp_path: Path) -> None:
@@ -291,7 +294,7 @@ def test_an_odd_sized_frame_among_the_crop_samples_rejects_the_folder(
         np.stack(frames)  # as the detector's input is stacked: one size
         return []
 
-    monkeypatch.setattr(crop_anchor, "hand_boxes", no_hands)
+    monkeypatch.setattr(crop_anchor, "frame_hand_boxes", no_hands)
     n = 20
     odd = crop_anchor.sample_indices(n, crop_anchor.SAMPLE_FRAMES)[4]  # index 11: sampled
     folder = tmp_path / "frames"
@@ -314,7 +317,7 @@ def test_without_mediapipe_the_crop_stays_at_the_anchor_with_a_warning(
     def missing(frames: list[np.ndarray]) -> list:
         raise MediaPipeUnavailableError("hand landmarks need mediapipe")
 
-    monkeypatch.setattr(crop_anchor, "hand_boxes", missing)
+    monkeypatch.setattr(crop_anchor, "frame_hand_boxes", missing)
     frames = [np.zeros((64, 36, 3), np.uint8)] * crop_anchor.SAMPLE_FRAMES
     cfg = IngestConfig(crop_anchor=(0.5, 0.75))
     with caplog.at_level(logging.WARNING, logger=crop_anchor.__name__):
@@ -352,7 +355,9 @@ def test_robot_clips_keep_the_configured_anchor(monkeypatch: pytest.MonkeyPatch)
     from egosim.pipeline.records import Clip
 
     frames = _background(9)
-    monkeypatch.setattr(crop_anchor, "hand_boxes", lambda f: [(0.3, 0.0, 0.6, 0.1)] * len(f))
+    monkeypatch.setattr(
+        crop_anchor, "frame_hand_boxes", lambda f: [[(0.3, 0.0, 0.6, 0.1)]] * len(f)
+    )
     clip = Clip(
         clip_id="c",
         source="lerobot",
@@ -370,3 +375,72 @@ def test_robot_clips_keep_the_configured_anchor(monkeypatch: pytest.MonkeyPatch)
     robot = dataclasses.replace(clip, gripper_opening=np.full((9, 2), 0.04, np.float32))
     (cut,) = standardise_clip(robot, cfg)
     np.testing.assert_allclose(cut.source_crop, centre)
+
+
+def _blobs(height: int, width: int, seed: int) -> np.ndarray:
+    """``(height, width, 3)`` uint8 static texture SIFT finds: a random 1/8-scale grid, enlarged."""
+    grid = np.random.default_rng(seed).integers(0, 256, (height // 8, width // 8), np.uint8)
+    grey = cv2.resize(grid, (width, height), interpolation=cv2.INTER_CUBIC)
+    return np.repeat(grey[..., None], 3, axis=2)
+
+
+def _scene(textured_rows: tuple[int, int], shift: int) -> np.ndarray:
+    """A 640x360 portrait frame: plain grey (a bare table) with static texture in
+    ``textured_rows`` of the source, the whole picture moved ``shift`` pixels right (the
+    camera turning a little from one frame to the next)."""
+    frame = np.full((SRC_H, SRC_W + 8, 3), 150, np.uint8)
+    y0, y1 = textured_rows
+    frame[y0:y1] = _blobs(SRC_H, SRC_W + 8, seed=3)[y0:y1]
+    return np.ascontiguousarray(frame[:, 8 - shift : 8 - shift + SRC_W])
+
+
+def test_a_hands_band_with_too_little_scene_moves_towards_it() -> None:
+    """The hands' band over a bare table (no SIFT matches there) moves to the band with the
+    scene's texture that still keeps at least half of the hands; where the hands' band holds
+    texture enough (STATIC_MIN_MATCHES), it stays."""
+    plan = plan_resize(SRC_W, SRC_H, 832, 480)  # scaled 832x1479, a 480-row band (208 source)
+    hand = (0.3, 480 / SRC_H, 0.7, 608 / SRC_H)  # source rows 480-608 in every frame
+    per_frame = [[hand]] * 4
+    placed = crop_anchor.hands_anchor(plan, [hand], (0.5, 0.5))
+    y0, y1 = plan_resize(SRC_W, SRC_H, 832, 480, placed).source_crop[1::2]
+    assert y0 <= 480 and y1 >= 608  # the hands' band holds the whole hand ...
+    # ... and the texture (rows 260-420) lies above it: the band moves up as far as it may
+    # while covering half of the hand (its bottom at row 544 or below).
+    frames = [_scene((260, 420), 0)] * 4
+    following = [_scene((260, 420), 2)] * 4
+    moved, note = crop_anchor.texture_anchor(plan, frames, following, per_frame, placed)
+    assert moved[1] < placed[1] and "moved from" in note, note
+    m0, m1 = plan_resize(SRC_W, SRC_H, 832, 480, moved).source_crop[1::2]
+    assert m0 < 420 and m1 >= 544, (m0, m1)
+    kept = (min(m1, 608) - max(m0, 480)) / 128
+    assert kept >= crop_anchor.HANDS_KEEP_FRACTION
+    # The moved band holds more matches than the hands' band had.
+    pos = crop_anchor.static_matches(frames[0], following[0], [hand])[..., 1] * SRC_H  # (M, 2)
+    count = [int(((pos >= a) & (pos < b)).all(axis=1).sum()) for a, b in ((y0, y1), (m0, m1))]
+    assert count[0] < crop_anchor.STATIC_MIN_MATCHES <= count[1], count
+    # Texture all over: the hands' band has matches enough and stays.
+    frames = [_scene((0, SRC_H), 0)] * 4
+    following = [_scene((0, SRC_H), 2)] * 4
+    kept_anchor, note = crop_anchor.texture_anchor(plan, frames, following, per_frame, placed)
+    assert kept_anchor == placed and "moved" not in note, note
+
+
+def test_the_scene_check_needs_the_next_frame() -> None:
+    """A plain ``sample`` callable (no following frames) keeps the hands' anchor, as before
+    ingest v9; so does a source whose crop cuts along neither axis."""
+    frames = [_scene((260, 420), 0)] * 8
+
+    def boxes(fr: list[np.ndarray]) -> list:
+        return [[(0.3, 480 / SRC_H, 0.7, 608 / SRC_H)]] * len(fr)
+
+    import unittest.mock
+
+    with unittest.mock.patch.object(crop_anchor, "frame_hand_boxes", boxes):
+        plain = crop_anchor.choose_anchor(IngestConfig(), SRC_W, SRC_H, lambda n: frames[:n], "x")
+        both = crop_anchor.sample_frames(8, lambda i: _scene((260, 420), i % 2 * 2))
+        moved = crop_anchor.choose_anchor(IngestConfig(), SRC_W, SRC_H, both, "x")
+    placed = crop_anchor.hands_anchor(
+        plan_resize(SRC_W, SRC_H, 832, 480), boxes(frames[:1])[0], (0.5, 0.5)
+    )
+    assert plain == placed
+    assert moved[1] < placed[1]
