@@ -22,9 +22,9 @@ with the default :class:`~egosim.stages.hands.mediapipe_backend.MediaPipeParams`
   with any and the first frame with each hand (no ground truth there).
 - **Synthetic world** (``render_clip(WorldConfig(seed, mode))``, true joints known): recall, 2D
   error, 3D orientation error and wrist-relative MPJPE (:mod:`egosim.stages.hands.metrics`),
-  for the palm-PnP lift, the same with its palm poses refined on the reprojection error
-  (``palm_pnp_refined``: ``MediaPipeParams.refine_palm``) and the old translation-only lift on
-  the same detections; with
+  for the palm-PnP lift (the default: palm poses refined on the reprojection error), the same
+  with IPPE's palm poses as they are (``palm_pnp_ippe``: ``MediaPipeParams.refine_palm`` off,
+  the default before hands v8) and the old translation-only lift on the same detections; with
   ``--per-joint``, each joint's mean wrist-relative error (mm) and 2D error (px) for the palm-PnP
   lift (which joints carry the MPJPE: on the drawn hands the wrist and thumb, whose 2D points
   MediaPipe puts 24-40 px from the world's joints where the fingers are 4-9 px off); with
@@ -35,7 +35,7 @@ with the default :class:`~egosim.stages.hands.mediapipe_backend.MediaPipeParams`
   landmark model run on the ROI of each true hand (the palm detector finds 1 of 6 in these tight
   crops), then the depth each lift gives against the true median joint depth: the palm-PnP lift
   the hands stage and the metric scale share (``prefer_fingers_away=False``: no head-mounted
-  prior in a studio), the same with its palm poses refined, and the translation-only fit of
+  prior in a studio), the same with IPPE's palm poses unrefined, and the translation-only fit of
   MediaPipe's world landmarks; and each palm-PnP lift's wrist-relative MPJPE and orientation
   error once placed at the true median depth.
 - Seconds per clip of the whole backend (detection, tracking, sides, smoothing, lift): wall clock
@@ -236,8 +236,8 @@ def synthetic_figures(
     per_joint: dict | None = None,
     misses: list | None = None,
 ) -> dict[str, dict[str, float]]:
-    """Accuracy against the synthetic world's true joints, palm-PnP (as it is and with its palm
-    poses refined) vs translation-only lift, on the world ``variant`` ("default": the one the
+    """Accuracy against the synthetic world's true joints, palm-PnP (the default, and with IPPE's
+    palm poses unrefined) vs translation-only lift, on the world ``variant`` ("default": the one the
     backend was tuned on; "alt": held out). Given a ``per_joint`` dict, each lift's ``(21, 2)``
     per-joint table (mm, px) is put in it
     (:meth:`~egosim.stages.hands.metrics.HandAccuracy.per_joint`); given a ``misses`` list, the
@@ -247,7 +247,7 @@ def synthetic_figures(
 
     lifts = {
         "palm_pnp": {"lift": "palm_pnp"},
-        "palm_pnp_refined": {"lift": "palm_pnp", "refine_palm": True},
+        "palm_pnp_ippe": {"lift": "palm_pnp", "refine_palm": False},
         "translation": {"lift": "translation"},
     }  # bench row -> MediaPipeParams fields
     parts: dict[str, list] = {name: [] for name in lifts}
@@ -298,16 +298,24 @@ MIN_PRESENCE = 0.5  # the landmark model's answer on a hand's ROI counts from th
 def interhand_depth_figures(folder: Path) -> list[dict[str, float]]:
     """Per real InterHand hand: true median joint depth, each lift's depth / truth, and the
     palm-PnP lift's wrist-relative MPJPE (mm) and orientation error (degrees) once placed at the
-    true median depth (``scale_to_depth``), with IPPE's palm poses as they are (``palm_pnp``)
-    and refined (``palm_pnp_refined``, ``MediaPipeParams.refine_palm``); NaN where the palm PnP
-    fails."""
+    true median depth (``scale_to_depth``), with the palm poses refined (``palm_pnp``, the
+    default) and IPPE's as they are (``palm_pnp_ippe``, ``MediaPipeParams.refine_palm`` off); NaN
+    where the palm PnP fails. ``proximal_ratio``: the median over the four proximal phalanges of
+    MediaPipe's bone length (:func:`~egosim.stages.common.hand_lift.bone_lengths`, at the template
+    palm's size) over the true one (the lift divides them by
+    :data:`~egosim.stages.common.hand_lift.MEDIAPIPE_PROXIMAL_RATIO`)."""
     import json
 
     import cv2
 
     from egosim.pipeline.geometry import project_points
     from egosim.stages.common.hand_landmarks import place_in_camera
-    from egosim.stages.common.hand_lift import palm_pnp_pose, scale_to_depth
+    from egosim.stages.common.hand_lift import (
+        PROXIMAL_PHALANGES,
+        bone_lengths,
+        palm_pnp_pose,
+        scale_to_depth,
+    )
     from egosim.stages.common.roi_landmarks import LandmarkModel, roi_from_landmarks
     from egosim.stages.hands.metrics import orientation_error_deg, wrist_relative_mpjpe_mm
 
@@ -336,7 +344,10 @@ def interhand_depth_figures(folder: Path) -> list[dict[str, float]]:
             truth = float(np.median(hand[:, 2]))
             moved = float(np.median(place_in_camera(found.uv, found.world, k)[:, 2])) / truth
             fig = {"true_depth_m": truth, "translation": moved}
-            for name, refine in (("palm_pnp", False), ("palm_pnp_refined", True)):
+            prox = list(PROXIMAL_PHALANGES)
+            true_length = np.linalg.norm(hand[prox] - hand[[j - 1 for j in prox]], axis=1)  # (4,)
+            fig["proximal_ratio"] = float(np.median(bone_lengths(found.world)[prox] / true_length))
+            for name, refine in (("palm_pnp", True), ("palm_pnp_ippe", False)):
                 pose = palm_pnp_pose(found.uv, found.world, k, which == 0, False, refine)
                 depth = mpjpe = turn = float("nan")
                 if pose is not None:
@@ -379,9 +390,9 @@ def main(argv: list[str] | None = None) -> None:
         figures = interhand_depth_figures(args.data / "interhand_fixture")
         for i, fig in enumerate(figures):
             print(_line(f"hand {i}", fig))
-        for lift in ("palm_pnp", "palm_pnp_refined", "translation"):
+        for lift in ("palm_pnp", "palm_pnp_ippe", "translation"):
             print(f"median {lift}: {np.nanmedian([f[lift] for f in figures]):.3f}")
-        for name in ("palm_pnp", "palm_pnp_refined"):
+        for name in ("palm_pnp", "palm_pnp_ippe"):
             for key in (f"{name}_mpjpe_mm", f"{name}_orientation_deg"):
                 print(f"mean {key}: {np.nanmean([f[key] for f in figures]):.1f}")
     if not args.skip_synthetic:

@@ -7,17 +7,19 @@ scale on a translation-only fit, real hands sat 50% behind the table they touch)
 from here (a stage never imports another stage).
 
 The lift: the palm (wrist and the four knuckles, nearly coplanar) is placed by a planar PnP
-(OpenCV's IPPE) of :data:`PALM_TEMPLATE`, an average adult palm, onto the 2D palm landmarks; of
-the two poses a planar PnP gives, the one with the knuckles beyond the wrist is taken by default
+(OpenCV's IPPE) of :data:`PALM_TEMPLATE`, an average adult palm, onto the 2D palm landmarks, both
+poses refined on the reprojection error (:func:`palm_candidates`); of the two poses a planar PnP
+gives, the one with the knuckles beyond the wrist is taken by default
 (egocentric prior: the forearm comes from the camera). MediaPipe's metric world landmarks are
 rotated onto that palm (Kabsch) to give every joint a depth, and each joint is put on its own
 pixel's ray at that depth, so the result reprojects exactly onto the landmarks. Along each finger
 (and the thumb from the wrist) a joint's depth is then blended with the depth at which its ray
 meets a sphere of the bone's length about its parent (:func:`refine_by_bone_lengths`; lengths
-from the world landmarks, scaled to the template palm), weighted by how well that sphere fixes
-the depth. The template's size sets the distance. A left palm is the right template mirrored;
-a mirrored planar template reaches the same camera points (the plane turned over), so the placed
-points and their depth do not depend on the side, only the rotation returned does.
+from the world landmarks, scaled to the template palm, the proximal phalanges lengthened:
+:func:`landmark_bone_lengths`), weighted by how well that sphere fixes the depth. The
+template's size sets the distance. A left palm is the right template mirrored; a mirrored planar
+template reaches the same camera points (the plane turned over), so the placed points and their
+depth do not depend on the side, only the rotation returned does.
 """
 
 from __future__ import annotations
@@ -35,6 +37,12 @@ PALM_JOINTS = (0, 5, 9, 13, 17)  # wrist and the index, middle, ring and pinky k
 FINGER_CHAINS = ((0, 1, 2, 3, 4), (5, 6, 7, 8), (9, 10, 11, 12), (13, 14, 15, 16), (17, 18, 19, 20))
 REFINE_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12)  # palm pose LM
 MIN_POSE_DEPTH = 0.05  # metres: a palm pose with a joint nearer the camera does not pose others
+# MediaPipe's world landmarks put each finger's middle joint (PIP) too near its knuckle: relative
+# to the palm their proximal phalanges are 0.70 of the hand's (median over the found hands of the
+# default synthetic world, seeds 1-4, 11, 13; per finger 0.62-0.86, and 0.67-0.89 on the held-out
+# alt world, 0.61-0.79 on real InterHand hands). The bone-length depths take them that much longer.
+PROXIMAL_PHALANGES = (6, 10, 14, 18)  # joints ending the index, middle, ring and pinky's first bone
+MEDIAPIPE_PROXIMAL_RATIO = 0.70  # MediaPipe's proximal phalanx length / the hand's
 # An average adult right palm (metres; x from the wrist towards the fingers, y towards the thumb,
 # z = 0: the palm is taken as flat): wrist to middle knuckle 9 cm, index to pinky knuckle 6.4 cm.
 # Rows follow PALM_JOINTS; a left hand mirrors y.
@@ -60,7 +68,7 @@ def best_rotation(source: np.ndarray, target: np.ndarray) -> np.ndarray:
 
 
 def palm_candidates(
-    uv: np.ndarray, intrinsics: np.ndarray, right: bool, refine: bool = False
+    uv: np.ndarray, intrinsics: np.ndarray, right: bool, refine: bool = True
 ) -> list[np.ndarray]:
     """Camera points ``(5, 3)`` of :data:`PALM_TEMPLATE` (mirrored for a left hand) that project
     onto the palm landmarks ``uv[PALM_JOINTS]``: the two poses of a planar PnP (IPPE), best first,
@@ -76,8 +84,10 @@ def palm_candidates(
     hand-frames; true 53; the lifted joints' own step 81 -> 61); the palm's own pose error
     on 5 real InterHand hands 30 -> 18 degrees (mean). When the two refined poses tilt the palm
     the same way (one minimum: seen on alt seed 3, where refining raised the MPJPE 19.7 -> 33.4
-    mm), IPPE's poses are returned. Off by default: one real InterHand hand's whole-hand
-    orientation goes 18.7 -> 27.3 degrees (figures in "Hands v8", docs/design.md)."""
+    mm), IPPE's poses are returned. On by default (hands stage v8), with the proximal phalanges'
+    length corrected (:func:`landmark_bone_lengths`): alone, the better palm turned one real
+    InterHand hand's whole hand 18.7 -> 27.3 degrees off (figures in "Hands v8" and "Hands v9",
+    docs/design.md)."""
     camera_matrix = intrinsics_matrix(intrinsics)  # (3, 3)
     template = PALM_TEMPLATE * np.array([1.0, 1.0 if right else -1.0, 1.0])  # (5, 3)
     image = np.ascontiguousarray(uv[list(PALM_JOINTS)], dtype=np.float64)  # (5, 2)
@@ -133,7 +143,7 @@ def palm_pnp_pose(
     intrinsics: np.ndarray,
     right: bool = True,
     prefer_fingers_away: bool = True,
-    refine: bool = False,
+    refine: bool = True,
 ) -> tuple[np.ndarray, np.ndarray] | None:
     """The palm-PnP lift (see :func:`lift_to_camera`) and its rotation: ``(points (21, 3) camera
     metres, cam_from_landmarks (3, 3))`` taking MediaPipe's world-landmark axes to the camera's;
@@ -152,7 +162,7 @@ def palm_pnp_pose(
     rot = best_rotation(world_landmarks[palm], chosen)  # (3, 3) cam_from_landmarks
     model = (world_landmarks - world_landmarks[palm].mean(axis=0)) @ rot.T + chosen.mean(axis=0)
     z = np.maximum(model[:, 2], 1e-3)  # (21,) depth of each joint from the posed model
-    lengths = bone_lengths(world_landmarks)  # (21,) metres at the template palm's size
+    lengths = landmark_bone_lengths(world_landmarks)  # (21,) metres at the template palm's size
     return refine_by_bone_lengths(
         on_rays(uv, z, intrinsics), model[:, 2], uv, intrinsics, lengths
     ), rot
@@ -172,6 +182,25 @@ def bone_lengths(world_landmarks: np.ndarray) -> np.ndarray:
         for parent, child in itertools.pairwise(chain):
             out[child] = scale * np.linalg.norm(world_landmarks[child] - world_landmarks[parent])
     return out
+
+
+def landmark_bone_lengths(world_landmarks: np.ndarray) -> np.ndarray:
+    """The hand's bone lengths ``(21,)`` (metres, at :data:`PALM_TEMPLATE`'s size) read from
+    MediaPipe's ``world_landmarks (21, 3)``: :func:`bone_lengths` with the proximal phalanges
+    divided by :data:`MEDIAPIPE_PROXIMAL_RATIO`.
+
+    Why: a bone shorter than its 2D extent allows misses its child's ray (the depth falls back on
+    MediaPipe's own finger shape), and a short one fixes the depth with a small weight
+    (:func:`refine_by_bone_lengths`), so the fingers kept MediaPipe's flexion. Where that flexion
+    is wrong, a better palm carried them further off: one real InterHand hand, fingers straight
+    and MediaPipe's curled 30-50 degrees, went 18.7 -> 27.3 degrees off with the refined palm;
+    with the longer phalanges 17.2 (with the true lengths of these four bones: 18.8). Measured
+    (refined palm, wrist-relative MPJPE / orientation): default world seeds 11, 13 24.2 -> 24.1
+    mm, 13.1 -> 12.2 deg; held-out alt 20.6 -> 20.0 mm, 9.5 -> 8.6 deg; 5 InterHand hands 28.9
+    -> 26.5 mm, 18.7 -> 14.7 deg."""
+    lengths = bone_lengths(world_landmarks)  # (21,)
+    lengths[list(PROXIMAL_PHALANGES)] /= MEDIAPIPE_PROXIMAL_RATIO
+    return lengths
 
 
 def refine_by_bone_lengths(

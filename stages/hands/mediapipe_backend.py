@@ -34,18 +34,19 @@ Steps, for one clip:
    percent of the hand's size frame to frame).
 4. **Lift** (:func:`lift_to_camera`): MediaPipe's world landmarks give a hand *shape* but their
    axes are not the camera's (on the synthetic world they were 74-82 degrees off), so the palm is
-   placed by a planar PnP of an average palm template onto the 2D palm landmarks (of its two
-   poses, the one with the fingers pointing away from a head-mounted camera), the world
-   landmarks are rotated onto that palm to give each joint a depth, and each joint is put on its
-   pixel's ray; finger joints' depths are then pulled towards the bone lengths
-   (:func:`~egosim.stages.common.hand_lift.refine_by_bone_lengths`). The points are then scaled
+   placed by a planar PnP of an average palm template onto the 2D palm landmarks, refined on the
+   reprojection error (of its two poses, the one with the fingers pointing away from a
+   head-mounted camera), the world landmarks are rotated onto that palm to give each joint a
+   depth, and each joint is put on its pixel's ray; finger joints' depths are then pulled
+   towards the bone lengths (:func:`~egosim.stages.common.hand_lift.refine_by_bone_lengths`;
+   MediaPipe's proximal phalanges lengthened,
+   :func:`~egosim.stages.common.hand_lift.landmark_bone_lengths`). The points are then scaled
    about the camera centre (which keeps the projection) so that their median depth equals the
-   median depth observed under the 2D landmarks; without
-   depth the template's average-hand size sets the distance. A palm seen edge-on has no PnP
-   pose in front of the camera: it takes the rotation and depth of the same hand's nearest frame
-   with one (within ``max_gap`` frames; :func:`lift_with_rotation`) rather than MediaPipe's own
-   axes, whose 74-82 degree turn the spike filter would drop. Then to world
-   with ``world_from_cam``.
+   median depth observed under the 2D landmarks; without depth the template's average-hand size
+   sets the distance. A palm seen edge-on has no PnP pose in front of the camera: it takes the
+   rotation and depth of the same hand's nearest frame with one (within ``max_gap`` frames;
+   :func:`lift_with_rotation`) rather than MediaPipe's own axes, whose 74-82 degree turn the
+   spike filter would drop. Then to world with ``world_from_cam``.
 
 :func:`mediapipe_hands` runs all of it; :func:`mediapipe_detections` wraps it for the stage.
 MediaPipe is imported lazily: install it as ``make setup`` does (``--no-deps mediapipe==0.10.21``).
@@ -94,8 +95,8 @@ class MediaPipeParams(HandLandmarkParams):
     lift: str = "palm_pnp"  # 3D lift: "palm_pnp" (template palm PnP) or "translation" (old)
     prefer_fingers_away: bool = True  # palm PnP: of its two poses take knuckles beyond the wrist
     min_track_frames: int = 3  # a shorter track wanting a side a longer one holds then is dropped
-    refine_palm: bool = False  # palm PnP: refine IPPE's poses on the reprojection error (hand_lift
-    # palm_candidates; off by default, see "Hands v8" in docs/design.md)
+    refine_palm: bool = True  # palm PnP: refine IPPE's poses on the reprojection error (hand_lift
+    # palm_candidates; see "Hands v8" and "Hands v9" in docs/design.md)
 
 
 @dataclass
@@ -268,7 +269,7 @@ def lift_to_camera(
     right: bool = True,
     method: str = "palm_pnp",
     prefer_fingers_away: bool = True,
-    refine: bool = False,
+    refine: bool = True,
 ) -> np.ndarray:
     """Camera joints ``(21, 3)`` from 2D ``uv (21, 2)`` and metric ``world_landmarks (21, 3)``.
 
@@ -308,7 +309,7 @@ def _palm_pnp_lift(
     intrinsics: np.ndarray,
     right: bool,
     prefer_fingers_away: bool,
-    refine: bool = False,
+    refine: bool = True,
 ) -> np.ndarray | None:
     """The ``"palm_pnp"`` lift of :func:`lift_to_camera` (no depth scaling); None on failure."""
     pose = palm_pnp_pose(uv, world_landmarks, intrinsics, right, prefer_fingers_away, refine)

@@ -188,7 +188,9 @@ class HandsStage(ClipStage):
     # first/last frame is carried there by the flow (mediapipe); MANO fits stored (regressor).
     # 7: a followed hand's world landmarks are turned from its crop's axes into the frame's, as
     # MediaPipe's own graph does (roi_landmarks.world_in_frame_axes), before smoothing and lifting.
-    version = 7
+    # 8: the palm lift refines IPPE's palm poses on the reprojection error (refine_palm on) and
+    # takes MediaPipe's proximal phalanges 1 / 0.70 longer (hand_lift.landmark_bone_lengths).
+    version = 8
     description = "3D hand joints per frame from the clip's labels, de-duplicated and de-spiked"
     config_class = HandsConfig
     inputs: ClassVar[Mapping[str, ShardSchema]] = {"clips": CLIPS}
