@@ -53,8 +53,10 @@ import argparse
 import dataclasses
 import json
 import time
+import zlib
 from pathlib import Path
 
+import cv2
 import numpy as np
 import yaml
 
@@ -74,7 +76,7 @@ from bench.real_video import (
 )
 from egosim.pipeline.geometry import invert_se3, transform_points, unproject_depth
 from egosim.pipeline.records import DepthCameraRecord, HandMaskRecord, PosesRecord
-from egosim.stages.depth_camera.stage import DepthCameraStage, window_depth
+from egosim.stages.depth_camera.stage import DepthCameraConfig, DepthCameraStage, window_depth
 from egosim.stages.hand_mask.stage import HandMaskConfig, HandMaskStage, masks_from_keypoints
 from egosim.stages.hands.stage import HandsStage
 from egosim.stages.inpaint.reproject_fill import dilate, opencv_fill
@@ -119,19 +121,40 @@ def world_masks(case: str, size: tuple[int, int], frames: int, cache: Path):
     return clip, masks
 
 
-def world_rows(case: str, configs, size, frames, out: Path, aligned: bool = False) -> list[dict]:
-    """Figures of one synthetic clip under every config (``aligned``: no depth, no poses)."""
+def world_rows(
+    case: str,
+    configs,
+    size,
+    frames,
+    out: Path,
+    aligned: bool = False,
+    pose_noise: float = 0.0,
+    sweep: bool = False,
+) -> list[dict]:
+    """Figures of one synthetic clip under every config (``aligned``: no depth, no poses;
+    ``pose_noise``: the depth fill gets poses that drift, :func:`drifted_poses`; ``sweep``:
+    frame 0's depth and confidence from :func:`sweep_depth` instead of the world's depth)."""
     clip, masks = world_masks(case, size, frames, out / "cache")
     region = clip.hand_mask[0] > 0
     telea = opencv_fill(clip.frames[0], dilate(clip.hand_mask[0], 2))
+    world_from_cam = clip.world_from_cam
+    if pose_noise > 0:
+        world_from_cam = drifted_poses(world_from_cam, pose_noise, zlib.crc32(case.encode()))
+    depth0, conf0 = clip.depth[0], None
+    if sweep:  # the workflow's own depth: a plane sweep (true poses), hands not left out
+        points = transform_points(
+            clip.world_from_cam[0], unproject_depth(depth0, clip.intrinsics)[depth0 > 0]
+        )
+        depth0, conf0 = sweep_depth(clip.frames, clip.intrinsics, clip.world_from_cam, points)
     rows = []
     for name, cfg in configs:
         stage = InpaintStage(cfg)
         start = time.perf_counter()
-        poses, depth0 = (None, None) if aligned else (clip.world_from_cam, clip.depth[0])
-        pred = stage.fill(clip.frames, masks, poses, clip.intrinsics, depth0)
+        poses, d0 = (None, None) if aligned else (world_from_cam, depth0)
+        extra = {"depth0_confidence": conf0}
+        pred = stage.fill(clip.frames, masks, poses, clip.intrinsics, d0, **extra)
         secs = time.perf_counter() - start
-        true = stage.fill(clip.frames, clip.hand_mask, poses, clip.intrinsics, depth0)
+        true = stage.fill(clip.frames, clip.hand_mask, poses, clip.intrinsics, d0, **extra)
         contact_sheet(
             out / f"{name}_{case.replace(':', '_')}.png",
             [clip.frames[0], pred.image, true.image, clip.first_frame_clean, telea],
@@ -144,6 +167,48 @@ def world_rows(case: str, configs, size, frames, out: Path, aligned: bool = Fals
             "fill_s": secs,
         })  # fmt: skip
     return rows
+
+
+def sweep_depth(
+    frames: np.ndarray,
+    intrinsics: np.ndarray,
+    world_from_cam: np.ndarray,
+    points: np.ndarray,
+    config: DepthCameraConfig | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Frame 0's depth and confidence ``(H, W)`` as the ``depth_camera`` stage makes them.
+
+    Its plane sweep (:func:`window_depth`, ``config`` or the stage defaults) over
+    ``frames (T, H, W, 3)`` posed by ``world_from_cam (T, 4, 4)``, with no pixels left out (the
+    workflow's ``cameras`` step gets no hand masks); ``points (P, 3)`` (world) seen by frame 0
+    set the depth range and pick the source frames (subsampled to 4,000, seeded).
+    """
+    config = config or DepthCameraConfig()
+    pick = np.random.default_rng(0).choice(len(points), min(len(points), 4000), replace=False)
+    cam_from_world = invert_se3(world_from_cam)  # (T, 4, 4)
+    posed = np.ones(len(frames), bool)
+    depth = window_depth(frames, None, intrinsics, cam_from_world, posed, points[pick], config)
+    if isinstance(depth, str):
+        raise SystemExit(f"no plane-sweep depth{depth}")
+    return depth[0], depth[1]
+
+
+def drifted_poses(world_from_cam: np.ndarray, step_deg: float, seed: int) -> np.ndarray:
+    """``world_from_cam (T, 4, 4)`` with a rotation error that random-walks from frame 0 on.
+
+    Each frame adds a rotation of ``step_deg`` degrees about a random axis (through the camera
+    centre) to the previous frame's error, so later frames drift further, as estimated cameras
+    and a plane-sweep depth do on real clips; frame 0 keeps its pose.
+    """
+    rng = np.random.default_rng(seed)
+    out = world_from_cam.copy()
+    error = np.eye(3)
+    for k in range(1, len(out)):
+        axis = rng.normal(size=3)
+        rvec = np.radians(step_deg) * axis / np.linalg.norm(axis)
+        error = cv2.Rodrigues(rvec.reshape(3, 1))[0] @ error
+        out[k, :3, :3] = out[k, :3, :3] @ error  # cam axes turned by the error
+    return out
 
 
 def dwm_rows(cid: str, configs, data: Path, out: Path, runs: Path | None = None) -> list[dict]:
@@ -165,7 +230,7 @@ def dwm_rows(cid: str, configs, data: Path, out: Path, runs: Path | None = None)
     s = int(shown[0]) if len(shown) else 0
     region = (dilate(hands[s], HAND_DILATE_PX) > 0) & inside
     # case -> (masks, poses, intrinsics, depth of the sub-clip's first frame)
-    paths: dict[str, tuple] = {f"dwm:{cid}": (masks, None, np.zeros(4), None)}
+    paths: dict[str, tuple] = {f"dwm:{cid}": (masks, None, np.zeros(4), (None, None))}
     run = None if runs is None else runs / f"dwm_{cid}"
     if run is not None and (run / "cameras").is_dir():
         poses, intrinsics, depth, run_masks = run_cameras(run, video, s)
@@ -177,7 +242,9 @@ def dwm_rows(cid: str, configs, data: Path, out: Path, runs: Path | None = None)
     for case, (case_masks, poses, intrinsics, depth) in paths.items():
         for name, cfg in configs:
             start = time.perf_counter()
-            result = InpaintStage(cfg).fill(video[s:], case_masks[s:], poses, intrinsics, depth)
+            result = InpaintStage(cfg).fill(
+                video[s:], case_masks[s:], poses, intrinsics, depth[0], depth0_confidence=depth[1]
+            )
             secs = time.perf_counter() - start
             telea = opencv_fill(video[s], result.filled.astype(np.uint8))
             label = case.replace(":", "_")
@@ -198,12 +265,13 @@ def dwm_rows(cid: str, configs, data: Path, out: Path, runs: Path | None = None)
 
 def run_cameras(
     run: Path, video: np.ndarray, s: int
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, np.ndarray], np.ndarray]:
     """What the dataset workflow's run ``run`` gives the depth fill of ``video[s:]``.
 
-    Returns the run's cleaned poses ``(T - s, 4, 4)`` and intrinsics ``(4,)``, the depth
-    ``(H, W)`` of frame ``s`` made by the run's ``depth_camera`` parameters (see the module
-    docstring) and the run's hand masks ``(T, H, W)``. The run's frames must be the video's.
+    Returns the run's cleaned poses ``(T - s, 4, 4)`` and intrinsics ``(4,)``, the depth and
+    its confidence ``(H, W)`` of frame ``s`` made by the run's ``depth_camera`` parameters (see
+    the module docstring) and the run's hand masks ``(T, H, W)``. The run's frames must be
+    the video's.
     """
     cams = DepthCameraRecord.of(_one_row(run, "cameras"))
     world_from_cam = PosesRecord.of(_one_row(run, "poses")).world_from_cam  # (T, 4, 4)
@@ -217,20 +285,14 @@ def run_cameras(
     config = DepthCameraStage.from_params(workflow["steps"]["cameras"]["params"]).config
     intrinsics = cams.intrinsics
     depth0 = cams.depth0  # (H, W) frame 0's, in the poses' scale
-    ys, xs = np.nonzero(depth0 > 0)
-    pick = np.random.default_rng(0).choice(len(ys), min(len(ys), 4000), replace=False)
     points = transform_points(
-        cams.world_from_cam[0], unproject_depth(depth0, intrinsics)[ys[pick], xs[pick]]
-    )
-    registered = np.asarray(cams["registered"], dtype=bool)
+        cams.world_from_cam[0], unproject_depth(depth0, intrinsics)[depth0 > 0]
+    )  # (P, 3)
+    if not np.asarray(cams["registered"], dtype=bool)[s:].all():
+        raise SystemExit(f"{run}: frames after {s} not all posed")
     # The sweep uses the cameras step's own poses, as that step does; the fill the cleaned ones.
-    cam_from_world = invert_se3(cams.world_from_cam[s:])  # (T - s, 4, 4)
-    depth = window_depth(
-        video[s:], None, intrinsics, cam_from_world, registered[s:], points, config
-    )
-    if isinstance(depth, str):
-        raise SystemExit(f"{run}: no depth for frame {s}{depth}")
-    return world_from_cam[s:], intrinsics, depth[0], run_masks
+    depth, conf = sweep_depth(video[s:], intrinsics, cams.world_from_cam[s:], points, config)
+    return world_from_cam[s:], intrinsics, (depth, conf), run_masks
 
 
 def _one_row(run: Path, step: str) -> dict:
@@ -253,6 +315,17 @@ def main() -> int:
     parser.add_argument(
         "--aligned", action="store_true", help="synthetic cases without depth and poses"
     )
+    parser.add_argument(
+        "--pose-noise",
+        type=float,
+        default=0.0,
+        help="synthetic depth-fill poses drift by this many degrees a frame (drifted_poses)",
+    )
+    parser.add_argument(
+        "--sweep",
+        action="store_true",
+        help="synthetic depth fill on the depth_camera plane sweep's depth (sweep_depth)",
+    )
     parser.add_argument("--data", type=Path, default=DEFAULT_DATA, help="the shared data folder")
     parser.add_argument(
         "--runs",
@@ -271,7 +344,16 @@ def main() -> int:
     rows: list[dict] = []
     if not args.real_only:
         for case in cases:
-            for row in world_rows(case, configs, size, args.frames, args.out, args.aligned):
+            for row in world_rows(
+                case,
+                configs,
+                size,
+                args.frames,
+                args.out,
+                args.aligned,
+                args.pose_noise,
+                args.sweep,
+            ):
                 rows.append(row)
                 print(_line(row), flush=True)
     if not args.skip_real and (args.data / DWM).is_dir():

@@ -18,6 +18,7 @@ from egosim.pipeline.execute import ShardTask, run_shard_task
 from egosim.pipeline.records import Clip
 from egosim.pipeline.shards import ShardReader, ShardWriter
 from egosim.pipeline.stage import ClipRejected
+from egosim.schemas.depth_camera import DEPTH_CAMERA
 from egosim.schemas.hand_mask import HAND_MASK
 from egosim.schemas.inpaint import INPAINT
 from egosim.stages.inpaint.diffusers_backend import (
@@ -430,6 +431,78 @@ def test_stage_takes_depth_and_cameras_from_connected_roles(tmp_path: Path) -> N
     )  # fmt: skip
     np.testing.assert_array_equal(media.decode_png(row["first_frame"]), expected.image)
     assert row["reprojected_fraction"] > 0.3
+
+
+def test_unmeasured_depth_round_the_hand_is_inpainted_not_lifted() -> None:
+    """An estimated depth0 wrong in a band round the hand (a plane sweep matching the moving
+    hand: here half the true depth) lifts the ring and the depth under the hand wrongly; with
+    that band marked unmeasured (``measured``) it is inpainted with the hole instead."""
+    scores = []
+    for seed in SEEDS:
+        clip = world_clip(seed)
+        gt = clip.hand_mask[0] > 0
+        band = (dilate(clip.hand_mask[0], 10) > 0) & ~(dilate(clip.hand_mask[0], 3) > 0)
+        wrong = np.where(band, 0.5 * clip.depth[0], clip.depth[0])  # (H, W)
+        args = (clip.frames, clip.hand_mask)
+        cams = (clip.world_from_cam, clip.intrinsics)
+        kw = {"dilate_px": 3, "candidates": 7, "local_residual": 15.0}
+        true = reproject_fill(*args, clip.depth[0], *cams, **kw)
+        plain = reproject_fill(*args, wrong, *cams, **kw)
+        kept = reproject_fill(*args, wrong, *cams, measured=~band, **kw)
+        scores.append([psnr(r.image, clip.first_frame_clean, gt) for r in (true, plain, kept)])
+        # nothing measured outside the hole: all known depth counts, as without ``measured``
+        none = reproject_fill(*args, wrong, *cams, measured=np.zeros_like(band), **kw)
+        np.testing.assert_array_equal(none.image, plain.image)
+    true, plain, kept = np.mean(scores, axis=0)
+    # Measured (true depth, wrong band, band unmeasured) dB: 0 (24.22, 23.11, 24.14),
+    # 1 (23.10, 21.26, 23.03), 2 (23.76, 21.00, 23.74), 3 (24.98, 22.23, 24.98).
+    assert plain < true - 1.0, scores  # the wrong band costs (the case is a real one)
+    assert kept > true - 0.3, scores  # and unmeasured it costs next to nothing
+
+
+def test_stage_reads_which_depth_is_measured_from_the_cameras_row(tmp_path: Path) -> None:
+    """The ``cameras`` row's ``confidence0`` below ``min_depth_confidence`` marks depth0 as
+    unmeasured: the stage's fill is ``reproject_fill`` given that ``measured``."""
+    gt = render_clip(WorldConfig(seed=1, height=64, width=112, num_frames=8))
+    clip = dataclasses.replace(gt, depth=None, static_depth=None)  # a real video's clip row
+    clips = tmp_path / "clips.parquet"
+    write_clips(clips, [clip])
+    hand_mask = tmp_path / "hand_mask.parquet"
+    with ShardWriter(hand_mask, HAND_MASK, stage="test") as writer:
+        coverage = gt.hand_mask.reshape(clip.num_frames, -1).mean(1).tolist()
+        writer.write_row(
+            {**_mask_row(clip, gt.hand_mask), "coverage": coverage, "backend": "keypoints"}
+        )
+    band = (dilate(gt.hand_mask[0], 8) > 0) & ~(dilate(gt.hand_mask[0], 3) > 0)
+    wrong = np.where(band, 0.5 * gt.depth[0], gt.depth[0]).astype(np.float32)  # (H, W)
+    cameras = write_cameras(tmp_path / "cameras.parquet", clip, gt.world_from_cam, depth0=wrong)
+    with ShardReader(cameras) as reader:
+        cam_row = next(reader.iter_rows())
+    confidence = np.where(band, 60, 200).astype(np.uint8)  # 0.24 / 0.78 of 255
+    cam_row["confidence0"] = media.encode_mask_video(confidence[None])
+    with ShardWriter(cameras, DEPTH_CAMERA, stage="test") as writer:
+        writer.write_row(cam_row)
+    rows = {}
+    for name, params in (("on", {}), ("off", {"min_depth_confidence": 0.0})):
+        task = one_shard_task("inpaint", tmp_path, {"clips": clips, "hand_mask": hand_mask,
+                              "cameras": cameras}, name, params)  # fmt: skip
+        result = run_shard_task(task)
+        assert (result.rows, result.rejected) == (1, 0)
+        with ShardReader(tmp_path / f"{name}.parquet", INPAINT) as reader:
+            rows[name] = media.decode_png(next(reader.iter_rows())["first_frame"])
+    with ShardReader(cameras) as reader:
+        cam_row = next(reader.iter_rows())
+    depth0 = media.decode_depth_video(cam_row["depth0"], cam_row["depth_unit_m"])[0]
+    frames = next(read_clips(clips)).frames
+    cfg = InpaintConfig()
+    grow = cfg.dilate_px + round(cfg.dilate_fraction * float(np.hypot(*frames.shape[1:3])))
+    masks = carry_lost_hands(gt.hand_mask, cfg.carry_frames, cfg.carry_cover, cfg.carry_reach)
+    kw = {"dilate_px": grow, "candidates": cfg.candidates, "occluder_ratio": cfg.occluder_ratio,
+          "local_residual": cfg.local_residual}  # fmt: skip
+    args = (frames, masks, depth0, gt.world_from_cam, gt.intrinsics)
+    np.testing.assert_array_equal(rows["on"], reproject_fill(*args, measured=~band, **kw).image)
+    np.testing.assert_array_equal(rows["off"], reproject_fill(*args, **kw).image)
+    assert not np.array_equal(rows["on"], rows["off"])
 
 
 def test_sampling_more_pixels_than_remap_takes_at_once() -> None:

@@ -3,8 +3,11 @@
 Method (backward warping, needs depth of frame 0 only):
 
 1. The surface behind the hand in frame 0 is unknown, so frame 0's depth inside the (dilated)
-   hand mask is replaced by an OpenCV (Telea) inpainting of the depth around it: a smooth
-   continuation of the table and objects the hand covers.
+   hand mask is replaced by an OpenCV (Navier-Stokes) inpainting of the depth around it: a
+   smooth continuation of the table and objects the hand covers. Only measured depth feeds it
+   (``measured``: an estimated depth's confident pixels): a plane sweep of a frame with a
+   moving hand in it is wrong in a band round the hand (it matches the hand too), and that
+   band is inpainted with the hole (measured on DWM 00013: faceted pieces of floor pasted).
 2. Each masked pixel is lifted to 3D with that depth and projected into every later frame
    (``world_from_cam`` and the intrinsics, with the shared geometry). A frame may fill a pixel
    when the projection lands inside the image on a pixel that is not hand in that frame (its own
@@ -260,6 +263,7 @@ def reproject_fill(
     occluder_ratio: float = 0.0,
     local_residual: float = 0.0,
     ring_px: int = 15,
+    measured: np.ndarray | None = None,
 ) -> FillResult:
     """Remove the hand from ``frames[0]``; see the module docstring.
 
@@ -269,6 +273,9 @@ def reproject_fill(
     fills only the hole pixels whose nearby ring (``ring_px`` round the hole, reprojected with
     frame 0's measured depth) it shows within this many grey levels of frame 0 (mean absolute
     difference; 0: off): a moved object or a wrong pose near the hole does not fill it.
+    ``measured (H, W)``: where ``depth0`` is measured (an estimated depth's confident pixels);
+    the rest is inpainted with the hole's depth (step 1) and lifts the ring with it (None: all
+    known depth counts; also when no pixel outside the hole is measured).
     """
     t, h, w = frames.shape[:3]
     if hand_mask.shape != (t, h, w) or depth0.shape != (h, w) or world_from_cam.shape != (t, 4, 4):
@@ -284,7 +291,10 @@ def reproject_fill(
     if not target.any():
         return FillResult(image, fill_source, source_frame, target)
     # 1. Depth behind the hand: inpaint frame 0's depth over the hand and unknown pixels.
-    unknown = (target | ~(depth0 > 0)).astype(np.uint8)
+    trusted = depth0 > 0  # (H, W)
+    if measured is not None and (trusted & measured & ~target).any():
+        trusted &= measured  # else nothing is sure: all known depth counts, as without it
+    unknown = (target | ~trusted).astype(np.uint8)
     known_depth = depth0[unknown == 0]
     if known_depth.size == 0:
         raise InpaintInputError("frame 0 has no known depth outside the hand")
@@ -307,8 +317,9 @@ def reproject_fill(
     if local_residual > 0:  # 3. the ring round the hole, where frame 0's depth is measured
         ring = (dilate(target, ring_px) > 0) & ~target & (depth0 > 0)  # (H, W)
         ry, rx = np.nonzero(ring)  # (R,)
+        ring_depth = np.where(trusted, depth0, d0)  # (H, W) measured, else as the hole's
         ring_world = transform_points(
-            world_from_cam[0], unproject_depth(depth0, intrinsics)[ry, rx]
+            world_from_cam[0], unproject_depth(ring_depth, intrinsics)[ry, rx]
         )
         grey0 = cv2.cvtColor(frames[0], cv2.COLOR_RGB2GRAY).astype(np.float32)  # (H, W)
         ring_check = (ry, rx, ring_world, grey0[ry, rx])

@@ -22,6 +22,9 @@ inputs when a workflow connects them, else the clip's own. Backends:
 
 Only the first frame's depth is required (frame-0 pixels are lifted with it and projected
 into the later frames), so a clip without a depth column works when ``cameras`` is connected.
+Of the ``cameras`` row's depth0 only the confident pixels (``confidence0`` at least
+``min_depth_confidence``) count as measured; the rest is inpainted with the depth under the
+hand (the plane sweep is wrong round a hand that moves, see ``reproject_fill``).
 With ``depth_tolerance > 0`` the other frames' depth rejects fills that disagree with it; only
 the clip has per-frame depth, so that test runs only when ``cameras`` is not connected (its
 depth0 may have another scale than the clip's depth) and the clip has depth.
@@ -93,6 +96,10 @@ class InpaintConfig(StageConfig):
     local_residual: float = 15.0  # a later frame fills only the hole pixels whose nearby ring
     # it shows within this many grey levels of frame 0 (mean; 0: off): through a homography in
     # the image-aligned fill, reprojected with frame 0's depth in the depth fill
+    min_depth_confidence: float = 0.5  # frame-0 depth from the ``cameras`` row counts as
+    # measured where its confidence0 is at or above this (depth_camera's confidence_threshold,
+    # scene_cloud's min_confidence); the rest (round the hands above all: the plane sweep
+    # matches the moving hand too) is inpainted like the depth under the hand (0: all kept)
     model_path: str = ""  # local folder of a diffusers inpainting pipeline (backend diffusers)
     device: str = "cpu"  # torch device of the diffusers pipeline
     prompt: str = "empty table, no hands"  # text prompt of the diffusers pipeline
@@ -118,6 +125,10 @@ class InpaintConfig(StageConfig):
             problems.append(f"carry_reach must be in [0, 1], got {self.carry_reach}")
         if not 0.0 <= self.local_residual <= 255.0:
             problems.append(f"local_residual must be in [0, 255], got {self.local_residual}")
+        if not 0.0 <= self.min_depth_confidence <= 1.0:
+            problems.append(
+                f"min_depth_confidence must be in [0, 1], got {self.min_depth_confidence}"
+            )
         if not 0.0 <= self.occluder_ratio <= 1.0:
             problems.append(f"occluder_ratio must be in [0, 1], got {self.occluder_ratio}")
         if not 1 <= self.candidates <= 32:
@@ -138,12 +149,14 @@ class InpaintStage(ClipStage):
     """Remove hands from the first frame: reprojected later frames, then OpenCV inpainting."""
 
     name = "inpaint"
-    version = 9  # 3: median of several frames; clips without depth aligned in the image. 4: more
+    version = 10  # 3: median of several frames; clips without depth aligned in the image. 4: more
     # frames in the median, dilation with the image size. 5: hand-coloured samples not used.
     # 6: large holes no longer rejected (chunked sampling). 7: the image-aligned fill checks
     # each homography near every hole pixel (local_residual). 8: a hand a later frame's mask
     # dropped is carried in from nearby frames before sampling (carry_lost_hands). 9: the
-    # depth fill checks each frame's reprojected ring near every hole pixel (local_residual)
+    # depth fill checks each frame's reprojected ring near every hole pixel (local_residual).
+    # 10: the cameras row's depth0 counts only where its confidence0 is at least
+    # min_depth_confidence; the rest is inpainted with the hole's depth (and lifts the ring)
 
     description = "remove hands from the first frame (reprojected frames + OpenCV inpainting)"
     config_class = InpaintConfig
@@ -160,6 +173,7 @@ class InpaintStage(ClipStage):
         },
         CAMERA_COLUMNS,
         DEPTH0_COLUMNS,
+        {"cameras": ("confidence0",)},  # which of depth0 is measured (min_depth_confidence)
     )
 
     def __init__(self, config: StageConfig | None = None) -> None:
@@ -176,12 +190,15 @@ class InpaintStage(ClipStage):
         clip_id: str = "",
         depth: np.ndarray | None = None,
         static_camera: bool = False,
+        depth0_confidence: np.ndarray | None = None,
     ) -> FillResult:
         """Hand-free first frame of ``frames (T, H, W, 3)`` given ``hand_mask (T, H, W)``.
 
         ``world_from_cam (T, 4, 4)``, ``intrinsics (4,)``, ``depth0 (H, W)`` metres (frame 0);
         ``depth (T, H, W)`` feeds the agreement test when ``depth_tolerance > 0``. Without
         ``depth0`` or poses the image-aligned fill runs (identity when ``static_camera``).
+        ``depth0_confidence (H, W)`` in [0, 1] (the ``cameras`` row's ``confidence0``): depth0
+        below ``min_depth_confidence`` is not trusted (None: all of depth0 is).
         """
         cfg: InpaintConfig = self.config  # type: ignore[assignment]
         h, w = frames.shape[1:3]
@@ -200,6 +217,9 @@ class InpaintStage(ClipStage):
             source = (target * FILL_GENERATED).astype(np.uint8)
             return FillResult(image, source, zeros16, target > 0)
         hand_mask = carry_lost_hands(hand_mask, cfg.carry_frames, cfg.carry_cover, cfg.carry_reach)
+        measured = None  # (H, W) depth0 pixels kept as measured; None = every known one
+        if depth0_confidence is not None and cfg.min_depth_confidence > 0:
+            measured = depth0_confidence >= cfg.min_depth_confidence
         if depth0 is None or world_from_cam is None:
             still = static_camera or (world_from_cam is not None and _still(world_from_cam))
             return aligned_fill(
@@ -228,6 +248,7 @@ class InpaintStage(ClipStage):
                 unseen_method=cfg.unseen_method,
                 occluder_ratio=cfg.occluder_ratio,
                 local_residual=cfg.local_residual,
+                measured=measured,
             )
         except InpaintInputError as exc:
             raise ClipRejected(f"clip {clip_id!r}: {exc}") from exc
@@ -244,6 +265,9 @@ class InpaintStage(ClipStage):
             )
         depth0 = first_frame_depth(rows) if cfg.backend == "reproject" else None  # (H, W)
         cam_row = rows.get("cameras")
+        confidence = None  # (H, W) of the cameras row's depth0, the depth first_frame_depth took
+        if depth0 is not None and cam_row is not None and cam_row.get("depth0") is not None:
+            confidence = depth0_confidence(cam_row, clip_id, depth0.shape)
         static = cam_row is not None and DepthCameraRecord.of(cam_row).static_camera
         cams = resolve_cameras(rows)
         # Per-frame depth (agreement test) only from the clip, and only when no other role
@@ -258,6 +282,7 @@ class InpaintStage(ClipStage):
             clip_id,
             clip.depth if per_frame else None,
             static,
+            confidence,
         )
         n = int(result.filled.sum())
         counts = np.bincount(result.fill_source[result.filled], minlength=4)  # (4,)
@@ -319,6 +344,19 @@ def carry_lost_hands(
                 if np.count_nonzero(near[box] & region) < min_cover * area:
                     out[k][box] |= region.astype(np.uint8)
     return out
+
+
+def depth0_confidence(
+    cam_row: Mapping[str, Any], clip_id: str, shape: tuple[int, ...]
+) -> np.ndarray | None:
+    """``(H, W)`` float32 in [0, 1]: the ``cameras`` row's ``confidence0`` (None when null)."""
+    if cam_row.get("confidence0") is None:
+        return None
+    what = f"clip {clip_id} confidence0"
+    conf = media.decode_lossless_video(cam_row["confidence0"], what, 1)[0]  # (H, W) uint8
+    if conf.shape != shape:
+        raise ClipRejected(f"clip {clip_id!r}: confidence0 {conf.shape} != depth0 {shape}")
+    return conf.astype(np.float32) / 255.0
 
 
 def _still(world_from_cam: np.ndarray) -> bool:
