@@ -6,8 +6,10 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.inpaint_margin import world_masks
+from bench.inpaint_margin import drifted_poses, sweep_depth, world_masks
+from egosim.pipeline.geometry import rotation_angle_deg, transform_points, unproject_depth
 from egosim.stages.hand_mask.stage import HandMaskStage
+from egosim.world import WorldConfig, render_clip
 
 CASE, SIZE, FRAMES = "tabletop:0", (96, 160), 4
 
@@ -36,3 +38,27 @@ def test_cache_of_another_version_is_not_read(tmp_path: Path) -> None:
     _, masks = world_masks(CASE, SIZE, FRAMES, tmp_path)
     assert not np.array_equal(masks, stale)
     assert (masks == 0).mean() > 0.5  # computed afresh: most of the frame is not hand
+
+
+def test_sweep_depth_is_sure_where_it_is_right() -> None:
+    """The depth_camera plane sweep the synthetic ``--sweep`` cases fill with: close to the
+    world's depth where confident, off where not (round and on the hand, which it matches too)."""
+    clip = render_clip(WorldConfig(seed=0, height=96, width=160, num_frames=12))
+    truth = clip.depth[0]  # (H, W)
+    points = transform_points(clip.world_from_cam[0], unproject_depth(truth, clip.intrinsics))
+    depth, conf = sweep_depth(clip.frames, clip.intrinsics, clip.world_from_cam, points[truth > 0])
+    rel = np.abs(depth - truth) / truth  # (H, W)
+    sure = (conf >= 0.5) & (clip.hand_mask[0] == 0)
+    # Measured: confident 2,537 px at median 1.9%, unconfident 11,477 px at 13%, hand 30%.
+    assert sure.sum() > 1000
+    assert np.median(rel[sure]) < 0.05
+    assert np.median(rel[~sure]) > 3 * np.median(rel[sure])
+
+
+def test_drifted_poses_random_walk_from_frame_0() -> None:
+    clip = render_clip(WorldConfig(seed=0, height=48, width=80, num_frames=6))
+    drifted = drifted_poses(clip.world_from_cam, 0.5, seed=1)
+    angles = rotation_angle_deg(clip.world_from_cam[:, :3, :3], drifted[:, :3, :3])  # (T,)
+    assert angles[0] == 0 and abs(angles[1] - 0.5) < 1e-6  # one step of 0.5 degrees
+    assert np.all(angles[1:] <= 0.5 * np.arange(1, 6) + 1e-6)  # a walk: at most k steps
+    np.testing.assert_array_equal(drifted[:, :3, 3], clip.world_from_cam[:, :3, 3])
