@@ -987,7 +987,9 @@ class DepthCameraStage(ClipStage):
     # source (source_track auto)
     # 10: focal check after SfM: a model whose focal (and so depth) the motion does not
     # determine gives way to the rotation model when that poses the clip (the EgoDex sample)
-    version = 10
+    # 11: the metric scale's palm lift is the hands stage v8's (refined palm poses, MediaPipe's
+    # proximal phalanges taken 1/0.70 longer; hand_lift.palm_pnp_pose's defaults)
+    version = 11
     config_class = DepthCameraConfig
     inputs: ClassVar[Mapping[str, ShardSchema]] = {"clips": CLIPS}
     output = DEPTH_CAMERA
