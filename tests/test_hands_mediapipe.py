@@ -52,6 +52,7 @@ from egosim.stages.hands.mediapipe_backend import (
     assign_sides,
     bridge_and_smooth,
     detect_landmarks,
+    hand_centres,
     hand_size,
     lift_to_camera,
     place_by_translation,
@@ -371,6 +372,29 @@ def test_sides_follow_tracks_and_image_position() -> None:
     acc = np.linalg.norm(lm.uv[2:] - 2 * lm.uv[1:-1] + lm.uv[:-2], axis=-1).mean()
     acc_raw = np.linalg.norm(np.diff(uv[:, 0], n=2, axis=0), axis=-1)
     assert acc < 0.6 * np.nanmean(acc_raw)
+
+
+def test_a_gap_between_two_hands_given_one_side_is_not_bridged() -> None:
+    """The right hand at frames 0-2, the left from frame 6, both in the left slot: frames 3-5
+    must stay empty (interpolated, they would lie between the hands), while a gap of the same
+    length inside one hand's track is still bridged."""
+    t = 12
+    shape_uv = _hand_shape()[:, :2] * 800  # (21, 2) about 60 px across
+    uv = np.full((t, 2, 21, 2), np.nan)
+    present = np.zeros((t, 2), dtype=bool)
+    for f in (*range(3), *range(6, t)):
+        u = 300.0 if f < 3 else 100.0  # 200 px apart: two hands, not one hand moving
+        uv[f, 0] = shape_uv + np.array([u + f, 200.0])
+        uv[f, 1] = shape_uv + np.array([350.0 + f, 220.0])  # a right hand, gap at 3-5 too
+        present[f] = True
+    raw = RawLandmarks(uv=uv, world=np.zeros((t, 2, 21, 3)), label_right=np.full((t, 2), 0.5),
+                       present=present)  # fmt: skip
+    side = np.where(present, np.array([0, 1]), -1)  # slot 0 left, slot 1 right, as given
+    lm = bridge_and_smooth(raw, side)
+    assert not lm.present[3:6, 0].any() and np.isnan(lm.uv[3:6, 0]).all()
+    assert lm.present[3:6, 1].all()  # the right hand's own gap: bridged
+    # Smoothing stays within each run: the left slot keeps each hand where it was.
+    assert np.abs(hand_centres(lm.uv)[:3, 0, 0] - hand_centres(uv)[:3, 0, 0]).max() < 2.0
 
 
 # ----------------------------------------------------------------------------- hamer import

@@ -29,7 +29,8 @@ Steps, for one clip:
    shorter than ``min_track_frames`` whose vote wants a side a longer track holds at that time
    is dropped rather than given the other side (an isolated false hand would otherwise take it).
 3. **Bridge and smooth** (:func:`bridge_and_smooth`): gaps of up to ``max_gap`` frames inside a
-   track are filled by linear interpolation (lower confidence), then image and world landmarks
+   track (ends no further apart than ``_tracks`` links) are filled by linear interpolation (lower
+   confidence), then image and world landmarks
    are smoothed over time with a Gaussian of ``smooth_sigma`` frames (landmarks jitter by a few
    percent of the hand's size frame to frame).
 4. **Lift** (:func:`lift_to_camera`): MediaPipe's world landmarks give a hand *shape* but their
@@ -232,10 +233,17 @@ def bridge_and_smooth(
         # Detection confidence: how clearly the labels agree with the assigned side.
         conf[f, s] = 0.5 + abs(raw.label_right[f, k] - 0.5)
     present = detected.copy()
+    centre = hand_centres(uv)  # (T, 2, 2)
+    size = hand_size(uv)  # (T, 2)
     for s in range(2):
         idx = np.flatnonzero(detected[:, s])
         for a, b in itertools.pairwise(idx):
-            if 1 < b - a <= params.max_gap + 1:
+            # Only a gap inside one hand's track: two tracks given the same side (the right
+            # hand before a gap, the left after) are two hands, and frames between them
+            # interpolated would lie on neither (default world wild 5: 20-53 px off both).
+            jump = np.linalg.norm(centre[b, s] - centre[a, s])
+            limit = params.link_distance * max(size[a, s], size[b, s]) * min(b - a, 2)
+            if 1 < b - a <= params.max_gap + 1 and jump <= limit:
                 for f in range(a + 1, b):
                     w = (f - a) / (b - a)
                     uv[f, s] = (1 - w) * uv[a, s] + w * uv[b, s]

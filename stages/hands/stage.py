@@ -190,7 +190,9 @@ class HandsStage(ClipStage):
     # MediaPipe's own graph does (roi_landmarks.world_in_frame_axes), before smoothing and lifting.
     # 8: the palm lift refines IPPE's palm poses on the reprojection error (refine_palm on) and
     # takes MediaPipe's proximal phalanges 1 / 0.70 longer (hand_lift.landmark_bone_lengths).
-    version = 8
+    # 9: a gap is bridged only between ends as near as _tracks links (two hands given one side
+    # are not interpolated into a hand between them).
+    version = 9
     description = "3D hand joints per frame from the clip's labels, de-duplicated and de-spiked"
     config_class = HandsConfig
     inputs: ClassVar[Mapping[str, ShardSchema]] = {"clips": CLIPS}
