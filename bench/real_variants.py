@@ -17,8 +17,9 @@ that one's (as ingest makes them in this process).
 It prints per variant: the workflow, exit code, clips ingested -> packed, frames posed by
 estimation / all frames and the camera model (dataset runs), the share of frames where the
 hands step kept the left / right hand (dataset runs), the first clip's frame count, fps,
-size and policy, the PSNR against ``same_as``, seconds and a verdict, then every reject with its
-step and reason; ``OUT/real_variants.json`` holds the rows.
+size and policy, the PSNR against ``same_as``, seconds and a verdict; then the source region
+ingest's crop kept (``source_crop`` of the first clip) and every reject with its step and
+reason; ``OUT/real_variants.json`` holds the rows.
 
 Each variant states what a researcher should get (``expect``): ``clips`` (at least one packed
 clip, or ingested clip for ingest-only runs, exit 0) or ``reject`` (no clip, exit 3, and a
@@ -514,7 +515,11 @@ def summarise(
     variant: Variant, run: Path, code: int, seconds: float, full: bool, same_db: float | None
 ) -> dict[str, Any]:
     """The bench row of one variant from what its run left on disk."""
-    clips = _rows(run, "ingest", ["clip_id", "num_frames", "fps", "width", "height", "clip_policy"])
+    clips = _rows(
+        run,
+        "ingest",
+        ["clip_id", "num_frames", "fps", "width", "height", "clip_policy", "source_crop"],
+    )
     cams = _rows(run, "cameras", ["clip_id", "camera_model", "registered", "num_frames"])
     packed = _rows(run, "pack", ["clip_id"])
     hands = _rows(run, "hands", ["clip_id", "hand_valid"])
@@ -539,6 +544,8 @@ def summarise(
             f"{c['num_frames']}f@{c['fps']:g} {c['width']}x{c['height']} {c['clip_policy']}"
             for c in clips
         ],
+        # the source region (x0, y0, x1, y1 pixels) ingest's crop kept, first clip (None: centre)
+        "source_crop": _crop(clips[0].get("source_crop")) if clips else None,
         "camera_models": [c.get("camera_model") or "?" for c in cams],
         "frames_posed": int(sum(int(np.sum(c["registered"])) for c in cams)),
         "frames_total": int(sum(int(c["num_frames"]) for c in cams)),
@@ -553,6 +560,11 @@ def summarise(
     if row["verdict"] != "ok":
         row["log_tail"] = log_tail
     return row
+
+
+def _crop(crop: Any) -> list[float] | None:
+    """A clip row's ``source_crop`` rounded to 0.1 px (None for rows without one)."""
+    return None if crop is None else [round(float(v), 1) for v in crop]
 
 
 def verdict(variant: Variant, row: dict[str, Any]) -> str:
@@ -608,6 +620,11 @@ def print_table(rows: list[dict[str, Any]]) -> None:
             f"{r['variant']:<19} {r['workflow']:<7} {r['exit_code']:>4} {clips:>6} {posed:>7} "
             f"{models:<8} {hands:<9} {clip:<32} {same:>7} {r['seconds']:>4.0f}  {r['verdict']}"
         )
+    crops = [r for r in rows if r.get("source_crop") is not None]
+    if crops:  # where each variant's band sits (a changed crop rule shows here first)
+        print("source region kept by ingest's crop (x0, y0, x1, y1 source pixels), first clip:")
+        for r in crops:
+            print(f"  {r['variant']:<19} {tuple(r['source_crop'])}")
     for r in rows:
         for reason in r["rejects"]:
             print(f"{r['variant']}: rejected at {reason[:300]}")

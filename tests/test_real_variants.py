@@ -17,6 +17,7 @@ from bench.real_variants import (
     Variant,
     psnr_db,
     run_variant,
+    summarise,
     verdict,
     write_variant,
 )
@@ -178,3 +179,28 @@ def test_a_mistyped_variant_is_refused_naming_the_value() -> None:
         Spec(container="mp5")
     with pytest.raises(ValueError, match=r"rotation must be a multiple of 90 degrees, got 45"):
         Spec(rotation=45)
+
+
+def test_the_row_records_the_crop_ingest_kept(tmp_path: Path, source: Path) -> None:
+    """``summarise`` reads the first clip's ``source_crop`` from the run's ingest shard: for a
+    portrait video cut with ``crop=anchor`` at the bottom, the bottom band of the source."""
+    from egosim.pipeline.shards import ShardWriter
+    from egosim.schemas.clips import CLIPS
+    from egosim.stages.common.frame_plan import plan_resize
+
+    portrait = tmp_path / "portrait.mp4"
+    write_variant(source, portrait, Spec(aspect=9 / 16, size=(64, 112)))
+    cfg = IngestConfig(
+        height=32, width=48, num_frames=9, min_frames=5, fps=10.0, crop="anchor",
+        crop_anchor=(0.5, 1.0),
+    )  # fmt: skip
+    rows = _ingest(portrait, cfg)
+    run = tmp_path / "run"
+    (run / "ingest").mkdir(parents=True)
+    with ShardWriter(run / "ingest" / "shard-00000.parquet", CLIPS, stage="test") as writer:
+        for row in rows:
+            writer.write_row(row)
+    got = summarise(Variant("p", "x.mp4", None, "clips"), run, 0, 1.0, False, None)
+    want = plan_resize(64, 112, 48, 32, (0.5, 1.0)).source_crop
+    np.testing.assert_allclose(got["source_crop"], want, atol=0.05)
+    assert got["source_crop"][3] == 112.0 and got["source_crop"][1] > 50  # the bottom band
