@@ -20,7 +20,10 @@ before the last change; alt tabletop 7 and wild 8 are held out.
   from the true keypoints kept only where MediaPipe has that side (what its detection alone
   leaves: tuned default world, 7 clips, 0.296 against 0.824 with every true hand and 0.277 with
   MediaPipe's keypoints; the same 0.277 at the world's own 480x832), with ``mp_found`` /
-  ``visible`` the hand-frames per side MediaPipe has / the world shows;
+  ``visible`` the hand-frames per side MediaPipe has / the world shows. The pipeline runs the
+  world at 480x832 (``--size 480x832``), where MediaPipe finds other hands on some clips:
+  held-out alt tabletop 7 / wild 8 MediaPipe IoU 0.709 / 0.325 there against 0.697 / 0.499
+  here (design.md, "hand_mask with MediaPipe joints, diagnosed");
 - ``breakdown_true``: where the true-joint masks lose, frame 0 and later frames apart (missed
   hand / missed arm pixels, false pixels near the truth / far from it; :func:`mask_breakdown`);
 - ``psnr``: frame-0 inpainting (the ``inpaint`` stage's default fill given the predicted masks
