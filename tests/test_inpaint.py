@@ -15,6 +15,7 @@ from PIL import Image
 from egosim.pipeline import media
 from egosim.pipeline.clip_io import read_clips, row_from_clip, write_clips
 from egosim.pipeline.execute import ShardTask, run_shard_task
+from egosim.pipeline.geometry import unproject_depth
 from egosim.pipeline.records import Clip
 from egosim.pipeline.shards import ShardReader, ShardWriter
 from egosim.pipeline.stage import ClipRejected
@@ -26,7 +27,13 @@ from egosim.stages.inpaint.diffusers_backend import (
     composite_output,
     prepare_inputs,
 )
-from egosim.stages.inpaint.reproject_fill import dilate, opencv_fill, reproject_fill, ring_residual
+from egosim.stages.inpaint.reproject_fill import (
+    dilate,
+    opencv_fill,
+    reproject_fill,
+    ring_residual,
+    ring_shift,
+)
 from egosim.stages.inpaint.stage import InpaintConfig, InpaintStage, carry_lost_hands
 from egosim.world import WorldConfig, render_clip
 from tests.conftest import make_clip, one_shard_task, translated, write_cameras
@@ -270,6 +277,50 @@ def test_ring_residual_measures_the_seen_ring_and_holds_back_nothing_unseen() ->
     assert np.all(covered == 0)
 
 
+def _drifted_scene(dx: int, dy: int) -> tuple:
+    """A still camera over a textured plane 1 m away; frames 1-3 show the plane moved by
+    ``(dx, dy)`` px (a pose that drifted: the reprojection lands that far off); a hand in
+    frame 0 only. Returns the fill's arguments and the scene."""
+    rng = np.random.default_rng(3)
+    scene = cv2.GaussianBlur(rng.integers(0, 256, (60, 80, 3)).astype(np.uint8), (0, 0), 1.5)
+    frames = np.stack([scene] + [np.roll(scene, (dy, dx), axis=(0, 1))] * 3)  # (T, H, W, 3)
+    frames[0, 22:38, 30:50] = (200, 150, 130)  # the hand in frame 0
+    masks = np.zeros((4, 60, 80), np.uint8)
+    masks[0, 22:38, 30:50] = 1
+    depth0 = np.ones((60, 80), np.float32)  # (H, W) metres
+    poses = np.repeat(np.eye(4)[None], 4, axis=0)  # (T, 4, 4) the poses say: still
+    return (frames, masks, depth0, poses, np.array([60.0, 60.0, 40.0, 30.0])), scene
+
+
+def test_ring_shift_finds_a_drift_inside_the_window_only() -> None:
+    (frames, masks, depth0, _, k), _ = _drifted_scene(3, -2)
+    hole = masks[0] > 0
+    ring = (dilate(hole, 15) > 0) & ~hole
+    ry, rx = np.nonzero(ring)
+    world = unproject_depth(depth0, k)[ry, rx]  # (R, 3) camera 0 = world
+    grey0 = cv2.cvtColor(frames[0], cv2.COLOR_RGB2GRAY).astype(np.float32)
+    check = (ry, rx, world, grey0[ry, rx])
+    free = np.zeros((60, 80), np.uint8)
+    assert ring_shift(check, frames[1], free, np.eye(4), k, 6, 0.2) == (3.0, -2.0)
+    assert ring_shift(check, frames[1], free, np.eye(4), k, 3, 0.2) == (0.0, 0.0)  # on the edge
+    flat = np.full_like(frames[1], 90)  # nothing to align: no shift lowers the residual
+    assert ring_shift(check, flat, free, np.eye(4), k, 6, 0.2) == (0.0, 0.0)
+
+
+def test_a_drifted_pose_fills_right_after_the_ring_shift() -> None:
+    """Reprojected where the drifted pose says, the later frames paste the plane 3 px off (or
+    the ring check refuses them); moved by the ring's shift they give back the scene."""
+    args, scene = _drifted_scene(3, -2)
+    hole = args[1][0] > 0
+    kw = {"dilate_px": 0, "candidates": 3, "local_residual": 15.0}
+    plain = reproject_fill(*args, **kw)
+    moved = reproject_fill(*args, shift_px=6, **kw)
+    assert np.all(moved.fill_source[hole] == 1)
+    err = np.abs(moved.image[hole].astype(int) - scene[hole]).mean()
+    assert err < 1.0, err  # bilinear at whole-pixel shifts: exact up to rounding
+    assert np.abs(plain.image[hole].astype(int) - scene[hole]).mean() > 5 * max(err, 1.0)
+
+
 def test_carry_lost_hands_adds_a_dropped_hand_not_a_moved_one() -> None:
     masks = np.zeros((6, 60, 80), np.uint8)
     masks[:2, 20:40, 10:30] = 1  # a hand in frames 0-1, lost by frames 2-3's masks ...
@@ -427,7 +478,8 @@ def test_stage_takes_depth_and_cameras_from_connected_roles(tmp_path: Path) -> N
     expected = reproject_fill(
         decoded.frames, masks, depth0, moved, gt.intrinsics, dilate_px=grow,
         candidates=cfg.candidates, occluder_ratio=cfg.occluder_ratio,
-        local_residual=cfg.local_residual,
+        local_residual=cfg.local_residual, shift_px=cfg.ring_shift_px,
+        shift_gain=cfg.ring_shift_gain,
     )  # fmt: skip
     np.testing.assert_array_equal(media.decode_png(row["first_frame"]), expected.image)
     assert row["reprojected_fraction"] > 0.3
@@ -498,7 +550,8 @@ def test_stage_reads_which_depth_is_measured_from_the_cameras_row(tmp_path: Path
     grow = cfg.dilate_px + round(cfg.dilate_fraction * float(np.hypot(*frames.shape[1:3])))
     masks = carry_lost_hands(gt.hand_mask, cfg.carry_frames, cfg.carry_cover, cfg.carry_reach)
     kw = {"dilate_px": grow, "candidates": cfg.candidates, "occluder_ratio": cfg.occluder_ratio,
-          "local_residual": cfg.local_residual}  # fmt: skip
+          "local_residual": cfg.local_residual, "shift_px": cfg.ring_shift_px,
+          "shift_gain": cfg.ring_shift_gain}  # fmt: skip
     args = (frames, masks, depth0, gt.world_from_cam, gt.intrinsics)
     np.testing.assert_array_equal(rows["on"], reproject_fill(*args, measured=~band, **kw).image)
     np.testing.assert_array_equal(rows["off"], reproject_fill(*args, **kw).image)

@@ -18,6 +18,8 @@ Method (backward warping, needs depth of frame 0 only):
    hole, lifted with frame 0's measured depth) within ``local_residual`` grey levels (mean
    absolute difference, :func:`ring_residual`): where the pose, the depth or the scene (a held
    object that moved) is wrong near the hole, that frame does not fill that side of it.
+   With ``shift_px`` the frame's reprojection is first moved by the whole-pixel shift that best
+   aligns the ring (:func:`ring_shift`): estimated poses drift by a few pixels.
 4. Frames are tried by increasing time gap (closest first: least object motion and lighting
    change); a pixel takes the per-channel median of the colours (bilinear) of the first
    ``candidates`` frames that may fill it (1 = the closest frame alone). The median leaves no
@@ -135,6 +137,55 @@ def local_residual_map(
     return pushpull_fill(local, (den <= 0.5) | (hole > 0))  # (H, W)
 
 
+def ring_shift(
+    ring_check: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
+    frame: np.ndarray,
+    mask: np.ndarray,
+    cam_from_world: np.ndarray,
+    intrinsics: np.ndarray,
+    radius: int,
+    min_gain: float,
+) -> tuple[float, float]:
+    """The image shift ``(dx, dy)`` (whole pixels, ``|dx|, |dy| < radius``) that best aligns
+    ``frame (H, W, 3)`` with frame 0 on the reprojected ring, or ``(0, 0)``.
+
+    Estimated poses drift: a frame's reprojection lands a few pixels off. Every shift within
+    ``radius`` of the reprojected ring points (``ring_check``, see :func:`ring_residual`; ones
+    off ``frame``, within ``radius`` of its border or on its ``mask (H, W)`` are left out) is
+    scored by the ring's mean absolute grey difference to frame 0. The best is kept only when it
+    lowers that by at least ``min_gain`` (a fraction) and lies inside the window (a best on the
+    window's edge is no minimum: the frame is off by more, or the ring does not tell).
+    """
+    _, _, world, grey0 = ring_check
+    h, w = mask.shape
+    uv, _ = project_points(transform_points(cam_from_world, world), intrinsics)  # (R, 2)
+    x, y = uv[:, 0] - 0.5, uv[:, 1] - 0.5
+    inner = (x >= radius) & (x <= w - 1 - radius) & (y >= radius) & (y <= h - 1 - radius)
+    seen = np.isfinite(x) & np.isfinite(y) & inner
+    xi = np.clip(np.round(np.nan_to_num(x)).astype(int), 0, w - 1)
+    yi = np.clip(np.round(np.nan_to_num(y)).astype(int), 0, h - 1)
+    seen &= mask[yi, xi] == 0
+    if seen.sum() < MIN_SHIFT_EVIDENCE:
+        return (0.0, 0.0)
+    grey = cv2.cvtColor(frame, cv2.COLOR_RGB2GRAY)[..., None]  # (H, W, 1)
+    x, y, ref = x[seen], y[seen], grey0[seen]  # (R',)
+    steps = range(-radius, radius + 1)
+    errors = np.array(
+        [
+            [np.mean(np.abs(sample_bilinear(grey, x + dx, y + dy)[:, 0] - ref)) for dx in steps]
+            for dy in steps
+        ]
+    )  # (2 radius + 1, 2 radius + 1) rows dy, columns dx
+    iy, ix = np.unravel_index(int(np.argmin(errors)), errors.shape)
+    on_edge = iy in (0, 2 * radius) or ix in (0, 2 * radius)
+    if on_edge or errors[iy, ix] > (1.0 - min_gain) * errors[radius, radius]:
+        return (0.0, 0.0)
+    return (float(ix - radius), float(iy - radius))
+
+
+MIN_SHIFT_EVIDENCE = 20  # ring points a frame must show before a shift is looked for
+
+
 def ring_residual(
     ring_check: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
     frame: np.ndarray,
@@ -142,9 +193,11 @@ def ring_residual(
     cam_from_world: np.ndarray,
     intrinsics: np.ndarray,
     hole: np.ndarray,
+    shift: tuple[float, float] = (0.0, 0.0),
 ) -> np.ndarray:
     """``(H, W)`` float32: how far ``frame (H, W, 3)`` reprojected disagrees with frame 0 near
     each ``hole (H, W)`` pixel (:func:`local_residual_map` of the ring's grey differences).
+    ``shift``: ``(dx, dy)`` pixels added to the reprojection (:func:`ring_shift`).
 
     ``ring_check``: the ring's pixel rows, columns ``(R,)``, world points ``(R, 3)`` and frame-0
     grey levels ``(R,)``. Ring points that land outside ``frame``, behind it or on its ``mask (H,
@@ -154,7 +207,7 @@ def ring_residual(
     ry, rx, world, grey0 = ring_check
     h, w = hole.shape
     uv, _ = project_points(transform_points(cam_from_world, world), intrinsics)  # (R, 2)
-    x, y = uv[:, 0] - 0.5, uv[:, 1] - 0.5
+    x, y = uv[:, 0] - 0.5 + shift[0], uv[:, 1] - 0.5 + shift[1]
     seen = np.isfinite(x) & np.isfinite(y) & (x >= 0) & (x <= w - 1) & (y >= 0) & (y <= h - 1)
     xi = np.clip(np.round(np.nan_to_num(x)).astype(int), 0, w - 1)
     yi = np.clip(np.round(np.nan_to_num(y)).astype(int), 0, h - 1)
@@ -264,6 +317,8 @@ def reproject_fill(
     local_residual: float = 0.0,
     ring_px: int = 15,
     measured: np.ndarray | None = None,
+    shift_px: int = 0,
+    shift_gain: float = 0.2,
 ) -> FillResult:
     """Remove the hand from ``frames[0]``; see the module docstring.
 
@@ -275,7 +330,10 @@ def reproject_fill(
     difference; 0: off): a moved object or a wrong pose near the hole does not fill it.
     ``measured (H, W)``: where ``depth0`` is measured (an estimated depth's confident pixels);
     the rest is inpainted with the hole's depth (step 1) and lifts the ring with it (None: all
-    known depth counts; also when no pixel outside the hole is measured).
+    known depth counts; also when no pixel outside the hole is measured). ``shift_px > 0``
+    (with the ring check): each frame's reprojection is moved by :func:`ring_shift` (less than
+    ``shift_px`` pixels, kept when it lowers the ring's residual by ``shift_gain``) before the
+    check and sampling.
     """
     t, h, w = frames.shape[:3]
     if hand_mask.shape != (t, h, w) or depth0.shape != (h, w) or world_from_cam.shape != (t, 4, 4):
@@ -330,8 +388,13 @@ def reproject_fill(
         idx = np.nonzero(todo)[0]
         cam_from_world = invert_se3(world_from_cam[k])
         uv, z = project_points(transform_points(cam_from_world, points_world[idx]), intrinsics)
-        x = uv[:, 0] - 0.5  # (m,) OpenCV coordinates: pixel centre of column 0 is 0
-        y = uv[:, 1] - 0.5
+        shift = (0.0, 0.0)  # (dx, dy) pixels: the pose's drift seen on the ring
+        if ring_check is not None and shift_px > 0:
+            shift = ring_shift(
+                ring_check, frames[k], masks[k], cam_from_world, intrinsics, shift_px, shift_gain
+            )
+        x = uv[:, 0] - 0.5 + shift[0]  # (m,) OpenCV coordinates: pixel centre of column 0 is 0
+        y = uv[:, 1] - 0.5 + shift[1]
         ok = np.isfinite(x) & np.isfinite(y) & (x >= 0) & (x <= w - 1) & (y >= 0) & (y <= h - 1)
         xi = np.clip(np.round(np.nan_to_num(x)).astype(int), 0, w - 1)
         yi = np.clip(np.round(np.nan_to_num(y)).astype(int), 0, h - 1)
@@ -341,7 +404,7 @@ def reproject_fill(
             ok &= (seen <= 0) | (np.abs(seen - z) <= depth_tolerance * np.maximum(z, 1e-6))
         if ring_check is not None and ok.any():
             near = ring_residual(
-                ring_check, frames[k], masks[k], cam_from_world, intrinsics, target
+                ring_check, frames[k], masks[k], cam_from_world, intrinsics, target, shift
             )
             ok &= near[ys[idx], xs[idx]] <= local_residual
         if not ok.any():

@@ -100,6 +100,9 @@ class InpaintConfig(StageConfig):
     # measured where its confidence0 is at or above this (depth_camera's confidence_threshold,
     # scene_cloud's min_confidence); the rest (round the hands above all: the plane sweep
     # matches the moving hand too) is inpainted like the depth under the hand (0: all kept)
+    ring_shift_px: int = 6  # the depth fill moves each frame's reprojection by the whole-pixel
+    # shift (less than this) that best aligns frame 0's ring (estimated poses drift; 0: off)
+    ring_shift_gain: float = 0.2  # ... kept when it lowers the ring's mean residual by this
     model_path: str = ""  # local folder of a diffusers inpainting pipeline (backend diffusers)
     device: str = "cpu"  # torch device of the diffusers pipeline
     prompt: str = "empty table, no hands"  # text prompt of the diffusers pipeline
@@ -125,6 +128,10 @@ class InpaintConfig(StageConfig):
             problems.append(f"carry_reach must be in [0, 1], got {self.carry_reach}")
         if not 0.0 <= self.local_residual <= 255.0:
             problems.append(f"local_residual must be in [0, 255], got {self.local_residual}")
+        if not 0 <= self.ring_shift_px <= 32:
+            problems.append(f"ring_shift_px must be in [0, 32], got {self.ring_shift_px}")
+        if not 0.0 <= self.ring_shift_gain < 1.0:
+            problems.append(f"ring_shift_gain must be in [0, 1), got {self.ring_shift_gain}")
         if not 0.0 <= self.min_depth_confidence <= 1.0:
             problems.append(
                 f"min_depth_confidence must be in [0, 1], got {self.min_depth_confidence}"
@@ -149,14 +156,15 @@ class InpaintStage(ClipStage):
     """Remove hands from the first frame: reprojected later frames, then OpenCV inpainting."""
 
     name = "inpaint"
-    version = 10  # 3: median of several frames; clips without depth aligned in the image. 4: more
+    version = 11  # 3: median of several frames; clips without depth aligned in the image. 4: more
     # frames in the median, dilation with the image size. 5: hand-coloured samples not used.
     # 6: large holes no longer rejected (chunked sampling). 7: the image-aligned fill checks
     # each homography near every hole pixel (local_residual). 8: a hand a later frame's mask
     # dropped is carried in from nearby frames before sampling (carry_lost_hands). 9: the
     # depth fill checks each frame's reprojected ring near every hole pixel (local_residual).
     # 10: the cameras row's depth0 counts only where its confidence0 is at least
-    # min_depth_confidence; the rest is inpainted with the hole's depth (and lifts the ring)
+    # min_depth_confidence; the rest is inpainted with the hole's depth (and lifts the ring).
+    # 11: each frame's reprojection is moved by the shift that aligns the ring (ring_shift_px)
 
     description = "remove hands from the first frame (reprojected frames + OpenCV inpainting)"
     config_class = InpaintConfig
@@ -249,6 +257,8 @@ class InpaintStage(ClipStage):
                 occluder_ratio=cfg.occluder_ratio,
                 local_residual=cfg.local_residual,
                 measured=measured,
+                shift_px=cfg.ring_shift_px,
+                shift_gain=cfg.ring_shift_gain,
             )
         except InpaintInputError as exc:
             raise ClipRejected(f"clip {clip_id!r}: {exc}") from exc
