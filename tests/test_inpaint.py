@@ -22,6 +22,7 @@ from egosim.pipeline.stage import ClipRejected
 from egosim.schemas.depth_camera import DEPTH_CAMERA
 from egosim.schemas.hand_mask import HAND_MASK
 from egosim.schemas.inpaint import INPAINT
+from egosim.stages.inpaint.aligned_fill import image_shift
 from egosim.stages.inpaint.diffusers_backend import (
     DiffusersInpainter,
     composite_output,
@@ -305,6 +306,20 @@ def test_ring_shift_finds_a_drift_inside_the_window_only() -> None:
     assert ring_shift(check, frames[1], free, np.eye(4), k, 3, 0.2) == (0.0, 0.0)  # on the edge
     flat = np.full_like(frames[1], 90)  # nothing to align: no shift lowers the residual
     assert ring_shift(check, flat, free, np.eye(4), k, 6, 0.2) == (0.0, 0.0)
+
+
+def test_image_shift_aligns_a_warp_that_sits_off_round_the_hole() -> None:
+    rng = np.random.default_rng(4)
+    grey0 = cv2.GaussianBlur(rng.integers(0, 256, (60, 80)).astype(np.uint8), (0, 0), 1.5)
+    grey0 = grey0.astype(np.int16)  # (H, W) frame 0
+    warped = np.roll(grey0, (-1, 4), axis=(0, 1))  # (H, W) the warp sits 4 px right, 1 px up
+    hole = np.zeros((60, 80), bool)
+    hole[22:38, 30:50] = True
+    ring = (dilate(hole, 15) > 0) & ~hole
+    assert image_shift(warped, grey0, ring, 6, 0.2) == (4, -1)
+    assert image_shift(warped, grey0, ring, 4, 0.2) == (0, 0)  # the best is on the edge
+    assert image_shift(warped, grey0, ring, 0, 0.2) == (0, 0)  # off
+    assert image_shift(np.full_like(grey0, 90), grey0, ring, 6, 0.2) == (0, 0)  # no gain
 
 
 def test_a_drifted_pose_fills_right_after_the_ring_shift() -> None:

@@ -22,6 +22,7 @@ import numpy as np
 
 from egosim.schemas.inpaint import FILL_OPENCV, FILL_ORIGINAL, FILL_REPROJECTED
 from egosim.stages.inpaint.reproject_fill import (
+    MIN_SHIFT_EVIDENCE,
     FillResult,
     OccluderColours,
     dilate,
@@ -63,6 +64,35 @@ def homography_to_first(
     return hom
 
 
+def image_shift(
+    grey: np.ndarray, grey0: np.ndarray, check: np.ndarray, radius: int, min_gain: float
+) -> tuple[int, int]:
+    """The whole-pixel shift ``(dx, dy)``, ``|dx|, |dy| < radius``, that best aligns the warped
+    ``grey (H, W)`` with frame 0's ``grey0 (H, W)`` on the ``check (H, W)`` pixels (the ring),
+    or ``(0, 0)``: the mean absolute difference of ``grey[y + dy, x + dx]`` and ``grey0[y, x]``,
+    kept when it is ``min_gain`` (a fraction) below the unshifted one and the best does not lie
+    on the window's edge (as :func:`~egosim.stages.inpaint.reproject_fill.ring_shift`).
+    """
+    if radius <= 0:
+        return (0, 0)
+    h, w = grey0.shape
+    cy, cx = np.nonzero(check)  # (C,)
+    inner = (cy >= radius) & (cy < h - radius) & (cx >= radius) & (cx < w - radius)
+    cy, cx = cy[inner], cx[inner]
+    if len(cy) < MIN_SHIFT_EVIDENCE:
+        return (0, 0)
+    ref = grey0[cy, cx].astype(np.float32)  # (C,)
+    steps = range(-radius, radius + 1)
+    errors = np.array(
+        [[np.mean(np.abs(grey[cy + dy, cx + dx] - ref)) for dx in steps] for dy in steps]
+    )  # (2 radius + 1, 2 radius + 1) rows dy, columns dx
+    iy, ix = np.unravel_index(int(np.argmin(errors)), errors.shape)
+    on_edge = iy in (0, 2 * radius) or ix in (0, 2 * radius)
+    if on_edge or errors[iy, ix] > (1.0 - min_gain) * errors[radius, radius]:
+        return (0, 0)
+    return (int(ix - radius), int(iy - radius))
+
+
 def aligned_fill(
     frames: np.ndarray,
     hand_mask: np.ndarray,
@@ -75,6 +105,8 @@ def aligned_fill(
     occluder_ratio: float = 0.0,
     ring_px: int = 15,
     local_residual: float = 0.0,
+    shift_px: int = 0,
+    shift_gain: float = 0.2,
 ) -> FillResult:
     """Remove the hand from ``frames[0]``; see the module docstring.
 
@@ -86,6 +118,10 @@ def aligned_fill(
     :class:`~egosim.stages.inpaint.reproject_fill.OccluderColours`; 0: off).
     ``local_residual``: a fitted homography fills only the hole pixels whose nearby ring matches
     frame 0 within this many grey levels (mean absolute difference; 0: off).
+    ``shift_px > 0``: each fitted warp is moved by :func:`image_shift` (the whole-pixel shift,
+    less than ``shift_px``, that aligns the ring, kept when it lowers its residual by
+    ``shift_gain``) before the checks: a homography fitted over the whole frame can sit a few
+    pixels off round the hole.
     """
     t, h, w = frames.shape[:3]
     masks = dilate(hand_mask > 0, dilate_px)  # (T, H, W)
@@ -123,6 +159,16 @@ def aligned_fill(
             if check.sum() < 20:
                 continue
             grey = cv2.cvtColor(warped, cv2.COLOR_RGB2GRAY).astype(np.int16)
+            dx, dy = image_shift(grey, grey0, check, shift_px, shift_gain)
+            if dx or dy:  # move the warp by the shift that aligns the ring
+                hom = np.array([[1.0, 0.0, -dx], [0.0, 1.0, -dy], [0.0, 0.0, 1.0]]) @ hom
+                warped = cv2.warpPerspective(frames[k], hom, (w, h), flags=cv2.INTER_LINEAR)
+                seen = cv2.warpPerspective(
+                    (masks[k] == 0).astype(np.uint8), hom, (w, h), flags=cv2.INTER_NEAREST
+                )
+                free = seen > 0
+                check = ring & free
+                grey = cv2.cvtColor(warped, cv2.COLOR_RGB2GRAY).astype(np.int16)
             diff = np.abs(grey - grey0)  # (H, W) alignment residual
             if float(np.median(diff[check])) > max_residual:
                 continue

@@ -100,8 +100,9 @@ class InpaintConfig(StageConfig):
     # measured where its confidence0 is at or above this (depth_camera's confidence_threshold,
     # scene_cloud's min_confidence); the rest (round the hands above all: the plane sweep
     # matches the moving hand too) is inpainted like the depth under the hand (0: all kept)
-    ring_shift_px: int = 6  # the depth fill moves each frame's reprojection by the whole-pixel
-    # shift (less than this) that best aligns frame 0's ring (estimated poses drift; 0: off)
+    ring_shift_px: int = 6  # each frame's reprojection (depth fill) or homography warp (aligned
+    # fill) moves by the whole-pixel shift, less than this, that best aligns frame 0's ring
+    # (estimated poses drift; a whole-frame homography sits off round the hole; 0: off)
     ring_shift_gain: float = 0.2  # ... kept when it lowers the ring's mean residual by this
     model_path: str = ""  # local folder of a diffusers inpainting pipeline (backend diffusers)
     device: str = "cpu"  # torch device of the diffusers pipeline
@@ -156,7 +157,7 @@ class InpaintStage(ClipStage):
     """Remove hands from the first frame: reprojected later frames, then OpenCV inpainting."""
 
     name = "inpaint"
-    version = 11  # 3: median of several frames; clips without depth aligned in the image. 4: more
+    version = 12  # 3: median of several frames; clips without depth aligned in the image. 4: more
     # frames in the median, dilation with the image size. 5: hand-coloured samples not used.
     # 6: large holes no longer rejected (chunked sampling). 7: the image-aligned fill checks
     # each homography near every hole pixel (local_residual). 8: a hand a later frame's mask
@@ -164,7 +165,8 @@ class InpaintStage(ClipStage):
     # depth fill checks each frame's reprojected ring near every hole pixel (local_residual).
     # 10: the cameras row's depth0 counts only where its confidence0 is at least
     # min_depth_confidence; the rest is inpainted with the hole's depth (and lifts the ring).
-    # 11: each frame's reprojection is moved by the shift that aligns the ring (ring_shift_px)
+    # 11: each frame's reprojection is moved by the shift that aligns the ring (ring_shift_px).
+    # 12: so is the image-aligned fill's homography warp
 
     description = "remove hands from the first frame (reprojected frames + OpenCV inpainting)"
     config_class = InpaintConfig
@@ -240,6 +242,8 @@ class InpaintStage(ClipStage):
                 unseen_method=cfg.unseen_method,
                 occluder_ratio=cfg.occluder_ratio,
                 local_residual=cfg.local_residual,
+                shift_px=cfg.ring_shift_px,
+                shift_gain=cfg.ring_shift_gain,
             )
         try:
             return reproject_fill(
