@@ -30,6 +30,10 @@ the sub-clip from the first frame with a visible hand, image-aligned fill, ``vid
 registered to the real frames, PSNR in the hand truth dilated 15 px, Telea with the same mask.
 ``--aligned`` runs the synthetic cases without depth and poses too (the fill DWM gets: later
 frames aligned by homographies), so that path has cases to tune on that are not the real ones.
+``--sweep`` gives the synthetic depth fill the depth the workflow would make instead of the
+world's (:func:`sweep_depth`: the ``depth_camera`` plane sweep and its confidence, true poses,
+no hand exclusion), and ``--pose-noise D`` poses whose rotation error random-walks ``D``
+degrees a frame (:func:`drifted_poses`): cases with estimated-looking cameras to tune on.
 
 The real dataset workflow (``bench.real_video``: ``workflows/dataset.yaml``, preset ``dwm``) gives
 the DWM clips cameras from SfM and a plane-sweep depth, so what it ships on them is the **depth**
