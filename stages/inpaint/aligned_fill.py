@@ -25,6 +25,7 @@ from egosim.stages.inpaint.reproject_fill import (
     MIN_SHIFT_EVIDENCE,
     FillResult,
     OccluderColours,
+    best_shift,
     dilate,
     local_residual_map,
     slot_median,
@@ -82,15 +83,9 @@ def image_shift(
     if len(cy) < MIN_SHIFT_EVIDENCE:
         return (0, 0)
     ref = grey0[cy, cx].astype(np.float32)  # (C,)
-    steps = range(-radius, radius + 1)
-    errors = np.array(
-        [[np.mean(np.abs(grey[cy + dy, cx + dx] - ref)) for dx in steps] for dy in steps]
-    )  # (2 radius + 1, 2 radius + 1) rows dy, columns dx
-    iy, ix = np.unravel_index(int(np.argmin(errors)), errors.shape)
-    on_edge = iy in (0, 2 * radius) or ix in (0, 2 * radius)
-    if on_edge or errors[iy, ix] > (1.0 - min_gain) * errors[radius, radius]:
-        return (0, 0)
-    return (int(ix - radius), int(iy - radius))
+    return best_shift(
+        lambda dx, dy: np.mean(np.abs(grey[cy + dy, cx + dx] - ref)), radius, min_gain
+    )
 
 
 def aligned_fill(

@@ -169,18 +169,26 @@ def ring_shift(
         return (0.0, 0.0)
     grey = cv2.cvtColor(frame, cv2.COLOR_RGB2GRAY)[..., None]  # (H, W, 1)
     x, y, ref = x[seen], y[seen], grey0[seen]  # (R',)
+    dx, dy = best_shift(
+        lambda dx, dy: np.mean(np.abs(sample_bilinear(grey, x + dx, y + dy)[:, 0] - ref)),
+        radius,
+        min_gain,
+    )
+    return (float(dx), float(dy))
+
+
+def best_shift(error, radius: int, min_gain: float) -> tuple[int, int]:
+    """The whole-pixel shift ``(dx, dy)`` of least ``error(dx, dy)`` (a float) over the window
+    ``|dx|, |dy| <= radius``, or ``(0, 0)`` unless it lowers the unshifted error by at least
+    ``min_gain`` (a fraction) and lies inside the window, ``|dx|, |dy| < radius`` (a best on the
+    window's edge is no minimum)."""
     steps = range(-radius, radius + 1)
-    errors = np.array(
-        [
-            [np.mean(np.abs(sample_bilinear(grey, x + dx, y + dy)[:, 0] - ref)) for dx in steps]
-            for dy in steps
-        ]
-    )  # (2 radius + 1, 2 radius + 1) rows dy, columns dx
+    errors = np.array([[error(dx, dy) for dx in steps] for dy in steps])  # rows dy, columns dx
     iy, ix = np.unravel_index(int(np.argmin(errors)), errors.shape)
     on_edge = iy in (0, 2 * radius) or ix in (0, 2 * radius)
     if on_edge or errors[iy, ix] > (1.0 - min_gain) * errors[radius, radius]:
-        return (0.0, 0.0)
-    return (float(ix - radius), float(iy - radius))
+        return (0, 0)
+    return (int(ix - radius), int(iy - radius))
 
 
 MIN_SHIFT_EVIDENCE = 20  # ring points a frame must show before a shift is looked for
