@@ -14,13 +14,18 @@ from typing import Any
 import numpy as np
 import pytest
 
+from egosim.pipeline import media
 from egosim.pipeline.clip_io import row_from_clip
 from egosim.pipeline.records import ClipsRecord, DepthCameraRecord, PosesRecord
 from egosim.pipeline.stage import ClipRejected, UndeclaredColumnError
 from egosim.schemas import CLIPS
 from egosim.schemas.depth_camera import DEPTH_CAMERA
 from egosim.schemas.poses import POSES
-from egosim.stages.common.cameras import CAMERA_COLUMNS, resolve_cameras
+from egosim.stages.common.cameras import (
+    CAMERA_COLUMNS,
+    first_frame_confidence,
+    resolve_cameras,
+)
 from tests.conftest import make_clip, translated
 
 T = 4
@@ -112,3 +117,21 @@ def test_a_role_with_another_frame_count_is_rejected(as_records: bool) -> None:
     with pytest.raises(ClipRejected) as info:
         resolve_cameras(_declared(rows) if as_records else rows)
     assert str(info.value) == "clip 'c': cameras has poses of shape (4, 12), expected (4, 16)"
+
+
+def test_first_frame_confidence_reads_the_cameras_row_and_rejects_another_size() -> None:
+    """confidence0 comes back as [0, 1] floats exactly as encoded; none without a cameras row
+    or its column; a size other than depth0's rejects the clip, naming it."""
+    conf = np.arange(24 * 32, dtype=np.uint8).reshape(1, 24, 32)  # (1, H, W)
+    rows: dict[str, Any] = {
+        "clips": {"clip_id": "c7"},
+        "cameras": {"confidence0": media.encode_lossless_video(conf)},
+    }
+    got = first_frame_confidence(rows, (24, 32))
+    assert got is not None and got.dtype == np.float32
+    np.testing.assert_array_equal(got, conf[0] / np.float32(255.0))
+    assert first_frame_confidence({"clips": rows["clips"]}, (24, 32)) is None
+    none_row = {"clips": rows["clips"], "cameras": {"confidence0": None}}
+    assert first_frame_confidence(none_row, (24, 32)) is None
+    with pytest.raises(ClipRejected, match=r"c7.*confidence0 \(24, 32\) != depth0 \(48, 64\)"):
+        first_frame_confidence(rows, (48, 64))

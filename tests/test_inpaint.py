@@ -322,6 +322,27 @@ def test_image_shift_aligns_a_warp_that_sits_off_round_the_hole() -> None:
     assert image_shift(np.full_like(grey0, 90), grey0, ring, 6, 0.2) == (0, 0)  # no gain
 
 
+def test_aligned_fill_moves_a_warp_that_sits_off_by_the_ring_shift(monkeypatch) -> None:
+    """Later frames whose homography leaves them 4 px right and 1 px up of frame 0: without the
+    shift they paste the scene off (error > 5 grey levels); with it, the scene exactly."""
+    import egosim.stages.inpaint.aligned_fill as af
+
+    rng = np.random.default_rng(3)
+    scene = cv2.GaussianBlur(rng.integers(0, 256, (60, 80, 3)).astype(np.uint8), (0, 0), 1.5)
+    frames = np.stack([scene] + [np.roll(scene, (-1, 4), axis=(0, 1))] * 3)  # (4, H, W, 3)
+    frames[0, 22:38, 30:50] = (200, 150, 130)  # the hand
+    masks = np.zeros((4, 60, 80), np.uint8)
+    masks[0, 22:38, 30:50] = 1
+    monkeypatch.setattr(af, "homography_to_first", lambda *a, **k: np.eye(3))  # the warp, off
+    hole = masks[0] > 0
+    kw = {"dilate_px": 0, "candidates": 3, "max_residual": 200.0}
+    plain = af.aligned_fill(frames, masks, shift_px=0, **kw)
+    moved = af.aligned_fill(frames, masks, shift_px=6, **kw)
+    assert np.all(plain.fill_source[hole] == 1) and np.all(moved.fill_source[hole] == 1)
+    assert np.abs(plain.image[hole].astype(int) - scene[hole]).mean() > 5.0
+    assert np.abs(moved.image[hole].astype(int) - scene[hole]).mean() < 0.5
+
+
 def test_a_drifted_pose_fills_right_after_the_ring_shift() -> None:
     """Reprojected where the drifted pose says, the later frames paste the plane 3 px off (or
     the ring check refuses them); moved by the ring's shift they give back the scene."""

@@ -19,6 +19,7 @@ from typing import Any
 
 import numpy as np
 
+from egosim.pipeline import media
 from egosim.pipeline.records import CameraRecord, ClipsRecord, DepthCameraRecord, PosesRecord
 from egosim.pipeline.stage import ClipRejected
 from egosim.schemas import ShardSchema
@@ -113,6 +114,21 @@ def depth_is_unknown_by_model(rows: Mapping[str, Mapping[str, Any]]) -> bool:
     if cams is None or cams.get("depth0") is not None:
         return False
     return bool(cams.get("static_camera")) or cams.get("camera_model") in ("static", "rotation")
+
+
+def first_frame_confidence(
+    rows: Mapping[str, Mapping[str, Any]], shape: tuple[int, ...]
+) -> np.ndarray | None:
+    """``(H, W)`` float32 in [0, 1]: the ``cameras`` row's ``confidence0``, the confidence of its
+    ``depth0`` (None when there is no cameras row or it has none). A confidence whose size is not
+    ``shape`` (depth0's) rejects the clip."""
+    cams, cid = rows.get("cameras"), rows["clips"]["clip_id"]
+    if cams is None or cams.get("confidence0") is None:
+        return None
+    conf = media.decode_lossless_video(cams["confidence0"], f"clip {cid} confidence0", 1)[0]
+    if conf.shape != shape:
+        raise ClipRejected(f"clip {cid!r}: confidence0 {conf.shape} != depth0 {shape}")
+    return conf.astype(np.float32) / 255.0
 
 
 def first_frame_depth(rows: Mapping[str, Mapping[str, Any]]) -> np.ndarray | None:

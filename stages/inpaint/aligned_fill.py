@@ -151,7 +151,7 @@ def aligned_fill(
             )  # (H, W) 1 = unoccluded and inside frame k
             free = seen > 0
             check = ring & free  # (H, W)
-            if check.sum() < 20:
+            if check.sum() < MIN_SHIFT_EVIDENCE:
                 continue
             grey = cv2.cvtColor(warped, cv2.COLOR_RGB2GRAY).astype(np.int16)
             dx, dy = image_shift(grey, grey0, check, shift_px, shift_gain)
@@ -163,6 +163,8 @@ def aligned_fill(
                 )
                 free = seen > 0
                 check = ring & free
+                if check.sum() < MIN_SHIFT_EVIDENCE:  # the shift left too little ring to check
+                    continue
                 grey = cv2.cvtColor(warped, cv2.COLOR_RGB2GRAY).astype(np.int16)
             diff = np.abs(grey - grey0)  # (H, W) alignment residual
             if float(np.median(diff[check])) > max_residual:

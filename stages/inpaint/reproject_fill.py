@@ -15,7 +15,8 @@ Method (backward warping, needs depth of frame 0 only):
    the predicted depth within ``depth_tolerance`` (relative): a moved object or an occluder is
    rejected.
 3. Near each hole pixel the frame must also show frame 0's ring (the pixels just outside the
-   hole, lifted with frame 0's measured depth) within ``local_residual`` grey levels (mean
+   hole, lifted with frame 0's measured depth where it is measured, else with the depth
+   inpainted in step 1) within ``local_residual`` grey levels (mean
    absolute difference, :func:`ring_residual`): where the pose, the depth or the scene (a held
    object that moved) is wrong near the hole, that frame does not fill that side of it.
    With ``shift_px`` the frame's reprojection is first moved by the whole-pixel shift that best
@@ -32,6 +33,7 @@ frame index its colour came from.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import cv2
@@ -137,6 +139,9 @@ def local_residual_map(
     return pushpull_fill(local, (den <= 0.5) | (hole > 0))  # (H, W)
 
 
+MIN_SHIFT_EVIDENCE = 20  # ring points a frame must show before a shift is looked for
+
+
 def ring_shift(
     ring_check: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
     frame: np.ndarray,
@@ -177,7 +182,7 @@ def ring_shift(
     return (float(dx), float(dy))
 
 
-def best_shift(error, radius: int, min_gain: float) -> tuple[int, int]:
+def best_shift(error: Callable[[int, int], float], radius: int, min_gain: float) -> tuple[int, int]:
     """The whole-pixel shift ``(dx, dy)`` of least ``error(dx, dy)`` (a float) over the window
     ``|dx|, |dy| <= radius``, or ``(0, 0)`` unless it lowers the unshifted error by at least
     ``min_gain`` (a fraction) and lies inside the window, ``|dx|, |dy| < radius`` (a best on the
@@ -186,12 +191,9 @@ def best_shift(error, radius: int, min_gain: float) -> tuple[int, int]:
     errors = np.array([[error(dx, dy) for dx in steps] for dy in steps])  # rows dy, columns dx
     iy, ix = np.unravel_index(int(np.argmin(errors)), errors.shape)
     on_edge = iy in (0, 2 * radius) or ix in (0, 2 * radius)
-    if on_edge or errors[iy, ix] > (1.0 - min_gain) * errors[radius, radius]:
-        return (0, 0)
+    if on_edge or errors[iy, ix] >= (1.0 - min_gain) * errors[radius, radius]:
+        return (0, 0)  # no better than unshifted (ties and a zero error included)
     return (int(ix - radius), int(iy - radius))
-
-
-MIN_SHIFT_EVIDENCE = 20  # ring points a frame must show before a shift is looked for
 
 
 def ring_residual(
@@ -334,8 +336,9 @@ def reproject_fill(
     metres (0 = unknown), ``world_from_cam (T, 4, 4)``, ``intrinsics (4,)``, optional
     ``depth (T, H, W)`` of every frame for the agreement test. ``local_residual``: a frame
     fills only the hole pixels whose nearby ring (``ring_px`` round the hole, reprojected with
-    frame 0's measured depth) it shows within this many grey levels of frame 0 (mean absolute
-    difference; 0: off): a moved object or a wrong pose near the hole does not fill it.
+    frame 0's measured depth, or the inpainted one where it is not measured) it shows within
+    this many grey levels of frame 0 (mean absolute difference; 0: off): a moved object or a
+    wrong pose near the hole does not fill it.
     ``measured (H, W)``: where ``depth0`` is measured (an estimated depth's confident pixels);
     the rest is inpainted with the hole's depth (step 1) and lifts the ring with it (None: all
     known depth counts; also when no pixel outside the hole is measured). ``shift_px > 0``
@@ -380,7 +383,7 @@ def reproject_fill(
     samples = np.zeros((candidates, len(ys), 3), np.float32)  # colours per candidate slot
     count = np.zeros(len(ys), np.int32)  # (M,) slots each pixel filled
     ring_check = None
-    if local_residual > 0:  # 3. the ring round the hole, where frame 0's depth is measured
+    if local_residual > 0:  # 3. the ring round the hole, where frame 0 has a depth
         ring = (dilate(target, ring_px) > 0) & ~target & (depth0 > 0)  # (H, W)
         ry, rx = np.nonzero(ring)  # (R,)
         ring_depth = np.where(trusted, depth0, d0)  # (H, W) measured, else as the hole's

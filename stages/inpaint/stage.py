@@ -54,6 +54,7 @@ from egosim.stages.common.cameras import (
     CAMERA_COLUMNS,
     CAMERA_ROLES,
     DEPTH0_COLUMNS,
+    first_frame_confidence,
     first_frame_depth,
     resolve_cameras,
 )
@@ -100,9 +101,10 @@ class InpaintConfig(StageConfig):
     # measured where its confidence0 is at or above this (depth_camera's confidence_threshold,
     # scene_cloud's min_confidence); the rest (round the hands above all: the plane sweep
     # matches the moving hand too) is inpainted like the depth under the hand (0: all kept)
-    ring_shift_px: int = 6  # each frame's reprojection (depth fill) or homography warp (aligned
-    # fill) moves by the whole-pixel shift, less than this, that best aligns frame 0's ring
-    # (estimated poses drift; a whole-frame homography sits off round the hole; 0: off)
+    ring_shift_px: int = 6  # each frame's reprojection (depth fill, only with local_residual >
+    # 0) or homography warp (aligned fill, always) moves by the whole-pixel shift, less than
+    # this, that best aligns frame 0's ring (estimated poses drift; a whole-frame homography
+    # sits off round the hole; 0: off)
     ring_shift_gain: float = 0.2  # ... kept when it lowers the ring's mean residual by this
     model_path: str = ""  # local folder of a diffusers inpainting pipeline (backend diffusers)
     device: str = "cpu"  # torch device of the diffusers pipeline
@@ -281,7 +283,7 @@ class InpaintStage(ClipStage):
         cam_row = rows.get("cameras")
         confidence = None  # (H, W) of the cameras row's depth0, the depth first_frame_depth took
         if depth0 is not None and cam_row is not None and cam_row.get("depth0") is not None:
-            confidence = depth0_confidence(cam_row, clip_id, depth0.shape)
+            confidence = first_frame_confidence(rows, depth0.shape)
         static = cam_row is not None and DepthCameraRecord.of(cam_row).static_camera
         cams = resolve_cameras(rows)
         # Per-frame depth (agreement test) only from the clip, and only when no other role
@@ -358,19 +360,6 @@ def carry_lost_hands(
                 if np.count_nonzero(near[box] & region) < min_cover * area:
                     out[k][box] |= region.astype(np.uint8)
     return out
-
-
-def depth0_confidence(
-    cam_row: Mapping[str, Any], clip_id: str, shape: tuple[int, ...]
-) -> np.ndarray | None:
-    """``(H, W)`` float32 in [0, 1]: the ``cameras`` row's ``confidence0`` (None when null)."""
-    if cam_row.get("confidence0") is None:
-        return None
-    what = f"clip {clip_id} confidence0"
-    conf = media.decode_lossless_video(cam_row["confidence0"], what, 1)[0]  # (H, W) uint8
-    if conf.shape != shape:
-        raise ClipRejected(f"clip {clip_id!r}: confidence0 {conf.shape} != depth0 {shape}")
-    return conf.astype(np.float32) / 255.0
 
 
 def _still(world_from_cam: np.ndarray) -> bool:

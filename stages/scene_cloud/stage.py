@@ -49,6 +49,7 @@ from egosim.stages.common.cameras import (
     CAMERA_ROLES,
     DEPTH0_COLUMNS,
     depth_is_unknown_by_model,
+    first_frame_confidence,
     first_frame_depth,
     resolve_cameras,
 )
@@ -307,17 +308,6 @@ class FirstFrame:
     source: str  # image_source column value
 
 
-def _confidence0(rows: Mapping[str, Mapping[str, Any]], shape: tuple[int, ...]) -> Any:
-    """``(H, W)`` float32 confidence of the ``cameras`` depth0 in [0, 1], or None."""
-    cams, cid = rows.get("cameras"), rows["clips"]["clip_id"]
-    if cams is None or cams.get("confidence0") is None:
-        return None
-    conf = media.decode_lossless_video(cams["confidence0"], f"clip {cid} confidence0", 1)[0]
-    if conf.shape != shape:
-        raise ClipRejected(f"clip {cid!r}: confidence0 {conf.shape} != depth0 {shape}")
-    return conf.astype(np.float32) / 255.0
-
-
 def _first_frame(rows: Mapping[str, Mapping[str, Any]], fill: bool = True) -> FirstFrame:
     """Frame 0's image, depth, depth confidence, pixels to leave out or fill (module docstring)."""
     row, inpaint = ClipsRecord.of(rows["clips"]), rows.get("inpaint")
@@ -334,7 +324,7 @@ def _first_frame(rows: Mapping[str, Mapping[str, Any]], fill: bool = True) -> Fi
         depth = np.full((h, w), STATIC_PLANE_DEPTH, np.float32)
         depth_name = "static_plane"
     elif depth_name == "depth0":
-        confidence = _confidence0(rows, depth.shape)
+        confidence = first_frame_confidence(rows, depth.shape)
     hand_free = depth_name in ("static_depth", "static_plane")
     if inpaint is not None:
         image = media.decode_png(inpaint["first_frame"], f"clip {cid} inpaint first_frame")
