@@ -344,9 +344,11 @@ def interhand_depth_figures(folder: Path) -> list[dict[str, float]]:
             truth = float(np.median(hand[:, 2]))
             moved = float(np.median(place_in_camera(found.uv, found.world, k)[:, 2])) / truth
             fig = {"true_depth_m": truth, "translation": moved}
-            prox = list(PROXIMAL_PHALANGES)
-            true_length = np.linalg.norm(hand[prox] - hand[[j - 1 for j in prox]], axis=1)  # (4,)
-            fig["proximal_ratio"] = float(np.median(bone_lengths(found.world)[prox] / true_length))
+            prox = list(PROXIMAL_PHALANGES)  # both hands' bones at the template palm's size:
+            # MediaPipe's proximal phalanges relative to its palm, against the true hand's
+            ratio = bone_lengths(found.world)[prox] / bone_lengths(hand)[prox]  # (4,)
+            fig["proximal_ratio"] = float(np.median(ratio))
+            fig["proximal_ratios"] = [round(float(r), 3) for r in ratio]  # index..pinky
             for name, refine in (("palm_pnp", True), ("palm_pnp_ippe", False)):
                 pose = palm_pnp_pose(found.uv, found.world, k, which == 0, False, refine)
                 depth = mpjpe = turn = float("nan")

@@ -40,7 +40,7 @@ MIN_POSE_DEPTH = 0.05  # metres: a palm pose with a joint nearer the camera does
 # MediaPipe's world landmarks put each finger's middle joint (PIP) too near its knuckle: relative
 # to the palm their proximal phalanges are 0.70 of the hand's (median over the found hands of the
 # default synthetic world, seeds 1-4, 11, 13; per finger 0.62-0.86, and 0.67-0.89 on the held-out
-# alt world, 0.61-0.79 on real InterHand hands). The bone-length depths take them that much longer.
+# alt world, 0.62-0.78 on real InterHand hands). The bone-length depths take them that much longer.
 PROXIMAL_PHALANGES = (6, 10, 14, 18)  # joints ending the index, middle, ring and pinky's first bone
 MEDIAPIPE_PROXIMAL_RATIO = 0.70  # MediaPipe's proximal phalanx length / the hand's
 # An average adult right palm (metres; x from the wrist towards the fingers, y towards the thumb,
@@ -144,11 +144,14 @@ def palm_pnp_pose(
     right: bool = True,
     prefer_fingers_away: bool = True,
     refine: bool = True,
+    proximal_ratio: float = MEDIAPIPE_PROXIMAL_RATIO,
 ) -> tuple[np.ndarray, np.ndarray] | None:
     """The palm-PnP lift (see :func:`lift_to_camera`) and its rotation: ``(points (21, 3) camera
     metres, cam_from_landmarks (3, 3))`` taking MediaPipe's world-landmark axes to the camera's;
     None when the PnP fails (a palm seen edge-on: its knuckles on one image line). ``refine``:
-    the palm poses refined on the reprojection error (:func:`palm_candidates`)."""
+    the palm poses refined on the reprojection error (:func:`palm_candidates`).
+    ``proximal_ratio``: how short the landmarks' proximal phalanges are
+    (:func:`landmark_bone_lengths`; 1.0 for true joints, e.g. a test's oracle landmarks)."""
     candidates = palm_candidates(uv, intrinsics, right, refine)  # each (5, 3)
     if not candidates:
         return None
@@ -162,7 +165,7 @@ def palm_pnp_pose(
     rot = best_rotation(world_landmarks[palm], chosen)  # (3, 3) cam_from_landmarks
     model = (world_landmarks - world_landmarks[palm].mean(axis=0)) @ rot.T + chosen.mean(axis=0)
     z = np.maximum(model[:, 2], 1e-3)  # (21,) depth of each joint from the posed model
-    lengths = landmark_bone_lengths(world_landmarks)  # (21,) metres at the template palm's size
+    lengths = landmark_bone_lengths(world_landmarks, proximal_ratio)  # (21,) m, template size
     return refine_by_bone_lengths(
         on_rays(uv, z, intrinsics), model[:, 2], uv, intrinsics, lengths
     ), rot
@@ -184,10 +187,12 @@ def bone_lengths(world_landmarks: np.ndarray) -> np.ndarray:
     return out
 
 
-def landmark_bone_lengths(world_landmarks: np.ndarray) -> np.ndarray:
+def landmark_bone_lengths(
+    world_landmarks: np.ndarray, proximal_ratio: float = MEDIAPIPE_PROXIMAL_RATIO
+) -> np.ndarray:
     """The hand's bone lengths ``(21,)`` (metres, at :data:`PALM_TEMPLATE`'s size) read from
     MediaPipe's ``world_landmarks (21, 3)``: :func:`bone_lengths` with the proximal phalanges
-    divided by :data:`MEDIAPIPE_PROXIMAL_RATIO`.
+    divided by ``proximal_ratio`` (:data:`MEDIAPIPE_PROXIMAL_RATIO`; 1.0 for true joints).
 
     Why: a bone shorter than its 2D extent allows misses its child's ray (the depth falls back on
     MediaPipe's own finger shape), and a short one fixes the depth with a small weight
@@ -199,7 +204,7 @@ def landmark_bone_lengths(world_landmarks: np.ndarray) -> np.ndarray:
     mm, 13.1 -> 12.2 deg; held-out alt 20.6 -> 20.0 mm, 9.5 -> 8.6 deg; 5 InterHand hands 28.9
     -> 26.5 mm, 18.7 -> 14.7 deg."""
     lengths = bone_lengths(world_landmarks)  # (21,)
-    lengths[list(PROXIMAL_PHALANGES)] /= MEDIAPIPE_PROXIMAL_RATIO
+    lengths[list(PROXIMAL_PHALANGES)] /= proximal_ratio
     return lengths
 
 

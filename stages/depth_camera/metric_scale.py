@@ -81,6 +81,15 @@ frame-0 depth masked under the hands), with the translation lift. Scale error (e
   on the synthetic world and moved the EgoDex clip's scale by +10% to +35%.
 - Real hands with 3D truth (InterHand fixture, ``python -m bench.hands_real``): lifted depth /
   true depth, median of 5 hands, palm lift 0.87, translation fit 0.57.
+- depth_camera v11 (the hands stage v8's lift: refined palm poses, MediaPipe's proximal
+  phalanges 1/0.70 longer, also applied to the oracle landmarks), v8 -> v11 figures above:
+  tabletop 0 oracle +0.6 -> +3.3%, MediaPipe +13.8 -> +14.6%; tabletop 1 oracle +6.9 -> +2.9%,
+  MediaPipe +19.4 -> +46.2% (its per-detection median 1.05 -> 1.09, but 8 estimates (was 6) at
+  1.25 or more, where the 0.9 quantile now lands); wild 0 MediaPipe +34.5 -> +31.6%; alt
+  tabletop 0 / 1 / 2 MediaPipe +14.7 / +11.4 / +16.8 -> +14.7 / +13.3 / +13.9%; alt wild 0
+  +35.3 -> +24.7%; InterHand palm lift 0.87 -> 0.98. Real clips (``bench.real_video``):
+  hand/surface DWM 00013 1.10 -> 1.06, 00017 0.92 -> 0.91, HOT3D 0.95 -> 0.99; HOT3D scale
+  0.0843 -> 0.0864 m/unit.
 
 The error is the same for both factors (the method is scale-equivariant). Known biases: the size
 prior (MediaPipe's hands came out 3% near on median, +-8% per detection), hands that never

@@ -92,6 +92,7 @@ class MediaPipeParams(HandLandmarkParams):
     max_gap: int = 4  # frames of a track's gap filled by interpolation
     smooth_sigma: float = 1.0  # Gaussian smoothing of landmarks over time, in frames; 0 = none
     link_distance: float = 0.6  # max centroid jump between linked detections, in hand sizes
+    # per frame of gap up to two (link_limit: tracks, and which gaps are bridged)
     position_weight: float = 0.5  # weight of the image-position side vote vs the labels
     lift: str = "palm_pnp"  # 3D lift: "palm_pnp" (template palm PnP) or "translation" (old)
     prefer_fingers_away: bool = True  # palm PnP: of its two poses take knuckles beyond the wrist
@@ -111,6 +112,15 @@ class SideLandmarks:
     detected: np.ndarray  # (T, 2) bool detected (not bridged)
 
 
+def link_limit(size_a: float, size_b: float, gap: int, params: MediaPipeParams) -> float:
+    """The largest centroid jump (pixels) between two detections ``gap`` frames apart, of
+    hand sizes ``size_a`` and ``size_b`` pixels, that can be one hand: the tracks' links and the
+    bridged gaps both use it. It grows with the gap but stops at two frames' worth: a hand
+    reappearing far away after a gap is another hand (the synthetic world's right hand at frame
+    0 was linked to the left hand's track 5 frames and 250 px later)."""
+    return params.link_distance * max(size_a, size_b) * min(gap, 2)
+
+
 def _tracks(raw: RawLandmarks, params: MediaPipeParams) -> list[list[tuple[int, int]]]:
     """Link detections ``(frame, slot)`` into tracks by nearest centroid, across short gaps."""
     centre = hand_centres(raw.uv)  # (T, K, 2)
@@ -126,11 +136,7 @@ def _tracks(raw: RawLandmarks, params: MediaPipeParams) -> list[list[tuple[int, 
                 continue
             for k in dets:
                 dist = np.linalg.norm(centre[f, k] - centre[lf, lk])
-                # The allowed jump grows with the gap but stops at two frames' worth: a hand
-                # reappearing far away after a gap is another hand (the synthetic world's right
-                # hand at frame 0 was linked to the left hand's track 5 frames and 250 px later).
-                limit = params.link_distance * max(size[lf, lk], size[f, k]) * min(f - lf, 2)
-                if dist <= limit:
+                if dist <= link_limit(size[lf, lk], size[f, k], f - lf, params):
                     candidates.append((dist, ti, k))
         used_t: set[int] = set()
         used_k: set[int] = set()
@@ -238,12 +244,12 @@ def bridge_and_smooth(
     for s in range(2):
         idx = np.flatnonzero(detected[:, s])
         for a, b in itertools.pairwise(idx):
-            # Only a gap inside one hand's track: two tracks given the same side (the right
-            # hand before a gap, the left after) are two hands, and frames between them
-            # interpolated would lie on neither (default world wild 5: 20-53 px off both).
+            # Only a gap inside one hand's track: two tracks given the same side (one hand
+            # before a gap, the other after) are two hands, and frames between them
+            # interpolated would lie on neither.
             jump = np.linalg.norm(centre[b, s] - centre[a, s])
-            limit = params.link_distance * max(size[a, s], size[b, s]) * min(b - a, 2)
-            if 1 < b - a <= params.max_gap + 1 and jump <= limit:
+            linked = jump <= link_limit(size[a, s], size[b, s], b - a, params)
+            if 1 < b - a <= params.max_gap + 1 and linked:
                 for f in range(a + 1, b):
                     w = (f - a) / (b - a)
                     uv[f, s] = (1 - w) * uv[a, s] + w * uv[b, s]
