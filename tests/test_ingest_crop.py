@@ -427,7 +427,7 @@ def test_a_hands_band_with_too_little_scene_moves_towards_it() -> None:
 
 def test_the_scene_check_needs_the_next_frame() -> None:
     """A plain ``sample`` callable (no following frames) keeps the hands' anchor, as before
-    ingest v9; so does a source whose crop cuts along neither axis."""
+    ingest v9; with following frames the same bare-table band moves up to the texture."""
     frames = [_scene((260, 420), 0)] * 8
 
     def boxes(fr: list[np.ndarray]) -> list:

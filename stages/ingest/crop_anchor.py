@@ -18,11 +18,12 @@ no hand is found (said in a log line).
 
 The band must also hold scene the cameras step can pose from (ingest v9): where the hands'
 band keeps fewer than :data:`STATIC_MIN_MATCHES` SIFT matches between a sampled frame and the
-next source frame outside the hands (:func:`static_matches`), the window moves to the band with
-the most such matches among those keeping at least :data:`HANDS_KEEP_FRACTION` of the best
-band's hands (:func:`texture_anchor`). An upright phone video's hands band over a plain table
-(the EgoDex portrait variant: 16 matches there, 44 with the table's far edge and the curtain's
-hem in view) was rejected by cameras otherwise.
+next source frame outside the hands (:func:`static_matches`), the window moves to the band
+nearest the hands among those within :data:`SCENE_TOLERANCE` of the most such matches and
+keeping at least :data:`HANDS_KEEP_FRACTION` of the best band's hands (:func:`texture_anchor`).
+An upright phone video's hands band over a plain table (the EgoDex portrait variant: 15-16
+matches there, 40-44 with the table's far edge and the curtain's hem in view, by encode) was
+rejected by cameras otherwise.
 """
 
 from __future__ import annotations
@@ -239,8 +240,6 @@ def texture_anchor(
     spans = np.asarray([b for found in per_frame for b in found]).reshape(-1, 4)  # (N, 4)
     spans = np.clip(spans[:, [axis, axis + 2]], 0.0, 1.0) * scaled  # (N, 2) scaled pixels
     steps, offsets, cover = window_cover(spans, length, slack)
-    if not len(spans):
-        cover = np.zeros_like(steps)
     counts = []  # per pair: (S,) matches inside each window
     for f, g, found in pairs:
         pos = static_matches(f, g, found)[..., axis] * scaled  # (M, 2) scaled pixels, both frames
