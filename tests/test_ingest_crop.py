@@ -423,6 +423,11 @@ def test_a_hands_band_with_too_little_scene_moves_towards_it() -> None:
     following = [_scene((0, SRC_H), 2)] * 4
     kept_anchor, note = crop_anchor.texture_anchor(plan, frames, following, per_frame, placed)
     assert kept_anchor == placed and "moved" not in note, note
+    # Bare everywhere: too few matches, but no band that keeps the hands has more; it stays.
+    frames = [_scene((0, 0), 0)] * 4
+    following = [_scene((0, 0), 2)] * 4
+    kept_anchor, note = crop_anchor.texture_anchor(plan, frames, following, per_frame, placed)
+    assert kept_anchor == placed and "no better band keeps the hands" in note, note
 
 
 def test_the_scene_check_needs_the_next_frame() -> None:
