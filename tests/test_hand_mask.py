@@ -849,3 +849,53 @@ def test_other_arm_colours_from_the_surer_hand() -> None:
     # hand 1's arm, found clearly enough on its own, keeps its own choice
     sure = dataclasses.replace(arm, other_arm_unsure=scores[1][2] * 1.01)
     assert other_arm_colours(lab, kps, np.array([True, True]), capsule, sure) == [None, None]
+
+
+def test_carry_stops_where_the_background_the_hand_left_tracks(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """HOT3D w001 t=2 (hand_mask v17): a hand leaves the view fast; its own pixels fail the
+    backward check, the dark floor it uncovered inside its capsules tracks and the similarity
+    fit keeps the keypoints on the floor. The carried skeleton's colour then jumps from skin
+    to floor, so the track stops (v16 carried a ghost hand for 8 frames and masked the table
+    and floor round it); a carry whose skeleton stays on the hand goes on."""
+    import egosim.stages.hand_mask.carry as carry
+
+    frames = _moving_hand_frames([(0, 0), (0, 0), (0, 0)], gone_from=1)
+    frames = frames // 3  # dark floor
+    frames[0] = _moving_hand_frames([(0, 0)])[0]  # the hand (skin) on its table in frame 0
+    kp = np.full((3, 1, 21, 2), np.nan)
+    kp[0, 0] = _drawn_hand((40.5, 80.5))
+    valid = np.zeros((3, 1), bool)
+    valid[0, 0] = True
+    # The fit to the uncovered floor: the keypoints stay where they were.
+    monkeypatch.setattr(carry, "carry_step", lambda a, b, keypoints, p: keypoints.copy())
+    _, ok, carried = carry.carry_keypoints(frames, kp, valid)
+    assert not carried.any() and not ok[1:].any(), "a ghost hand was carried onto the floor"
+    _, ok, _ = carry.carry_keypoints(frames, kp, valid, carry.CarryParams(colour_tolerance=0))
+    assert ok.all(), "with the colour check off the ghost is carried (v16)"
+    still = _moving_hand_frames([(0, 0), (0, 0), (0, 0)])  # the hand stays: carried
+    _, ok, carried = carry.carry_keypoints(still, kp, valid)
+    assert carried[1:, 0].all()
+
+
+def test_letterbox_bar_is_never_hand() -> None:
+    """HOT3D's 480 x 832 frames end in a black bar (32 rows of 0): a hand whose arm runs down
+    into it was masked there (v16: the arm's seed strip is certain hand, and GrabCut joins the
+    black bar to a dark floor); v17 masks nothing in the bar, and ``padding`` finds bars of
+    whole rows or columns from the edges only (not a black object inside the picture)."""
+    from egosim.stages.hand_mask.stage import masks_from_keypoints, padding
+
+    frames = _moving_hand_frames([(0, 0), (0, 0)])
+    frames[:, 86:] = 0  # a 10-row bar at the bottom
+    frames[:, 40:50, 100:110] = 0  # a black object inside the picture
+    bar = padding(frames[0])
+    assert bar[86:].all() and not bar[:86].any()
+    kp = np.tile(_drawn_hand((40.5, 80.5)), (2, 1, 1, 1))  # (2, 1, 21, 2)
+    valid = np.ones((2, 1), bool)
+    masks = masks_from_keypoints(frames, kp, valid, HandMaskConfig())
+    assert masks[:, :86].any() and not masks[:, 86:].any()
+    side = np.zeros((8, 10, 3), np.uint8)
+    side[:, :2] = 0
+    side[:, 2:] = 90
+    assert padding(side)[:, :2].all() and not padding(side)[:, 2:].any()

@@ -114,6 +114,28 @@ class HandMaskConfig(StageConfig):
             raise ConfigError("; ".join(problems))
 
 
+def padding(image: np.ndarray, level: int = 2) -> np.ndarray:
+    """``(H, W)`` bool: letterbox bars of ``image (H, W, 3)``, which are not part of the picture.
+
+    Whole rows (from the top and bottom edges) and whole columns (from the left and right)
+    whose every pixel is at most ``level`` in every channel, contiguous from the edge: a
+    video padded to another aspect ratio (HOT3D's 480 x 832 frames end in a 32-row black
+    bar). GrabCut, propagation and growth join it to a dark arm or floor; it is never hand.
+    """
+    dark = image.max(axis=2) <= level  # (H, W)
+    out = np.zeros(dark.shape, bool)
+    for axis in (0, 1):
+        line = dark.all(axis=1 - axis)  # (H,) rows for axis 0, (W,) columns for axis 1
+        n = len(line)
+        first = n if line.all() else int(np.argmin(line))  # bar length from the start
+        last = n if line.all() else int(np.argmin(line[::-1]))  # ... and from the end
+        bar = np.zeros(n, bool)
+        bar[:first] = True
+        bar[n - last :] = True
+        out |= bar[:, None] if axis == 0 else bar[None, :]
+    return out
+
+
 def masks_from_keypoints(
     frames: np.ndarray, keypoints: np.ndarray, valid: np.ndarray, config: HandMaskConfig
 ) -> np.ndarray:
@@ -155,6 +177,8 @@ def masks_from_keypoints(
     if config.grow_margin_m > 0 and config.colour_refine:
         grow = GrowParams(config.grow_margin_m, radius_scale=config.radius_scale)
         masks = grow_masks(frames, masks, keypoints, valid, grow)
+    for t, frame in enumerate(frames):
+        masks[t][padding(frame)] = 0  # letterbox bars are not part of the picture
     return masks
 
 
@@ -230,7 +254,7 @@ class HandMaskStage(ClipStage):
     # cleaned joints and a replacement camera (see the module docstring)
     optional_inputs: ClassVar[Mapping[str, ShardSchema]] = {**CAMERA_ROLES, "hands": HANDS}
     output = HAND_MASK
-    version = 16  # 2: image-space arm masks (no world axis). 3: arm found by a colour walk, masks
+    version = 17  # 2: image-space arm masks (no world axis). 3: arm found by a colour walk, masks
     # carried into frames whose hands were missed. 4: arm re-aimed along its colour region.
     # 5: that region is probably arm wherever it runs. 6: each hand carried into the frames that
     # missed it, and only its certain seeds (skeleton, arm strip) carried with confidence.
@@ -247,6 +271,8 @@ class HandMaskStage(ClipStage):
     # 14: each hand's mask grows by up to grow_margin_m into pixels of its own colour (grow)
     # 15: grow's colour histograms smoothed along lightness only (not into held objects)
     # 16: a hand whose arm search is unsure prefers the other hand's arm colour, when rare
+    # 17: a carry stops where the carried skeleton's colour jumps (the hand left, background
+    # tracked); letterbox bars (rows / columns of black from the edge) are never hand
     backends = ("keypoints", "sam")
     # What process reads (the executor decodes nothing else): the frames, joints and camera
     # of the clip, the robot arm's mask, the cleaned joints.
