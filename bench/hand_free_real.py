@@ -40,9 +40,9 @@ landmarks, fill by the image-aligned path). Hand truth: ``videos_hands`` pixels 
   places, so part of what ``recall`` misses is not visible hand (00013, hand_mask v11: recall
   0.836, within 3 / 6 / 10 px 0.911 / 0.950 / 0.976; v15, whose hands grow into the pixels of
   their own colour round them: 0.870, within 3 / 6 px 0.938 / 0.967); ``missed_bg_like``: the
-  fraction of the missed truth pixels whose colour is no more like the visible hand's than the
-  background's round it (:func:`background_like_misses`; v16: 00013 79% of 19,435 px, 00017
-  98% of 3,905 px);
+  fraction of the missed truth pixels whose colour is more like the background's round it than
+  the visible hand's (:func:`background_like_misses`; v16: 00013 78% of 19,435 px, 00017 98%
+  of 3,905 px);
 - ``far_px``: mask pixels per frame farther than 50 px from the allowed region: hand truth plus,
   for each hand blob, the cone from it down to the bottom border within 45 degrees of vertical
   (where an egocentric arm comes from; see :func:`allowed_region`), dilated by 50 px; taken on
@@ -250,7 +250,8 @@ def background_like_misses(
     Per frame of ``video (T, H, W, 3)`` with ``hands (T, H, W)`` truth: a Lab histogram
     (``bins`` per channel) of the truth pixels the mask holds (eroded 1 px: the visible hand)
     against one of the unmasked pixels 5-40 px round the truth (the background there); a missed
-    pixel counts when its colour is no more likely hand than background. Such misses are mostly
+    pixel counts when its colour is more likely background than hand (a colour in neither
+    histogram does not count). Such misses are mostly
     not visible hand: fingers the render draws under a held object, or a render a few px off the
     real hand (design.md, "hand_mask with MediaPipe joints, diagnosed").
     """
@@ -266,7 +267,7 @@ def background_like_misses(
         fg = np.bincount(codes[hand], minlength=bins**3) / max(int(hand.sum()), 1)
         bg = np.bincount(codes[ring], minlength=bins**3) / max(int(ring.sum()), 1)
         c = codes[miss]
-        count += int((fg[c] <= bg[c]).sum())
+        count += int((fg[c] < bg[c]).sum())
     return count
 
 

@@ -28,8 +28,13 @@ def test_background_like_misses_counts_only_misses_of_background_colour() -> Non
 
 
 def test_background_like_misses_zero_without_misses() -> None:
-    """A mask that holds the whole truth misses nothing."""
+    """A mask that holds the whole truth misses nothing; a missed colour seen neither on the
+    masked hand nor round it is not counted as background."""
     frame = np.full((2, 40, 40, 3), 128, np.uint8)
     truth = np.zeros((2, 40, 40), bool)
     truth[:, 10:20, 10:20] = True
     assert background_like_misses(frame, truth | False, truth) == 0
+    mask = truth.copy()
+    mask[:, 10:12, 10:20] = False  # missed ...
+    frame[:, 10:12, 10:20] = (250, 20, 250)  # ... in a colour found nowhere else
+    assert background_like_misses(frame, mask, truth) == 0
