@@ -20,7 +20,7 @@ from egosim.pipeline.stage import ClipRejected, ConfigError
 from egosim.stages.common.frame_plan import plan_from_crop, plan_resize
 from egosim.stages.ingest import crop_anchor
 from egosim.stages.ingest.frames_source import read_frame_clips
-from egosim.stages.ingest.stage import IngestConfig
+from egosim.stages.ingest.stage import IngestConfig, IngestStage
 from egosim.stages.ingest.video_source import read_video_clips, standardise_clip
 from tests.conftest import shared_data
 
@@ -449,3 +449,22 @@ def test_the_scene_check_needs_the_next_frame() -> None:
     )
     assert plain == placed
     assert moved[1] < placed[1]
+
+
+def test_a_file_units_fingerprint_names_the_crop_detector(tmp_path, monkeypatch) -> None:
+    """With crop="hands" the frames depend on whether MediaPipe is there (without it every band
+    stays at the anchor), so a file unit's fingerprint names the detector and a run resumed
+    without it ingests again; crop="anchor" does not look for hands and keeps one fingerprint."""
+    video = tmp_path / "v.mp4"
+    video.write_bytes(b"not read here")
+    unit = f"video:{video}"
+    hands = IngestStage(IngestConfig(source="video"))
+    anchor = IngestStage(IngestConfig(source="video", crop="anchor"))
+    monkeypatch.setattr(crop_anchor, "crop_detector", lambda: "mediapipe 0.10.21")
+    found, fixed = hands.unit_fingerprint(unit), anchor.unit_fingerprint(unit)
+    assert found.endswith("|crop mediapipe 0.10.21")
+    monkeypatch.setattr(crop_anchor, "crop_detector", lambda: "none")
+    assert hands.unit_fingerprint(unit) == found.replace("mediapipe 0.10.21", "none")
+    assert anchor.unit_fingerprint(unit) == fixed
+    synthetic = "synthetic:tabletop:0"
+    assert hands.unit_fingerprint(synthetic) == synthetic  # never cropped by the search

@@ -28,6 +28,7 @@ rejected by cameras otherwise.
 
 from __future__ import annotations
 
+import importlib.metadata
 import logging
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -65,6 +66,16 @@ MATCH_RANSAC_PX = 1.0  # fundamental-matrix RANSAC threshold, pixels of the samp
 # Per-image detection (a few frames far apart: nothing to track), the full frame plus the
 # detector's default lower-frame tiles, no following through misses.
 DETECT_PARAMS = HandLandmarkParams(video_mode=False, track_misses=False)
+
+
+def crop_detector() -> str:
+    """What the hands crop looks for hands with, for run fingerprints: ``mediapipe <version>``,
+    or ``none`` when MediaPipe is not installed (every band then stays at the anchor), so that a
+    run resumed where the detector differs ingests again rather than keeping other crops."""
+    try:
+        return f"mediapipe {importlib.metadata.version('mediapipe')}"
+    except importlib.metadata.PackageNotFoundError:
+        return "none"
 
 
 class CropFormat(Protocol):

@@ -46,6 +46,7 @@ from egosim.schemas.ids import sanitize_id, short_hash
 from egosim.stages.common.gripper import GRIPPER_PRESETS, gripper_geometry
 from egosim.stages.ingest import (
     agibot_source,
+    crop_anchor,
     frames_source,
     lerobot_source,
     synthetic_source,
@@ -247,11 +248,20 @@ class IngestStage(SourceStage):
         return units
 
     def unit_fingerprint(self, unit: str) -> str:
-        """Path, size and modification time for files; the spec for synthetic units."""
-        kind, _, rest = unit.partition(":")
-        kind = kind.partition("#")[0]
+        """Path, size and modification time for files; the spec for synthetic units. With
+        ``crop="hands"`` a file's also names the crop's hand detector (its version, or none)."""
+        kind = unit.partition(":")[0].partition("#")[0]
         if kind == "synthetic":
             return unit
+        files = self._file_fingerprint(unit)
+        if self.config.crop == "hands":  # the crop, hence the frames, follow the detector
+            return f"{files}|crop {crop_anchor.crop_detector()}"
+        return files
+
+    def _file_fingerprint(self, unit: str) -> str:
+        """``unit`` with the names, sizes and modification times of its files."""
+        kind, _, rest = unit.partition(":")
+        kind = kind.partition("#")[0]
         if kind == "lerobot":  # the dataset's meta and data files (videos by size and time too)
             rest = rest.rpartition("#")[0]
         path = Path(rest)
