@@ -474,24 +474,36 @@ def test_diffusers_backend_loads_from_local_path(tmp_path: Path) -> None:
         DiffusersInpainter(str(tmp_path / "missing"))
 
 
-def test_stage_takes_depth_and_cameras_from_connected_roles(tmp_path: Path) -> None:
-    gt = render_clip(WorldConfig(seed=0, height=64, width=112, num_frames=8))
+def _world_shards(tmp_path: Path, seed: int) -> tuple[Clip, Path, Path]:
+    """A 64x112 world clip (truth) and, written as the shards the stage reads, its row as a real
+    video's (no depth) and its true hand masks: ``(truth, clips path, hand_mask path)``."""
+    gt = render_clip(WorldConfig(seed=seed, height=64, width=112, num_frames=8))
     clip = dataclasses.replace(gt, depth=None, static_depth=None)  # a real video's clip row
     clips = tmp_path / "clips.parquet"
     write_clips(clips, [clip])
     hand_mask = tmp_path / "hand_mask.parquet"
+    coverage = gt.hand_mask.reshape(clip.num_frames, -1).mean(1).tolist()
     with ShardWriter(hand_mask, HAND_MASK, stage="test") as writer:
         writer.write_row(
-            {
-                "clip_id": clip.clip_id,
-                "num_frames": clip.num_frames,
-                "width": clip.width,
-                "height": clip.height,
-                "hand_mask": media.encode_mask_video(gt.hand_mask),
-                "coverage": gt.hand_mask.reshape(clip.num_frames, -1).mean(1).tolist(),
-                "backend": "keypoints",
-            }
+            {**_mask_row(clip, gt.hand_mask), "coverage": coverage, "backend": "keypoints"}
         )
+    return gt, clips, hand_mask
+
+
+def _stage_fill_args(frames: np.ndarray, masks: np.ndarray) -> tuple[np.ndarray, dict]:
+    """The masks and keyword arguments the stage's default config gives ``reproject_fill``."""
+    cfg = InpaintConfig()
+    grow = cfg.dilate_px + round(cfg.dilate_fraction * float(np.hypot(*frames.shape[1:3])))
+    masks = carry_lost_hands(masks, cfg.carry_frames, cfg.carry_cover, cfg.carry_reach)
+    kw = {"dilate_px": grow, "candidates": cfg.candidates, "occluder_ratio": cfg.occluder_ratio,
+          "local_residual": cfg.local_residual, "shift_px": cfg.ring_shift_px,
+          "shift_gain": cfg.ring_shift_gain}  # fmt: skip
+    return masks, kw
+
+
+def test_stage_takes_depth_and_cameras_from_connected_roles(tmp_path: Path) -> None:
+    gt, clips, hand_mask = _world_shards(tmp_path, 0)
+    clip = dataclasses.replace(gt, depth=None, static_depth=None)
     moved = translated(gt.world_from_cam, np.array([0.2, -0.1, 0.05]))  # same relative motion
     cameras = write_cameras(tmp_path / "cameras.parquet", clip, moved, depth0=gt.depth[0])
 
@@ -507,16 +519,9 @@ def test_stage_takes_depth_and_cameras_from_connected_roles(tmp_path: Path) -> N
     with ShardReader(cameras) as reader:
         cam_row = next(reader.iter_rows())
     depth0 = media.decode_depth_video(cam_row["depth0"], cam_row["depth_unit_m"])[0]
-    decoded = next(read_clips(clips))
-    cfg = InpaintConfig()
-    grow = cfg.dilate_px + round(cfg.dilate_fraction * float(np.hypot(*decoded.frames.shape[1:3])))
-    masks = carry_lost_hands(gt.hand_mask, cfg.carry_frames, cfg.carry_cover, cfg.carry_reach)
-    expected = reproject_fill(
-        decoded.frames, masks, depth0, moved, gt.intrinsics, dilate_px=grow,
-        candidates=cfg.candidates, occluder_ratio=cfg.occluder_ratio,
-        local_residual=cfg.local_residual, shift_px=cfg.ring_shift_px,
-        shift_gain=cfg.ring_shift_gain,
-    )  # fmt: skip
+    frames = next(read_clips(clips)).frames
+    masks, kw = _stage_fill_args(frames, gt.hand_mask)
+    expected = reproject_fill(frames, masks, depth0, moved, gt.intrinsics, **kw)
     np.testing.assert_array_equal(media.decode_png(row["first_frame"]), expected.image)
     assert row["reprojected_fraction"] > 0.3
 
@@ -551,16 +556,8 @@ def test_unmeasured_depth_round_the_hand_is_inpainted_not_lifted() -> None:
 def test_stage_reads_which_depth_is_measured_from_the_cameras_row(tmp_path: Path) -> None:
     """The ``cameras`` row's ``confidence0`` below ``min_depth_confidence`` marks depth0 as
     unmeasured: the stage's fill is ``reproject_fill`` given that ``measured``."""
-    gt = render_clip(WorldConfig(seed=1, height=64, width=112, num_frames=8))
-    clip = dataclasses.replace(gt, depth=None, static_depth=None)  # a real video's clip row
-    clips = tmp_path / "clips.parquet"
-    write_clips(clips, [clip])
-    hand_mask = tmp_path / "hand_mask.parquet"
-    with ShardWriter(hand_mask, HAND_MASK, stage="test") as writer:
-        coverage = gt.hand_mask.reshape(clip.num_frames, -1).mean(1).tolist()
-        writer.write_row(
-            {**_mask_row(clip, gt.hand_mask), "coverage": coverage, "backend": "keypoints"}
-        )
+    gt, clips, hand_mask = _world_shards(tmp_path, 1)
+    clip = dataclasses.replace(gt, depth=None, static_depth=None)
     band = (dilate(gt.hand_mask[0], 8) > 0) & ~(dilate(gt.hand_mask[0], 3) > 0)
     wrong = np.where(band, 0.5 * gt.depth[0], gt.depth[0]).astype(np.float32)  # (H, W)
     cameras = write_cameras(tmp_path / "cameras.parquet", clip, gt.world_from_cam, depth0=wrong)
@@ -582,12 +579,7 @@ def test_stage_reads_which_depth_is_measured_from_the_cameras_row(tmp_path: Path
         cam_row = next(reader.iter_rows())
     depth0 = media.decode_depth_video(cam_row["depth0"], cam_row["depth_unit_m"])[0]
     frames = next(read_clips(clips)).frames
-    cfg = InpaintConfig()
-    grow = cfg.dilate_px + round(cfg.dilate_fraction * float(np.hypot(*frames.shape[1:3])))
-    masks = carry_lost_hands(gt.hand_mask, cfg.carry_frames, cfg.carry_cover, cfg.carry_reach)
-    kw = {"dilate_px": grow, "candidates": cfg.candidates, "occluder_ratio": cfg.occluder_ratio,
-          "local_residual": cfg.local_residual, "shift_px": cfg.ring_shift_px,
-          "shift_gain": cfg.ring_shift_gain}  # fmt: skip
+    masks, kw = _stage_fill_args(frames, gt.hand_mask)
     args = (frames, masks, depth0, gt.world_from_cam, gt.intrinsics)
     np.testing.assert_array_equal(rows["on"], reproject_fill(*args, measured=~band, **kw).image)
     np.testing.assert_array_equal(rows["off"], reproject_fill(*args, **kw).image)
