@@ -16,6 +16,7 @@ import pytest
 from egosim.pipeline.clip_io import clip_from_row, row_from_clip
 from egosim.pipeline.geometry import intrinsics_from_fov, project_points
 from egosim.pipeline.media import write_video_file
+from egosim.pipeline.records import Clip
 from egosim.pipeline.stage import ClipRejected, ConfigError
 from egosim.stages.common.frame_plan import plan_from_crop, plan_resize
 from egosim.stages.ingest import crop_anchor
@@ -180,22 +181,25 @@ def test_window_placement_covers_the_most_hand() -> None:
     assert anchor == 0.0
 
 
+def _source_clip(frames: np.ndarray, source: str) -> Clip:
+    """A SRC_W x SRC_H clip of ``frames`` at 8 fps from ``source``, as a reader hands it over."""
+    return Clip(
+        clip_id="c",
+        source=source,
+        source_uri="x",
+        fps=8.0,
+        timestamps=np.arange(len(frames)) / 8.0,
+        intrinsics=intrinsics_from_fov(SRC_W, SRC_H, 70.0),
+        frames=frames,
+    )
+
+
 def test_standardised_clips_record_their_crop_in_the_original_source() -> None:
     """A clip cut again (``standardise_clip`` of a clip that records a crop) maps the new crop
     through the old one into the original source's pixels."""
     frames = _background(9)
     frames[:, PATCH[1] : PATCH[3], PATCH[0] : PATCH[2]] = RED
-    from egosim.pipeline.records import Clip
-
-    clip = Clip(
-        clip_id="c",
-        source="mcap",
-        source_uri="x",
-        fps=8.0,
-        timestamps=np.arange(9) / 8.0,
-        intrinsics=intrinsics_from_fov(SRC_W, SRC_H, 70.0),
-        frames=frames,
-    )
+    clip = _source_clip(frames, "mcap")
     cfg = IngestConfig(crop="anchor", crop_anchor=(0.5, 1.0), **CLIP)
     (first,) = standardise_clip(clip, cfg)
     np.testing.assert_allclose(
@@ -352,21 +356,11 @@ def test_robot_clips_keep_the_configured_anchor(monkeypatch: pytest.MonkeyPatch)
     """A robot clip (a gripper opening) is not searched for human hands: with ``crop="hands"`` it
     is cut at ``crop_anchor`` even where the detector would report a hand elsewhere, while the
     same clip without the gripper follows the detector."""
-    from egosim.pipeline.records import Clip
-
     frames = _background(9)
     monkeypatch.setattr(
         crop_anchor, "frame_hand_boxes", lambda f: [[(0.3, 0.0, 0.6, 0.1)]] * len(f)
     )
-    clip = Clip(
-        clip_id="c",
-        source="lerobot",
-        source_uri="x",
-        fps=8.0,
-        timestamps=np.arange(9) / 8.0,
-        intrinsics=intrinsics_from_fov(SRC_W, SRC_H, 70.0),
-        frames=frames,
-    )
+    clip = _source_clip(frames, "lerobot")
     cfg = IngestConfig(crop="hands", crop_anchor=(0.5, 0.5), **CLIP)
     top = plan_resize(SRC_W, SRC_H, 104, 60, (0.5, 0.0)).source_crop
     centre = plan_resize(SRC_W, SRC_H, 104, 60, (0.5, 0.5)).source_crop
