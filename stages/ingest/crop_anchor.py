@@ -175,16 +175,21 @@ def hands_anchor(
 ) -> Anchor:
     """The anchor whose window covers the most of ``boxes`` (fractions of the source frame)
     along each axis the crop cuts; ``fallback``'s value along an axis it does not cut."""
-    arr = np.clip(np.asarray(boxes, dtype=np.float64).reshape(-1, 4), 0.0, 1.0)  # (N, 4)
     out = list(fallback)
     axes = ((0, plan.scaled_width, plan.width), (1, plan.scaled_height, plan.height))
     for axis, scaled, length in axes:
         slack = scaled - length
         if slack <= 0:
             continue
-        spans = arr[:, [axis, axis + 2]] * scaled  # (N, 2) scaled pixels
-        out[axis] = place_window(spans, length, slack)
+        out[axis] = place_window(box_spans(boxes, axis, scaled), length, slack)
     return out[0], out[1]
+
+
+def box_spans(boxes: Sequence[Box] | np.ndarray, axis: int, scaled: int) -> np.ndarray:
+    """``(N, 2)`` start and end of each box (fractions of the source frame, clipped to it) along
+    ``axis`` (0 = x, 1 = y), in pixels of the frame scaled to ``scaled`` along that axis."""
+    arr = np.clip(np.asarray(boxes, dtype=np.float64).reshape(-1, 4), 0.0, 1.0)  # (N, 4)
+    return arr[:, [axis, axis + 2]] * scaled
 
 
 def place_window(spans: np.ndarray, length: int, slack: int) -> float:
@@ -248,8 +253,7 @@ def texture_anchor(
     ]
     if slack <= 0 or not pairs:
         return placed, ""
-    spans = np.asarray([b for found in per_frame for b in found]).reshape(-1, 4)  # (N, 4)
-    spans = np.clip(spans[:, [axis, axis + 2]], 0.0, 1.0) * scaled  # (N, 2) scaled pixels
+    spans = box_spans([b for found in per_frame for b in found], axis, scaled)  # (N, 2) pixels
     steps, offsets, cover = window_cover(spans, length, slack)
     counts = []  # per pair: (S,) matches inside each window
     for f, g, found in pairs:
