@@ -42,7 +42,11 @@ landmarks, fill by the image-aligned path). Hand truth: ``videos_hands`` pixels 
   their own colour round them: 0.870, within 3 / 6 px 0.938 / 0.967); ``missed_bg_like``: the
   fraction of the missed truth pixels whose colour is more like the background's round it than
   the visible hand's (:func:`background_like_misses`; v16: 00013 78% of 19,435 px, 00017 98%
-  of 3,905 px);
+  of 3,905 px); ``recall_filled``: the fraction inside the region the hand-free frame actually
+  replaces, each frame's mask grown as the ``inpaint`` stage grows it before filling
+  (:func:`filled_region`: ``InpaintConfig.dilate_px`` plus ``dilate_fraction`` of the image
+  diagonal), with what that costs: ``mask_px_mean`` / ``filled_px_mean``, pixels per frame of
+  the mask and of the grown region;
 - ``far_px``: mask pixels per frame farther than 50 px from the allowed region: hand truth plus,
   for each hand blob, the cone from it down to the bottom border within 45 degrees of vertical
   (where an egocentric arm comes from; see :func:`allowed_region`), dilated by 50 px; taken on
@@ -102,7 +106,7 @@ from egosim.stages.hand_mask.stage import (
     project_keypoints,
 )
 from egosim.stages.inpaint.reproject_fill import dilate, opencv_fill
-from egosim.stages.inpaint.stage import InpaintStage
+from egosim.stages.inpaint.stage import InpaintConfig, InpaintStage
 from egosim.world import WorldConfig, render_clip
 
 DWM = "dwm_realworld/realworld_dynamic"
@@ -271,6 +275,22 @@ def background_like_misses(
     return count
 
 
+def fill_grow_px(height: int, width: int, config: InpaintConfig | None = None) -> int:
+    """Pixels the ``inpaint`` stage grows a ``height x width`` clip's hand masks by before it
+    fills: ``dilate_px`` plus ``dilate_fraction`` of the image diagonal, from ``config``
+    (default: :class:`InpaintConfig`'s). The same line as ``InpaintStage.fill``; to be replaced
+    by the stage's own function once it has one (requested)."""
+    cfg = InpaintConfig() if config is None else config
+    return cfg.dilate_px + round(cfg.dilate_fraction * float(np.hypot(height, width)))
+
+
+def filled_region(masks: np.ndarray, config: InpaintConfig | None = None) -> np.ndarray:
+    """The pixels the hand-free frame replaces given ``masks (T, H, W)``: each frame's mask grown
+    as the ``inpaint`` stage grows it before filling (:func:`fill_grow_px`); ``(T, H, W)`` bool."""
+    grow = fill_grow_px(masks.shape[1], masks.shape[2], config)
+    return dilate(masks > 0, grow) > 0
+
+
 class DwmTruth(NamedTuple):
     """One real DWM clip and its truth."""
 
@@ -308,6 +328,8 @@ def dwm_case(cid: str, data: Path, out: Path) -> dict:
     recall = float(masks[hands].mean()) if hands.any() else float("nan")
     near = dilate(masks.astype(np.uint8), 3) > 0  # (T, H, W)
     recall_3px = float(near[hands].mean()) if hands.any() else float("nan")
+    filled = filled_region(masks)  # (T, H, W): what the fill replaces
+    recall_filled = float(filled[hands].mean()) if hands.any() else float("nan")
     missed = int((hands & ~masks).sum())
     miss_bg = background_like_misses(video, masks, hands) / max(missed, 1)
     shown = np.nonzero(hands.reshape(len(hands), -1).mean(axis=1) >= MIN_HAND_FRACTION)[0]
@@ -339,6 +361,9 @@ def dwm_case(cid: str, data: Path, out: Path) -> dict:
         "case": cid,
         "recall": recall,
         "recall_3px": recall_3px,
+        "recall_filled": recall_filled,
+        "mask_px_mean": float(masks.sum() / len(masks)),
+        "filled_px_mean": float(filled.sum() / len(filled)),
         "missed_px": missed,
         "missed_bg_like": miss_bg,
         "far_px_mean": float(np.mean(far[shown])) if len(shown) else 0.0,
@@ -520,7 +545,9 @@ def main() -> int:
             r = dwm_case(cid, args.data, args.out)
             rows["dwm"].append(r)
             print(
-                f"dwm {cid} recall {r['recall']:.3f} (3 px {r['recall_3px']:.3f}; missed "
+                f"dwm {cid} recall {r['recall']:.3f} (3 px {r['recall_3px']:.3f}; filled "
+                f"{r['recall_filled']:.3f} at {r['filled_px_mean']:.0f} px/frame against the "
+                f"mask's {r['mask_px_mean']:.0f}; missed "
                 f"{r['missed_px']} px, {100 * r['missed_bg_like']:.0f}% background-coloured) "
                 f"far px/frame {r['far_px_mean']:.0f} "
                 f"({r['frames_judged']} frames judged) "

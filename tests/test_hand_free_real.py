@@ -1,10 +1,13 @@
-"""bench.hand_free_real's split of a mask's misses into background- and hand-coloured pixels."""
+"""bench.hand_free_real: the split of a mask's misses into background- and hand-coloured pixels,
+and the region the hand-free frame replaces (the mask grown as ``inpaint`` grows it)."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from bench.hand_free_real import background_like_misses
+from bench.hand_free_real import background_like_misses, fill_grow_px, filled_region
+from egosim.stages.inpaint.reproject_fill import dilate
+from egosim.stages.inpaint.stage import InpaintConfig, InpaintStage
 
 SKIN = (200, 150, 120)
 FLOOR = (60, 90, 160)
@@ -38,3 +41,27 @@ def test_background_like_misses_zero_without_misses() -> None:
     mask[:, 10:12, 10:20] = False  # missed ...
     frame[:, 10:12, 10:20] = (250, 20, 250)  # ... in a colour found nowhere else
     assert background_like_misses(frame, mask, truth) == 0
+
+
+def test_filled_region_is_the_region_the_inpaint_stage_replaces() -> None:
+    """The bench's grown masks are the pixels the ``inpaint`` stage fills (its own ``filled``)
+    at two image sizes and with a config that grows less; a truth band 3 px round the mask is
+    missed by the mask but inside the filled region at the default growth (2 + 0.008 x 160 px
+    diagonal = 3 px), and not with ``dilate_fraction`` 0 (2 px)."""
+    for h, w in ((96, 128), (240, 416)):
+        for config in (InpaintConfig(backend="opencv"),
+                       InpaintConfig(backend="opencv", dilate_fraction=0.0)):  # fmt: skip
+            mask = np.zeros((1, h, w), np.uint8)
+            mask[0, h // 3 : h // 2, w // 4 : w // 2] = 1
+            frames = np.full((1, h, w, 3), 90, np.uint8)
+            stage = InpaintStage(config).fill(frames, mask, None, np.zeros(4), None)
+            np.testing.assert_array_equal(filled_region(mask, config)[0], stage.filled)
+    mask = np.zeros((1, 96, 128), np.uint8)
+    mask[0, 30:60, 40:80] = 1
+    truth = dilate(mask, 3) > 0  # the mask plus a 3 px band
+    default = filled_region(mask)
+    assert fill_grow_px(96, 128) == 3
+    assert float(default[truth].mean()) == 1.0
+    assert float((mask > 0)[truth].mean()) < 0.8
+    narrow = filled_region(mask, InpaintConfig(dilate_fraction=0.0))
+    assert float(narrow[truth].mean()) < 1.0
