@@ -7,21 +7,25 @@ with the default :class:`~egosim.stages.hands.mediapipe_backend.MediaPipeParams`
 - **DWM dynamic clips** (``dwm_realworld/realworld_dynamic/videos/*.mp4``, whose
   ``videos_hands`` renders paint the true left hand green and the right hand red): per side, the
   frames where the render shows that hand (at least ``MIN_RENDER_PIXELS`` pixels of its colour)
-  and the fraction of them with a detection of that side (recall); false positives: detections
-  whose keypoint centroid is further than ``FAR_PX`` from every rendered hand pixel of either
-  side (the renders leave out a hand on some frames where it is in view: detections there, on the
-  frames listed by eye in ``RENDER_GAPS``, count as ``on_unrendered``, not as false positives);
-  side-label agreement: of the detections that lie on a rendered hand, the fraction whose side
-  is that hand's colour; the mean distance from the keypoint centroid to the rendered hand's
-  pixel centroid on frames where both exist. Each clip twice: as the file holds it, and "as
-  ingested" (:func:`as_ingested`: the frames the ``hands`` stage of ``bench.real_video`` gets).
+  and the fraction of them with a detection of that side (recall) and with a trusted 3D hand
+  (``coverage_3d``: the backend withholds the 3D of a palm turned off its track, keeping its 2D,
+  :attr:`~egosim.stages.hands.mediapipe_backend.MediaPipeResult.lifted`); false positives:
+  detections whose keypoint centroid is further than ``FAR_PX`` from every rendered hand pixel of
+  either side (the renders leave out a hand on some frames where it is in view: detections there,
+  on the frames listed by eye in ``RENDER_GAPS``, count as ``on_unrendered``, not as false
+  positives); side-label agreement: of the detections that lie on a rendered hand, the fraction
+  whose side is that hand's colour; the mean distance from the keypoint centroid to the rendered
+  hand's pixel centroid on frames where both exist. Each clip twice: as the file holds it, and
+  "as ingested" (:func:`as_ingested`: the frames the ``hands`` stage of ``bench.real_video`` gets).
 - **Fixed-camera and EgoDex videos** (``realworld_fixed/*.mp4``, ``egodex_sample/sample.mp4``),
   cut into clips by ingest's own windowing with its egosim preset (16 fps by nearest timestamp,
   scaled to cover 480x832 and centre-cropped; 61-frame windows, then a 1 + 4k tail of at least
   33 frames): per window, frames with 0 / 1 / 2 hands, the fraction
-  with any and the first frame with each hand (no ground truth there).
+  with any, the share of found hand-frames with a trusted 3D hand (``lifted_share``) and the
+  first frame with each hand (no ground truth there).
 - **Synthetic world** (``render_clip(WorldConfig(seed, mode))``, true joints known): recall, 2D
-  error, 3D orientation error and wrist-relative MPJPE (:mod:`egosim.stages.hands.metrics`),
+  error, 3D coverage (true hand-frames found with a trusted 3D hand), and over those the 3D
+  orientation error and wrist-relative MPJPE (:mod:`egosim.stages.hands.metrics`),
   for the palm-PnP lift (the default: palm poses refined on the reprojection error), the same
   with IPPE's palm poses as they are (``palm_pnp_ippe``: ``MediaPipeParams.refine_palm`` off,
   the default before hands v8) and the old translation-only lift on the same detections; with
@@ -139,6 +143,9 @@ def dwm_figures(video: Path, render_path: Path, ingested: bool = False) -> dict[
                 dists.append(float(np.hypot(cc.mean() + 0.5 - c[0], rr.mean() + 0.5 - c[1])))
         out[f"{SIDES[s]}_false_pos_frames"] = float(fp)
         out[f"{SIDES[s]}_on_unrendered"] = float(unrendered)
+        out[f"{SIDES[s]}_coverage_3d"] = float(
+            (found & res.lifted[:, s]).sum() / max(shown[:, s].sum(), 1)
+        )
     out["side_agreement"] = agree / total_on if total_on else float("nan")
     out["centroid_px"] = float(np.mean(dists)) if dists else float("nan")
     out["size"] = float(w)
@@ -202,6 +209,7 @@ def count_figures(path: Path) -> list[dict[str, float]]:
         for c in range(3):
             fig[f"{c}_hands"] = float((n == c).sum())
         fig["hand_fraction"] = float((n > 0).mean())
+        fig["lifted_share"] = float(res.lifted.sum() / max(res.valid.sum(), 1))
         for s in range(2):
             hit = np.flatnonzero(res.valid[:, s])
             fig[f"first_{SIDES[s]}"] = float(hit[0]) if hit.size else float("nan")
@@ -279,6 +287,7 @@ def synthetic_figures(
                     clip.world_from_cam,
                     clip.intrinsics,
                     (clip.width, clip.height),
+                    lifted=res.lifted,
                 )
             )
     out = {lift: combine(p).summary() for lift, p in parts.items()}
@@ -363,8 +372,11 @@ def interhand_depth_figures(folder: Path) -> list[dict[str, float]]:
     return out
 
 
-def _line(name: str, figures: dict[str, float]) -> str:
-    return f"{name:28s} " + "  ".join(f"{k}={v:.3g}" for k, v in figures.items())
+def _line(name: str, figures: dict) -> str:
+    def value(v) -> str:
+        return str(v) if isinstance(v, list) else f"{v:.3g}"  # InterHand's per-finger ratios
+
+    return f"{name:28s} " + "  ".join(f"{k}={value(v)}" for k, v in figures.items())
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -771,3 +771,123 @@ def test_hand_accuracy_depth_ratio_of_a_hand_placed_too_far() -> None:
     hand = truth_cam[0, 1]  # (21, 3)
     expected = 100.0 * np.linalg.norm(hand - hand.mean(axis=0), axis=1).mean()  # mm: 0.1 * 1000
     np.testing.assert_allclose(acc["aligned_mpjpe_mm"], expected, rtol=0.02)
+
+
+def _moving_hand_track(t: int) -> tuple[np.ndarray, np.ndarray]:
+    """True camera joints ``(T, 21, 3)`` of a right hand reaching forward (fingers away from a
+    head-mounted camera, turning 3 degrees and moving 1 cm per frame) and the camera matrix."""
+    k = np.array([540.0, 540.0, 416.0, 240.0])
+    out = []
+    for f in range(t):
+        tilt, yaw = np.radians(50.0), np.radians(3.0 * f)
+        hand_x = np.array([np.sin(yaw) * np.cos(tilt), np.sin(tilt), np.cos(yaw) * np.cos(tilt)])
+        hand_y = np.array([-np.cos(yaw), 0.0, np.sin(yaw)])  # thumb side: image left
+        cam_from_hand = np.stack([hand_x, hand_y, np.cross(hand_x, hand_y)], axis=1)  # (3, 3)
+        out.append(_template_hand(True) @ cam_from_hand.T + np.array([0.01 * f, 0.12, 0.42]))
+    return np.stack(out), k
+
+
+def _misfit(hand: np.ndarray, degrees: float) -> np.ndarray:
+    """``hand (21, 3)`` turned ``degrees`` about its wrist's ray: landmarks of a hand that lies
+    where the true one does, the palm turned in the image (what MediaPipe's misfit landmarks
+    look like: the wrist in place, the orientation far off)."""
+    axis = hand[0] / np.linalg.norm(hand[0])  # (3,) the wrist's ray
+    turn = cv2.Rodrigues(axis * np.radians(degrees))[0]  # (3, 3)
+    return (hand - hand[0]) @ turn.T + hand[0]
+
+
+def test_a_palm_turned_off_its_track_is_interpolated_or_its_3d_withheld() -> None:
+    """A right hand tracked over 9 frames whose landmarks at frame 3 (inside the track) and 8
+    (its last frame) are misfit: the hand turned 100 degrees in the image. Before hands v10 both
+    were lifted as seen, 70-100 degrees off the true hand. Now frame 3, with trusted frames on
+    both sides, is interpolated between them (the turn slerped, the wrist moved linearly):
+    within 5 degrees and 5 mm (wrist-relative) of the true hand; frame 8 has no trusted frame
+    after it: its 3D is withheld (``lifted`` False) but the hand stays valid with joints on its
+    landmarks' rays (its 2D, which masks use) at a tenth of the confidence. The other frames
+    are lifted as before. Smoothing off so the misfit landmarks stay on their own frames."""
+    from egosim.stages.hands.mediapipe_backend import (
+        WITHHELD_CONFIDENCE_FACTOR,
+        hands_from_raw,
+    )
+
+    t = 9
+    truth, k = _moving_hand_track(t)  # (T, 21, 3)
+    seen = truth.copy()
+    seen[3] = _misfit(truth[3], 100.0)
+    seen[8] = _misfit(truth[8], 100.0)
+    uv = project_points(seen, k)[0]  # (T, 21, 2)
+    shapes = np.stack([_short_proximal(hand) for hand in seen])  # (T, 21, 3) MediaPipe's bones
+    world = shapes - shapes.mean(axis=1, keepdims=True)  # (T, 21, 3) metric, about the centre
+    raw = RawLandmarks(
+        uv=np.stack([np.full_like(uv, np.nan), uv], axis=1),  # (T, 2, 21, 2)
+        world=np.stack([np.zeros_like(world), world], axis=1),  # (T, 2, 21, 3)
+        label_right=np.tile([0.5, 0.9], (t, 1)),
+        present=np.tile([False, True], (t, 1)),
+    )
+    params = MediaPipeParams(smooth_sigma=0.0)
+    new = hands_from_raw(raw, 832, k, None, None, params)
+    untested = MediaPipeParams(smooth_sigma=0.0, max_turn_rate=np.inf)  # before hands v10
+    old = hands_from_raw(raw, 832, k, None, None, untested)
+    assert new.valid[:, 1].all() and old.valid[:, 1].all()
+    for f in (3, 8):
+        assert orientation_error_deg(old.joints[f, 1], truth[f]) > 60.0  # what the rule removes
+    assert orientation_error_deg(new.joints[3, 1], truth[3]) < 5.0
+    assert wrist_relative_mpjpe_mm(new.joints[3, 1], truth[3]) < 5.0
+    assert np.linalg.norm(new.joints[3, 1, 0] - truth[3, 0]) < 0.01  # wrist within 1 cm
+    np.testing.assert_array_equal(new.lifted[:, 1], np.arange(t) != 8)
+    np.testing.assert_allclose(project_points(new.joints[8, 1], k)[0], uv[8], atol=1e-6)
+    np.testing.assert_allclose(
+        new.confidence[8, 1], WITHHELD_CONFIDENCE_FACTOR * old.confidence[8, 1]
+    )
+    for f in (0, 1, 2, 4, 5, 6, 7):  # the well-fitted frames: lifted as before
+        np.testing.assert_allclose(new.joints[f, 1], old.joints[f, 1], atol=1e-12)
+        assert orientation_error_deg(new.joints[f, 1], truth[f]) < 5.0
+
+
+def test_turn_outliers_flag_a_track_end_the_spike_test_keeps() -> None:
+    """``filters.turn_outliers``: a palm turned 100 degrees on a track's last two frames is
+    flagged (the median turn rate to its neighbours within 3 frames is over 320 degrees per
+    second at 16 fps; at 4 fps it is not); the
+    bidirectional spike test (``temporal_outliers``) cannot see it (no valid frame after it);
+    hand-frames without a valid neighbour are kept; a steady 3-degree-per-frame turn is not
+    flagged."""
+    from egosim.stages.hands.filters import temporal_outliers, turn_outliers
+
+    t = 9
+    truth, _ = _moving_hand_track(t)  # (T, 21, 3)
+    joints = np.full((t, 2, 21, 3), np.nan)
+    joints[:, 1] = truth
+    joints[7, 1] = _misfit(truth[7], 100.0)
+    joints[8, 1] = _misfit(truth[8], 100.0)
+    joints[0, 0] = truth[0] - np.array([0.2, 0.0, 0.0])  # a left hand seen once
+    valid = np.isfinite(joints).all(axis=(2, 3))  # (T, 2)
+    flagged = turn_outliers(joints, valid, 16.0)
+    np.testing.assert_array_equal(flagged[:, 1], np.arange(t) >= 7)
+    assert not flagged[:, 0].any()
+    assert not turn_outliers(joints, valid, 4.0).any()  # 100 degrees in half a second or more
+    spikes = temporal_outliers(joints, valid, np.tile(np.eye(4), (t, 1, 1)), 16.0)
+    assert not spikes[7:, 1].any()
+
+
+def test_hand_accuracy_counts_withheld_3d_in_recall_not_in_3d_figures() -> None:
+    """A found hand whose 3D is withheld (``lifted`` False) counts in the recall and the 2D
+    error but not in the MPJPE, orientation or ``coverage_3d``: with one of two right-hand
+    frames far off in 3D and withheld, the MPJPE is the other frame's (0) and the coverage 0.5."""
+    from egosim.stages.hands.metrics import hand_accuracy
+
+    truth, k = _moving_hand_track(2)
+    truth_cam = np.full((2, 2, 21, 3), np.nan)
+    truth_cam[:, 1] = truth
+    pred = truth_cam.copy()
+    pred[1, 1] = 1.3 * _misfit(truth[1], 90.0)  # far off in 3D
+    pred[1, 1] = on_rays(project_points(truth[1], k)[0], pred[1, 1, :, 2], k)  # 2D exact
+    valid = np.array([[False, True]] * 2)
+    lifted = np.array([[False, True], [False, False]])
+    args = (project_points(truth_cam, k)[0], valid, truth_cam, valid,
+            np.tile(np.eye(4), (2, 1, 1)), k, (832, 480))  # fmt: skip
+    every = hand_accuracy(pred, *args).summary()
+    trusted = hand_accuracy(pred, *args, lifted=lifted).summary()
+    assert every["recall"] == trusted["recall"] == 1.0
+    assert every["coverage_3d"] == 1.0 and trusted["coverage_3d"] == 0.5
+    assert every["mpjpe_mm"] > 20.0 and trusted["mpjpe_mm"] < 1e-9
+    assert trusted["error_2d_px"] < 1e-6

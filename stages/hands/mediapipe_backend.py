@@ -60,7 +60,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from egosim.pipeline.geometry import transform_points
+from egosim.pipeline.geometry import slerp_rotations, transform_points
 from egosim.pipeline.records import LEFT, NUM_HAND_JOINTS, RIGHT, Clip
 from egosim.stages.common.hand_landmarks import (  # one detector for hands and metric scale
     HandLandmarkParams,
@@ -78,9 +78,11 @@ from egosim.stages.common.hand_lift import (  # one lift for the hands and the m
     palm_pnp_pose,
     scale_to_depth,
 )
-from egosim.stages.hands.filters import Detections
+from egosim.stages.hands.filters import Detections, palm_rotations, turn_outliers
 
+CLIP_FPS = 16.0  # frame rate assumed when none is given (the egosim clip preset's)
 BRIDGED_CONFIDENCE_FACTOR = 0.5  # confidence of interpolated frames relative to detected ones
+WITHHELD_CONFIDENCE_FACTOR = 0.1  # confidence of a hand whose 3D is withheld (2D kept)
 MIDDLE_MCP = 9  # joint index of the middle finger's knuckle (hand size: wrist to it)
 
 
@@ -99,6 +101,19 @@ class MediaPipeParams(HandLandmarkParams):
     min_track_frames: int = 3  # a shorter track wanting a side a longer one holds then is dropped
     refine_palm: bool = True  # palm PnP: refine IPPE's poses on the reprojection error (hand_lift
     # palm_candidates; see "Hands v8" and "Hands v9" in docs/design.md)
+    max_turn_rate: float = 320.0  # deg/s: a palm turning faster than this from its track's
+    # neighbours (filters.turn_outliers) is interpolated between them or withheld; inf = no test
+    turn_window: int = 3  # frames either side the turn test compares with
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        problems = []
+        if not self.max_turn_rate > 0:
+            problems.append(f"max_turn_rate must be > 0 deg/s, got {self.max_turn_rate!r}")
+        if self.turn_window < 1:
+            problems.append(f"turn_window must be >= 1, got {self.turn_window!r}")
+        if problems:
+            raise ValueError("invalid MediaPipeParams: " + "; ".join(problems))
 
 
 @dataclass
@@ -339,6 +354,9 @@ class MediaPipeResult:
     confidence: np.ndarray  # (T, 2, 21) float64 in [0, 1]
     landmarks: SideLandmarks  # smoothed per-side 2D/3D landmarks
     raw: RawLandmarks  # unordered detections as MediaPipe gave them
+    # (T, 2) bool: valid and its 3D trusted (lifted, or interpolated from lifted neighbours); a
+    # valid hand-frame that is not keeps joints on its landmarks' rays (its 2D) at low confidence
+    lifted: np.ndarray
 
 
 def mediapipe_hands(
@@ -347,16 +365,18 @@ def mediapipe_hands(
     world_from_cam: np.ndarray | None = None,
     depth: np.ndarray | None = None,
     params: MediaPipeParams | None = None,
+    fps: float = CLIP_FPS,
 ) -> MediaPipeResult:
     """Detect, assign sides, bridge, smooth and lift hands in one clip.
 
     ``frames (T, H, W, 3)`` uint8 RGB, ``intrinsics (4,)``, ``world_from_cam (T, 4, 4)`` (None:
     joints stay in camera coordinates), ``depth (T, H, W)`` metres with 0 = unknown (None: the
-    world landmarks' size prior sets the distance).
+    world landmarks' size prior sets the distance), ``fps`` the clip's frame rate (the turn
+    test's time).
     """
     params = params or MediaPipeParams()
     raw = detect_landmarks(frames, params)
-    return hands_from_raw(raw, frames.shape[2], intrinsics, world_from_cam, depth, params)
+    return hands_from_raw(raw, frames.shape[2], intrinsics, world_from_cam, depth, params, fps)
 
 
 def side_landmarks(
@@ -375,14 +395,17 @@ def hands_from_raw(
     world_from_cam: np.ndarray | None = None,
     depth: np.ndarray | None = None,
     params: MediaPipeParams | None = None,
+    fps: float = CLIP_FPS,
 ) -> MediaPipeResult:
-    """Everything after detection: sides, bridging, smoothing and lifting of ``raw`` landmarks
-    found in frames ``width`` pixels wide (arguments otherwise as :func:`mediapipe_hands`)."""
+    """Everything after detection: sides, bridging, smoothing, lifting and the repair of palms
+    turned off their track (:func:`~egosim.stages.hands.filters.turn_outliers`,
+    :func:`repair_unsure`) of ``raw`` landmarks found in frames ``width`` pixels wide (arguments
+    otherwise as :func:`mediapipe_hands`)."""
     params = params or MediaPipeParams()
     raw = drop_overlapping(raw, params.duplicate_distance)
     lm = side_landmarks(raw, width, params)
     t = raw.present.shape[0]
-    joints = np.full((t, 2, NUM_HAND_JOINTS, 3), np.nan)
+    joints = np.full((t, 2, NUM_HAND_JOINTS, 3), np.nan)  # camera metres, world below
     poses = _palm_poses(lm, intrinsics, params) if params.lift == "palm_pnp" else {}
     for f, s in zip(*np.nonzero(lm.present), strict=True):
         observed = depth_under(depth[f], lm.uv[f, s]) if depth is not None else None
@@ -405,12 +428,49 @@ def hands_from_raw(
                 prefer_fingers_away=params.prefer_fingers_away,
                 refine=params.refine_palm,
             )
-        if world_from_cam is not None:
-            points_cam = transform_points(world_from_cam[f], points_cam)  # now world
         joints[f, s] = points_cam
     valid = lm.present & np.all(np.isfinite(joints), axis=(2, 3))
-    conf = np.repeat(np.where(valid, lm.confidence, 0.0)[..., None], NUM_HAND_JOINTS, axis=2)
-    return MediaPipeResult(joints, valid, conf, lm, raw)
+    unsure = turn_outliers(joints, valid, fps, params.turn_window, params.max_turn_rate)
+    joints, lifted = repair_unsure(joints, valid, unsure, params.max_gap)
+    if world_from_cam is not None:
+        for f in range(t):
+            joints[f] = transform_points(world_from_cam[f], joints[f])  # now world
+    factor = np.where(lifted, 1.0, WITHHELD_CONFIDENCE_FACTOR)  # (T, 2)
+    conf = np.repeat(np.where(valid, lm.confidence * factor, 0.0)[..., None], NUM_HAND_JOINTS, 2)
+    return MediaPipeResult(joints, valid, conf, lm, raw, lifted)
+
+
+def repair_unsure(
+    joints_cam: np.ndarray, valid: np.ndarray, unsure: np.ndarray, reach: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """``(joints (T, 2, 21, 3), lifted (T, 2))``: each ``unsure`` hand-frame with a trusted frame
+    of its side at most ``reach`` frames before and after it (and at most ``reach + 1`` apart)
+    is interpolated between them: the palm's rotation slerped, the wrist moved linearly, the
+    wrist-relative shape (in the palm's frame) the nearer frame's. The other unsure frames keep
+    their joints (on their landmarks' rays: their 2D) and are not ``lifted``.
+    ``joints_cam`` camera metres (NaN where not valid)."""
+    out = joints_cam.copy()
+    lifted = valid & ~unsure  # (T, 2)
+    rot = palm_rotations(joints_cam)  # (T, 2, 3, 3) cam_from_palm
+    for s in range(2):
+        trusted = np.flatnonzero(lifted[:, s])
+        for f in np.flatnonzero(unsure[:, s]):
+            before, after = trusted[trusted < f], trusted[trusted > f]
+            if not (before.size and after.size):
+                continue
+            a, b = int(before[-1]), int(after[0])
+            if f - a > reach or b - f > reach or b - a > reach + 1:
+                continue
+            w = (f - a) / (b - a)
+            turn = slerp_rotations(
+                np.array([a, b], dtype=np.float64), rot[[a, b], s], np.array([float(f)])
+            )[0]  # (3, 3) cam_from_palm
+            src = a if w <= 0.5 else b
+            shape = (joints_cam[src, s] - joints_cam[src, s, 0]) @ rot[src, s]  # (21, 3) palm
+            wrist = (1.0 - w) * joints_cam[a, s, 0] + w * joints_cam[b, s, 0]  # (3,)
+            out[f, s] = wrist + shape @ turn.T
+            lifted[f, s] = True
+    return out, lifted
 
 
 def _palm_poses(
@@ -450,7 +510,9 @@ def _nearest_pose(
 
 def mediapipe_detections(clip: Clip, params: MediaPipeParams | None = None) -> Detections:
     """The stage's detections (``K = 2``, slot = side) from a decoded clip with poses."""
-    res = mediapipe_hands(clip.frames, clip.intrinsics, clip.world_from_cam, clip.depth, params)
+    res = mediapipe_hands(
+        clip.frames, clip.intrinsics, clip.world_from_cam, clip.depth, params, clip.fps
+    )
     side = np.tile(np.array([LEFT, RIGHT]), (clip.num_frames, 1))  # (T, 2)
     joints = np.where(res.valid[..., None, None], res.joints, 0.0)
     return Detections(joints=joints, side=side, confidence=res.confidence, present=res.valid)

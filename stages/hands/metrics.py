@@ -4,6 +4,9 @@ All comparisons are per side (slot 0 = left, 1 = right) in the *camera* frame:
 
 - **recall**: hand-frames with a true hand in view (at least ``min_visible_joints`` joints project
   inside the image) that the method reports for the same side;
+- **3D coverage**: of the same true hand-frames, those reported with a 3D hand the method
+  trusts (a backend may keep a hand's 2D but withhold its 3D: ``lifted``); the 3D figures below
+  are over these, so withholding hands lowers them only with this share printed beside them;
 - **2D error**: mean pixel distance between the method's 2D landmarks and the projected true
   joints (``2d_offset_u``/``v``: its signed mean, a systematic shift shows there);
 - **orientation error**: angle of the rotation that best aligns the method's wrist-relative joints
@@ -81,12 +84,13 @@ class HandAccuracy:
     # after the best rotation and translation
     joint_error_mm: list[np.ndarray] = field(default_factory=list)  # per found hand-frame:
     # (21,) each joint's wrist-relative distance (the terms of ``mpjpe_mm``)
-    joint_error_2d_px: list[np.ndarray] = field(default_factory=list)  # per found hand-frame:
-    # (21,) each joint's pixel distance (the terms of ``error_2d_px``)
+    joint_error_2d_px: list[np.ndarray] = field(default_factory=list)  # per found hand-frame
+    # with 3D: (21,) each joint's pixel distance (beside ``joint_error_mm``)
+    found_3d: int = 0  # of ``found``, those with a trusted 3D hand (the 3D lists' length)
 
     def per_joint(self) -> np.ndarray:
         """``(21, 2)``: each joint's mean wrist-relative error (mm) and mean 2D error (px) over
-        the found hand-frames (NaN when none): which joints carry the MPJPE."""
+        the found hand-frames with 3D (NaN when none): which joints carry the MPJPE."""
         if not self.joint_error_mm:
             return np.full((JOINTS, 2), np.nan)
         return np.stack(
@@ -103,6 +107,7 @@ class HandAccuracy:
         return {
             "visible": float(self.visible),
             "recall": self.found / self.visible if self.visible else float("nan"),
+            "coverage_3d": self.found_3d / self.visible if self.visible else float("nan"),
             "wrong_side": float(self.wrong_side),
             "false_positive": float(self.false_positive),
             "error_2d_px": mean(self.error_2d_px),
@@ -136,6 +141,7 @@ def combine(parts: list[HandAccuracy]) -> HandAccuracy:
         out.aligned_mpjpe_mm += p.aligned_mpjpe_mm
         out.joint_error_mm += p.joint_error_mm
         out.joint_error_2d_px += p.joint_error_2d_px
+        out.found_3d += p.found_3d
     return out
 
 
@@ -178,6 +184,7 @@ def hand_accuracy(
     size: tuple[int, int],
     min_visible_joints: int = 11,
     max_centroid_fraction: float = 0.5,
+    lifted: np.ndarray | None = None,
 ) -> HandAccuracy:
     """Compare a method's hands with the truth, per side and frame.
 
@@ -187,7 +194,9 @@ def hand_accuracy(
     ``(width, height)``. A true hand is in view when ``min_visible_joints`` of its joints project
     inside the image in front of the camera. A reported hand whose 2D centroid is further than
     ``max_centroid_fraction`` of the true hand's 2D size from the true centroid is a false
-    positive, not a find.
+    positive, not a find. ``lifted (T, 2)``: the valid hands whose 3D the method trusts (None:
+    all); a found hand without it counts in the recall and the 2D error, not in the 3D figures
+    (orientation, MPJPE, depth ratio, per-joint errors) and not in ``found_3d``.
     """
     truth_cam, truth_uv, in_view = true_hands_in_view(
         truth_world, truth_valid, world_from_cam, intrinsics, size, min_visible_joints
@@ -206,10 +215,13 @@ def hand_accuracy(
         acc.found += 1
         error_2d = np.linalg.norm(diff, axis=1)  # (21,) px
         acc.error_2d_px.append(float(error_2d.mean()))
+        acc.offset_2d_px.append(diff.mean(axis=0))
+        if lifted is not None and not lifted[f, s]:
+            continue
+        acc.found_3d += 1
         acc.joint_error_2d_px.append(error_2d)
         error_3d = wrist_relative_errors_mm(joints_cam[f, s], truth_cam[f, s])  # (21,)
         acc.joint_error_mm.append(error_3d)
-        acc.offset_2d_px.append(diff.mean(axis=0))
         acc.orientation_deg.append(orientation_error_deg(joints_cam[f, s], truth_cam[f, s]))
         acc.mpjpe_mm.append(float(error_3d.mean()))
         acc.aligned_mpjpe_mm.append(aligned_mpjpe_mm(joints_cam[f, s], truth_cam[f, s]))

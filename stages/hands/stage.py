@@ -8,7 +8,10 @@ learned HaMeR/WiLoR-style joint regressor from local safetensors weights on crop
 only then). The filters of
 :mod:`egosim.stages.hands.filters` run on every backend's detections: frame-wise
 de-duplication (projected joint boxes, IoU, breadth-first grouping, most confident per side) and
-temporal outlier removal (bidirectional speed test in camera space). Intrinsics and poses come
+temporal outlier removal (bidirectional speed test in camera space). The ``mediapipe`` backend
+also repairs a palm turned off its own track before that (interpolated between trusted
+neighbours, or kept valid for its 2D with a tenth of the confidence: a ``hand_confidence`` of at
+most 0.1 there means "2D only, 3D withheld"). Intrinsics and poses come
 from :func:`egosim.stages.common.cameras.resolve_cameras`: the optional ``poses`` (cleaned) or
 ``cameras`` (estimated) inputs when a workflow connects them, else the clips row. The ``given``
 backend's world joints do not depend on them; the de-duplication (projected boxes) and the
@@ -192,7 +195,10 @@ class HandsStage(ClipStage):
     # takes MediaPipe's proximal phalanges 1 / 0.70 longer (hand_lift.landmark_bone_lengths).
     # 9: a gap is bridged only between ends as near as _tracks links (two hands given one side
     # are not interpolated into a hand between them).
-    version = 9
+    # 10: a palm turned more than 30 degrees off its track's neighbours (filters.turn_outliers)
+    # is interpolated between trusted frames (mediapipe), or where there are none its 3D is
+    # withheld: joints kept on its landmarks' rays (masks keep the hand), confidence x 0.1.
+    version = 10
     description = "3D hand joints per frame from the clip's labels, de-duplicated and de-spiked"
     config_class = HandsConfig
     inputs: ClassVar[Mapping[str, ShardSchema]] = {"clips": CLIPS}
