@@ -32,11 +32,21 @@ Method, for one clip (:func:`estimate_metric_scale`):
    is the ``joint_quantile`` (0.75) quantile of its joints' ``r``: the part of the hand nearest
    its surface, but not the single highest joint (fingers curled behind an object and hidden by
    the back of the hand itself have ``r > s``; no colour test sees them).
-5. **Rule**: the scale is the ``contact_quantile`` (0.9) quantile of the per-detection
-   estimates: hands at rest or touching sit at the top of the distribution, reaching/hovering
-   ones below it, and the top decile is left out as outliers. ``spread`` is the MAD / median of
-   the per-detection estimates at or above their median (how well the contact half agrees).
-   Fewer than ``min_detections`` usable detections: ``scale`` is None and ``reason`` says why.
+5. **Rule**: estimates more than ``outlier_mads`` (5) scaled MADs (1.4826 x the median
+   absolute deviation) above their median are left out (depth_camera v12); the scale is the
+   ``contact_quantile`` (0.9) quantile of the rest: hands at rest or touching sit at the top of
+   the distribution, reaching/hovering ones below it, and the top decile is left out as
+   outliers. Why the quantile and not the median: a hovering hand's joints lie nearer than the
+   surface behind them, so its ``r`` is below the scale; the median of a clip where the hands
+   often reach is low by their hover gap (oracle landmarks, default world: median -5% to -10%,
+   0.9 quantile -2% to +4%). Why the cut: the top decile is all the quantile drops, and a
+   misfit detection can make more of the clip than that (tabletop 1: a MediaPipe hand followed
+   through misses onto a box, 8 of 61 detections at 1.43-2.82 x the scale, so the 0.9
+   quantile landed in them: +46%); only the upper tail is cut, so at least half the estimates
+   stay, and a clip whose hands mostly reach has a wide MAD, so nothing is cut there (DWM
+   00013). ``spread`` is the MAD / median of the kept estimates at or above their median (how
+   well the contact half agrees). Fewer than ``min_detections`` usable detections: ``scale``
+   is None and ``reason`` says why (``num_samples`` counts the left-out ones too).
 6. **Wide-window fallback** (``source`` ``hand_size_wide``): when step 5 finds too few
    detections, steps 3-5 run again with ``z_s`` the median of the known depths within
    ``wide_window_px`` of the joint, and a window counted as spanning a depth edge when its 75th
@@ -91,6 +101,25 @@ frame-0 depth masked under the hands), with the translation lift. Scale error (e
   hand/surface DWM 00013 1.10 -> 1.06, 00017 0.92 -> 0.91, HOT3D 0.95 -> 0.99; HOT3D scale
   0.0843 -> 0.0864 m/unit.
 
+- depth_camera v12 (``outlier_mads`` 5, chosen on the default world: tabletop 0-3, wild 0-2;
+  held out: alt tabletop 0-3, wild 0-1; the tests' oracle now lifts true joints with
+  ``proximal_ratio`` 1.0), MediaPipe path v11 -> v12: tabletop 1 +46.2 -> +15.0%, every other
+  default clip unchanged (tabletop 0 +14.6, wild 0 +31.6, tabletop 3 +17.4, wild 1 +21.1;
+  tabletop 2, wild 2: no scale either way); held out unchanged (alt tabletop 0-3 +14.7 /
+  +13.3 / +13.9 / +10.2, wild 0 +24.7) but alt wild 1 +15.5 -> +14.6%. What is left is the
+  lift's depth on the drawn hands: divided by each clip's median lifted / true hand depth,
+  the MediaPipe path's mean |error| is 7.6 -> 3.5% (default; tabletop 1 +23.5 -> -2.9%) and
+  2.2 -> 2.1% (alt). Oracle (true joints, ``proximal_ratio`` 1.0): tabletop 1 +2.6 -> -0.3%,
+  the others unchanged, mean |error| default 1.9 -> 1.5%, alt 2.4% both. Other cuts measured
+  on the same samples: the 0.8 quantile (oracle default -1.7% to -4.5%), a cut at 1.15 x the
+  median (default MediaPipe net 2.3%, but on real clips it cut contact hands: DWM 00013 scale
+  0.142 -> 0.113, HOT3D 0.086 -> 0.068), 4 MADs (oracle tabletop 1 -5.4%), a density mode of
+  the upper half (oracle -4% to -10%), a cut at the first 5% gap above the median (MediaPipe
+  wild 1 net +2.7 -> -7.5%). Real clips
+  (the last stop's cameras, samples recomputed; HOT3D pooled over its windows' depth0):
+  DWM 00013 0.142 and 00017 0.0293 m/unit unchanged; HOT3D 0.0864 -> 0.0848 (5 of 135
+  estimates at 1.8-2.6 x the scale left out; hand/surface 0.99 -> 1.01 expected).
+
 The error is the same for both factors (the method is scale-equivariant). Known biases: the size
 prior (MediaPipe's hands came out 3% near on median, +-8% per detection), hands that never
 touch a visible surface (the estimate is then low by their hover gap), and moving objects (frame
@@ -111,7 +140,7 @@ from egosim.stages.common.hand_landmarks import (
     drop_overlapping,
     place_in_camera,
 )
-from egosim.stages.common.hand_lift import MIN_POSE_DEPTH, palm_pnp_pose
+from egosim.stages.common.hand_lift import MEDIAPIPE_PROXIMAL_RATIO, MIN_POSE_DEPTH, palm_pnp_pose
 
 SOURCE_HAND_SIZE = "hand_size"  # ScaleEstimate.source: strict window (steps 1-5)
 SOURCE_HAND_SIZE_WIDE = "hand_size_wide"  # ScaleEstimate.source: wide-window fallback (step 6)
@@ -138,6 +167,9 @@ class MetricScaleParams:
     # stage's own lift (:mod:`egosim.stages.common.hand_lift`; a detection without a palm pose in
     # front of the camera gives no sample), so the scale puts the scene where the hands stage puts
     # the hands; "translation": MediaPipe's world landmarks translated only (depth_camera v6)
+    proximal_ratio: float = MEDIAPIPE_PROXIMAL_RATIO  # palm lift: how short the landmarks'
+    # proximal phalanges are (hand_lift.landmark_bone_lengths): MediaPipe's 0.70; 1.0 for true
+    # joints (an oracle's landmarks, in tests)
     contact_offset_m: float = 0.03  # depth from a resting hand's joint centres to the surface it
     # rests on, metres (half a hand's thickness, longer along oblique rays); tuned, tabletop 0-1
     window_px: int = 3  # z_s: median of known depths within this many pixels of the joint
@@ -151,6 +183,9 @@ class MetricScaleParams:
     min_joint_samples: int = 5  # a detection needs this many joint samples to count
     joint_quantile: float = 0.75  # per detection: this quantile of its joints' ratios (tuned)
     contact_quantile: float = 0.9  # per clip: this quantile of the per-detection estimates (tuned)
+    outlier_mads: float | None = 5.0  # per clip, before the contact quantile: estimates more than
+    # this many scaled MADs (1.4826 x MAD) above their median are left out (misfit detections,
+    # e.g. MediaPipe landmarks off any hand); None keeps all (v11). Chosen on the default world
     spread_from_quantile: float = 0.5  # spread: MAD/median of the estimates above this quantile
     min_detections: int = 5  # fewer usable detections: no scale
     wide_window_px: int = 25  # fallback (step 6): z_s from the known depths within this many
@@ -167,6 +202,8 @@ class MetricScaleParams:
             value = getattr(self, name)
             if not 0.0 <= value <= 1.0:
                 problems.append(f"{name} must be in [0, 1], got {value!r}")
+        if not (np.isfinite(self.proximal_ratio) and 0.0 < self.proximal_ratio <= 2.0):
+            problems.append(f"proximal_ratio must be in (0, 2], got {self.proximal_ratio!r}")
         for name in (
             "contact_offset_m",
             "max_edge_rel",
@@ -177,6 +214,12 @@ class MetricScaleParams:
             value = getattr(self, name)
             if not (np.isfinite(value) and value >= 0):
                 problems.append(f"{name} must be finite and >= 0, got {value!r}")
+        if self.outlier_mads is not None and not (
+            np.isfinite(self.outlier_mads) and self.outlier_mads > 0
+        ):
+            problems.append(
+                f"outlier_mads must be None or finite and > 0, got {self.outlier_mads!r}"
+            )
         for name in ("window_px", "colour_window_px", "wide_window_px"):
             if getattr(self, name) < 0:
                 problems.append(f"{name} must be >= 0, got {getattr(self, name)!r}")
@@ -308,14 +351,20 @@ def scene_visible(
 
 
 def place_detection(
-    uv: np.ndarray, world: np.ndarray, intrinsics: np.ndarray, lift: str
+    uv: np.ndarray,
+    world: np.ndarray,
+    intrinsics: np.ndarray,
+    lift: str,
+    proximal_ratio: float = MEDIAPIPE_PROXIMAL_RATIO,
 ) -> np.ndarray | None:
     """Metric camera joints ``(21, 3)`` of one detection (``uv (21, 2)`` pixels, MediaPipe's
     ``world (21, 3)`` metres) by ``lift`` (:attr:`MetricScaleParams.lift`); None when the palm
-    PnP finds no pose with every joint :data:`MIN_POSE_DEPTH` or more in front of the camera."""
+    PnP finds no pose with every joint :data:`MIN_POSE_DEPTH` or more in front of the camera.
+    ``proximal_ratio``: :attr:`MetricScaleParams.proximal_ratio` (palm lift only)."""
     if lift == "translation":
         return place_in_camera(uv, world, intrinsics)
-    pose = palm_pnp_pose(uv, world, intrinsics)  # the side does not change the placed points
+    # The side does not change the placed points.
+    pose = palm_pnp_pose(uv, world, intrinsics, proximal_ratio=proximal_ratio)
     if pose is None or float(pose[0][:, 2].min()) < MIN_POSE_DEPTH:
         return None
     return pose[0]
@@ -359,7 +408,9 @@ def detection_samples(
                 continue
             if np.linalg.norm(uv.max(axis=0) - uv.min(axis=0)) < params.min_hand_px:
                 continue
-            points_cam = place_detection(uv, world, intrinsics, params.lift)  # (21, 3) metres
+            points_cam = place_detection(
+                uv, world, intrinsics, params.lift, params.proximal_ratio
+            )  # (21, 3) metres
             if points_cam is None:
                 continue
             z_m = points_cam[joints, 2]  # (J,)
@@ -372,6 +423,18 @@ def detection_samples(
                 continue
             out.append((z_m[ok], z_s[ok]))
     return out
+
+
+def without_outliers(estimates: np.ndarray, outlier_mads: float | None) -> np.ndarray:
+    """``estimates (N,)`` less those more than ``outlier_mads`` scaled MADs (1.4826 x the median
+    absolute deviation) above their median (step 5 of the module docstring); None keeps all.
+    Only the upper tail is cut (hovering hands below the median are the contact rule's to
+    skip), so at least half the estimates stay."""
+    if outlier_mads is None or len(estimates) == 0:
+        return estimates
+    median = float(np.median(estimates))
+    mad = 1.4826 * float(np.median(np.abs(estimates - median)))
+    return estimates[estimates <= median + outlier_mads * mad]
 
 
 def scale_from_samples(
@@ -398,8 +461,9 @@ def scale_from_samples(
             source=source,
             reason=f"{n} usable hand detections, need {params.min_detections}",
         )
-    scale = float(np.quantile(per_detection, params.contact_quantile))
-    top = per_detection[per_detection >= np.quantile(per_detection, params.spread_from_quantile)]
+    kept = without_outliers(per_detection, params.outlier_mads)  # (M,) M >= N / 2
+    scale = float(np.quantile(kept, params.contact_quantile))
+    top = kept[kept >= np.quantile(kept, params.spread_from_quantile)]
     median = float(np.median(top))
     spread = float(np.median(np.abs(top - median)) / median)
     return ScaleEstimate(scale=scale, spread=spread, num_samples=n, source=source)

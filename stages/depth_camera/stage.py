@@ -989,7 +989,9 @@ class DepthCameraStage(ClipStage):
     # determine gives way to the rotation model when that poses the clip (the EgoDex sample)
     # 11: the metric scale's palm lift is the hands stage v8's (refined palm poses, MediaPipe's
     # proximal phalanges taken 1/0.70 longer; hand_lift.palm_pnp_pose's defaults)
-    version = 11
+    # 12: the metric scale leaves out per-detection estimates more than 5 scaled MADs above
+    # their median before its contact quantile (a misfit MediaPipe track made tabletop 1 +46%)
+    version = 12
     config_class = DepthCameraConfig
     inputs: ClassVar[Mapping[str, ShardSchema]] = {"clips": CLIPS}
     output = DEPTH_CAMERA
