@@ -899,3 +899,83 @@ def test_letterbox_bar_is_never_hand() -> None:
     side[:, :2] = 0
     side[:, 2:] = 90
     assert padding(side)[:, :2].all() and not padding(side)[:, 2:].any()
+
+
+def _swing_clip(swing: tuple[int, ...], t_count: int = 7) -> tuple[np.ndarray, ...]:
+    """``(frames (T, H, W, 3), keypoints (T, 2, 21, 2), valid (T, 2), sleeve (H, W), bar (H, W))``:
+    one hand whose purple sleeve runs straight down from its wrist over a busy table; in the
+    ``swing`` frames the sleeve is knitted (dark stripes across it) and a smooth teal bar runs
+    from the wrist 70 degrees to the side, which the colour search then prefers."""
+    h, w = 160, 240
+    wrist, down = np.array([120.5, 50.5]), np.array([0.0, 1.0])
+    side = np.array([np.cos(np.radians(20.0)), np.sin(np.radians(20.0))])
+    frames = []
+    for t in range(t_count):
+        rng = np.random.default_rng(10 + t)
+        image = np.clip(rng.normal(120, 40, (h, w, 3)), 0, 255).astype(np.uint8)
+        image = cv2.GaussianBlur(image, (5, 5), 0)
+        end = wrist + 400 * down
+        cv2.line(
+            image, tuple(int(v) for v in wrist), tuple(int(v) for v in end), (150, 40, 160), 17
+        )
+        if t in swing:
+            for y in range(int(wrist[1]) + 4, h, 6):
+                cv2.line(image, (112, y), (129, y), (60, 20, 70), 2)
+            bar_end = wrist + 400 * side
+            cv2.line(image, tuple(int(v) for v in wrist), tuple(int(v) for v in bar_end),
+                     (40, 150, 150), 17)  # fmt: skip
+        frames.append(image)
+    kp = _hand_keypoints(wrist, -down, 30.0, 20.0)  # (21, 2)
+    keypoints = np.full((t_count, 2, 21, 2), np.nan)
+    keypoints[:, 0] = kp
+    valid = np.zeros((t_count, 2), bool)
+    valid[:, 0] = True
+    sleeve, bar = _sleeve_pixels(h, w, wrist, down), _sleeve_pixels(h, w, wrist, side)
+    return np.stack(frames), keypoints, valid, sleeve, bar & ~sleeve
+
+
+def test_arm_that_swings_away_for_a_few_frames_is_drawn_between_its_neighbours(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Frames 2-4 of 7: a knitted sleeve and a smooth bar 70 degrees off, which the per-frame
+    search takes (HOT3D window 1's floor, t=25-34). The frames either side find the sleeve,
+    so those three are drawn along it (hand_mask v18): sleeve masked, bar not; without the
+    rule (``steady_frames`` 0) they mask the bar and miss the sleeve."""
+    import egosim.stages.hand_mask.stage as stage
+
+    frames, keypoints, valid, sleeve, bar = _swing_clip((2, 3, 4))
+    masks = stage.masks_from_keypoints(frames, keypoints, valid, HandMaskConfig()) > 0
+    for t in range(7):
+        assert masks[t][sleeve].mean() > 0.9, f"t={t} sleeve {masks[t][sleeve].mean():.2f}"
+        assert masks[t][bar].mean() < 0.05, f"t={t} bar {masks[t][bar].mean():.2f}"
+    off = dataclasses.replace(stage.ArmParams(), steady_frames=0)
+    monkeypatch.setattr(stage, "ArmParams", lambda **kw: dataclasses.replace(off, **kw))
+    old = stage.masks_from_keypoints(frames, keypoints, valid, HandMaskConfig()) > 0
+    assert all(old[t][bar].mean() > 0.5 and old[t][sleeve].mean() < 0.3 for t in (2, 3, 4))
+
+
+def test_steady_directions_keeps_turns_that_stay_or_runs_too_long() -> None:
+    """Only a short run between agreeing neighbours is replaced: an arm that turns and stays
+    turned (no agreeing frame after), one that turns by 10 degrees a frame, a run longer than
+    ``max_frames`` and a run whose neighbours disagree are kept; frames without a hand are
+    never given a direction."""
+    from egosim.stages.hand_mask.arm_region import steady_directions
+
+    def series(degrees: list[float]) -> np.ndarray:
+        rad = np.radians(np.asarray(degrees, float))
+        return np.stack([np.cos(rad), np.sin(rad)], axis=-1)[:, None]  # (T, 1, 2)
+
+    kept = {
+        "turned for good": [90, 90, 170, 170, 170, 170],
+        "gradual": [90, 100, 110, 120, 130, 140, 150],
+        "too long": [90] + [170] * 4 + [90],
+        "neighbours disagree": [90, 170, 170, 140],
+        "no hand": [90, np.nan, 90],
+    }
+    for name, degrees in kept.items():
+        out = steady_directions(series(degrees), 3, 45.0, 30.0)
+        assert not np.isfinite(out).any(), name
+    out = steady_directions(series([90, 80, 170, 175, 100, 95]), 3, 45.0, 30.0)  # (T, 1, 2)
+    got = np.degrees(np.arctan2(out[:, 0, 1], out[:, 0, 0]))
+    assert np.isnan(got[[0, 1, 4, 5]]).all()
+    np.testing.assert_allclose(got[2:4], [86.7, 93.3], atol=0.1)  # 80 -> 100, by time

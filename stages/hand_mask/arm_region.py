@@ -32,6 +32,11 @@ hand with 2D keypoints (MANO order, pixels, pixel centres at integer + 0.5):
   pixels to the arm when they look like it);
 - everything else is background.
 
+Over a clip (``stage.masks_from_keypoints``), a run of at most ``steady_frames`` frames whose
+arm directions all swing more than ``steady_jump_deg`` away from the frames either side, which
+agree within ``steady_agree_deg``, is drawn along the direction between those, with no search
+and no re-aim (:func:`steady_directions`).
+
 GrabCut (OpenCV) learns the colour models from these labels and relabels the two "probably"
 regions; only the pixels connected to a certain seed are kept, so a patch of skin-coloured table
 away from the arm stays background. The certain seeds are returned per hand with the mask: they
@@ -101,6 +106,12 @@ class ArmParams:
     other_arm_rare: float = 0.15  # ... only when at most this fraction of the frame is within
     # ``other_arm`` of that colour: a shared colour tells the arm from a grey table or floor only
     # when little else in the view has it
+    steady_frames: int = 10  # a run of at most this many frames whose arm directions all turn
+    # more than ``steady_jump_deg`` from the frames either side of it, which agree within
+    # ``steady_agree_deg``, is drawn along the direction between those (0: off; see
+    # :func:`steady_directions`)
+    steady_jump_deg: float = 45.0
+    steady_agree_deg: float = 30.0
 
     def __post_init__(self) -> None:
         problems = []
@@ -128,6 +139,11 @@ class ArmParams:
             problems.append(f"refine_slack_deg must be in [0, 180], got {self.refine_slack_deg}")
         if not 0.0 <= self.other_arm_rare <= 1.0:
             problems.append(f"other_arm_rare must be in [0, 1], got {self.other_arm_rare}")
+        if not 0 <= self.steady_frames <= 1000:
+            problems.append(f"steady_frames must be in [0, 1000], got {self.steady_frames}")
+        for name in ("steady_jump_deg", "steady_agree_deg"):
+            if not 0.0 <= getattr(self, name) <= 180.0:
+                problems.append(f"{name} must be in [0, 180], got {getattr(self, name)}")
         if not 0.0 < self.other_arm_floor <= 1.0:
             problems.append(f"other_arm_floor must be in (0, 1], got {self.other_arm_floor}")
         for name in ("turn_cost", "out_of_view", "hand_ring", "other_arm", "other_arm_unsure"):
@@ -379,8 +395,14 @@ def draw_arm_labels(
     arm: ArmParams,
     lab: np.ndarray | None = None,
     other: np.ndarray | None = None,
-) -> None:
+    direction: np.ndarray | None = None,
+) -> np.ndarray | None:
     """Paint one hand's GrabCut labels into ``labels (H, W)`` uint8 in place (see module doc).
+
+    Returns the arm's unit image direction ``(2,)`` from the wrist that was drawn (None when the
+    hand has no arm start: no scale, no direction or no forearm). ``direction (2,)``, when
+    given, is drawn as it is: no search and no re-aim (a direction the neighbouring frames
+    agree on, see :func:`steady_directions`).
 
     With ``lab (H, W, 3)``, the image in float32 Lab, the forearm's direction is searched round
     the hand's own (:func:`arm_direction`, with ``other (3,)``, the Lab colour of the other
@@ -392,13 +414,22 @@ def draw_arm_labels(
     h, w = labels.shape
     scale = hand_scale_px(keypoints)
     if not np.isfinite(scale) or scale <= 0:
-        return
+        return None
     mask, core = draw_hand(keypoints, 0, h, w, CapsuleParams(capsule.radius_scale, forearm=False))
     fan = np.zeros((h, w), np.uint8)
     band = np.zeros((h, w), np.uint8)
     seed = np.zeros((h, w), np.uint8)
     start = _arm_start(keypoints, capsule, arm, h, w)
-    if start is not None:
+    drawn = None
+    if start is not None and direction is not None:
+        _, wrist, _, hand_len, _, _ = start
+        drawn = np.asarray(direction, np.float64)
+        fan, band, seed, region = _arm_regions(
+            lab, mask, wrist, drawn, hand_len, scale, capsule, arm
+        )
+        if region is not None and arm.region_probable:
+            band = band | region
+    elif start is not None:
         _, wrist, d, hand_len, r_wrist, search = start
         hand_dir = d
         if lab is not None and search:
@@ -427,8 +458,10 @@ def draw_arm_labels(
                     lab, mask, wrist, better, hand_len, scale, capsule, arm
                 )
                 region = region if again is None else again
+                d = better
         if region is not None and arm.region_probable:
             band = band | region  # the arm's colour wherever it runs: GrabCut decides
+        drawn = d
     # A probably-background ring round the hand lets the colour model trim fat capsules.
     grow = max(1, round(arm.hand_ring * scale)) if arm.hand_ring > 0 else 0
     ring = cv2.dilate(mask, np.ones((3, 3), np.uint8), iterations=grow) if grow > 0 else mask
@@ -438,6 +471,7 @@ def draw_arm_labels(
         (seed | core, cv2.GC_FGD),
     ):
         _raise_labels(labels, region > 0, label)
+    return drawn
 
 
 def other_arm_colours(
@@ -636,6 +670,120 @@ def connected_to(mask: np.ndarray, seeds: np.ndarray) -> np.ndarray:
     return keep[comp].astype(np.uint8)
 
 
+def hand_labels(
+    image: np.ndarray,
+    keypoints: np.ndarray,
+    valid: np.ndarray,
+    capsule: CapsuleParams,
+    arm: ArmParams,
+    directions: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """``(labels (K, H, W) uint8, drawn (K, 2))``: each hand's GrabCut labels of ``image (H, W,
+    3)`` (``cv2.GC_*``; see :func:`draw_arm_labels`) and the arm direction drawn (NaN: none).
+
+    ``keypoints (K, 21, 2)`` pixels, ``valid (K,)`` selects the hands; ``directions (K, 2)``:
+    per hand a direction to draw as it is (no search, no re-aim), NaN to search.
+    """
+    h, w = image.shape[:2]
+    own = np.full((len(keypoints), h, w), cv2.GC_BGD, np.uint8)
+    drawn = np.full((len(keypoints), 2), np.nan)
+    lab = None  # (H, W, 3) the image in Lab, converted once for every hand's arm search
+    if capsule.forearm and np.any(valid):
+        lab = cv2.cvtColor(image, cv2.COLOR_RGB2LAB).astype(np.float32)
+    others: list[np.ndarray | None] = [None] * len(keypoints)
+    if lab is not None and arm.other_arm > 0 and int(np.sum(valid)) > 1:
+        others = other_arm_colours(lab, keypoints, valid, capsule, arm)
+    for k, (hand, ok) in enumerate(zip(keypoints, valid, strict=True)):
+        if not ok:
+            continue
+        fixed = None
+        if directions is not None and np.all(np.isfinite(directions[k])):
+            fixed = directions[k]
+        d = draw_arm_labels(
+            own[k], np.asarray(hand, dtype=np.float64), capsule, arm, lab, others[k], fixed
+        )
+        if d is not None:
+            drawn[k] = d
+    return own, drawn
+
+
+def steady_directions(
+    drawn: np.ndarray, max_frames: int, jump_deg: float, agree_deg: float
+) -> np.ndarray:
+    """Directions ``(T, K, 2)`` to draw instead (NaN: keep the frame's own) given the arm
+    directions ``drawn (T, K, 2)`` of each frame's hands (NaN: none).
+
+    An arm does not swing round and back within a few frames: for each hand, a run of at most
+    ``max_frames`` consecutive frames with directions, every one of them more than
+    ``jump_deg`` from the frames just before and just after the run, where those two agree
+    within ``agree_deg``, takes the direction between the two (interpolated in time). The
+    search's colour cue can lock on a smooth strip of floor beside a hand for several frames
+    (HOT3D window 1, t=25-34: a right arm turned 90 degrees onto the floor to the left
+    border); the frames either side see the arm where it is.
+    """
+    t_count, k_count = drawn.shape[:2]
+    out = np.full(drawn.shape, np.nan)
+    if max_frames <= 0:
+        return out
+    has = np.all(np.isfinite(drawn), axis=2)  # (T, K)
+    drawn = drawn.copy()  # a run's replaced directions bracket the runs after it
+
+    def angle(a: np.ndarray, b: np.ndarray) -> float:
+        return _turn_deg(a / np.linalg.norm(a), b / np.linalg.norm(b))
+
+    for k in range(k_count):
+        t = 1
+        while t < t_count - 1:
+            p = t - 1
+            fixed = False
+            if has[p, k] and has[t, k]:
+                for n in range(1, max_frames + 1):
+                    q = t + n
+                    if q >= t_count or not has[q - 1, k]:
+                        break
+                    run = range(t, q)
+                    if not all(
+                        angle(drawn[r, k], drawn[p, k]) > jump_deg for r in run
+                    ):  # a frame of the run agrees with the one before: no run from t
+                        break
+                    if not has[q, k] or angle(drawn[p, k], drawn[q, k]) > agree_deg:
+                        continue
+                    if all(angle(drawn[r, k], drawn[q, k]) > jump_deg for r in run):
+                        for r in run:
+                            w = (r - p) / (q - p)
+                            v = (1.0 - w) * drawn[p, k] + w * drawn[q, k]
+                            out[r, k] = drawn[r, k] = v / np.linalg.norm(v)
+                        t, fixed = q, True
+                        break
+            t = t if fixed else t + 1
+    return out
+
+
+def masks_from_labels(
+    image: np.ndarray, own: np.ndarray, colour: bool = True, iterations: int = 3,
+    max_side: int = 256,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
+    """``(mask (H, W), per_hand (K, H, W), certain (K, H, W))`` uint8 of ``image (H, W, 3)``
+    from the hands' GrabCut labels ``own (K, H, W)`` (:func:`hand_labels`); see
+    :func:`hand_arm_masks`."""
+    h, w = image.shape[:2]
+    labels = np.full((h, w), cv2.GC_BGD, np.uint8)
+    certain = (own == cv2.GC_FGD).astype(np.uint8)  # (K, H, W)
+    for hand in own:
+        for label in (cv2.GC_PR_BGD, cv2.GC_PR_FGD, cv2.GC_FGD):
+            _raise_labels(labels, hand == label, label)
+    if not colour:
+        mask = np.isin(labels, (cv2.GC_FGD, cv2.GC_PR_FGD)).astype(np.uint8)
+    else:
+        mask = grabcut_labels(image, labels, iterations, max_side)
+        mask = connected_to(mask, labels == cv2.GC_FGD)
+    per_hand = np.zeros_like(certain)  # (K, H, W)
+    for k, seeds in enumerate(certain):
+        if seeds.any():
+            per_hand[k] = connected_to(mask, seeds) & mask
+    return mask, per_hand, certain
+
+
 def hand_arm_masks(
     image: np.ndarray,
     keypoints: np.ndarray,
@@ -654,33 +802,8 @@ def hand_arm_masks(
     with confidence (see ``propagate``). Without ``colour`` the mask is the probable-hand labels
     (capsules and the forearm band along the hand's direction).
     """
-    h, w = image.shape[:2]
-    labels = np.full((h, w), cv2.GC_BGD, np.uint8)
-    certain = np.zeros((len(keypoints), h, w), np.uint8)
-    lab = None  # (H, W, 3) the image in Lab, converted once for every hand's arm search
-    if capsule.forearm and np.any(valid):
-        lab = cv2.cvtColor(image, cv2.COLOR_RGB2LAB).astype(np.float32)
-    others: list[np.ndarray | None] = [None] * len(keypoints)
-    if lab is not None and arm.other_arm > 0 and int(np.sum(valid)) > 1:
-        others = other_arm_colours(lab, keypoints, valid, capsule, arm)
-    for k, (hand, ok) in enumerate(zip(keypoints, valid, strict=True)):
-        if not ok:
-            continue
-        own = np.full((h, w), cv2.GC_BGD, np.uint8)
-        draw_arm_labels(own, np.asarray(hand, dtype=np.float64), capsule, arm, lab, others[k])
-        certain[k] = own == cv2.GC_FGD
-        for label in (cv2.GC_PR_BGD, cv2.GC_PR_FGD, cv2.GC_FGD):
-            _raise_labels(labels, own == label, label)
-    if not colour:
-        mask = np.isin(labels, (cv2.GC_FGD, cv2.GC_PR_FGD)).astype(np.uint8)
-    else:
-        mask = grabcut_labels(image, labels, iterations, max_side)
-        mask = connected_to(mask, labels == cv2.GC_FGD)
-    per_hand = np.zeros_like(certain)  # (K, H, W)
-    for k, seeds in enumerate(certain):
-        if seeds.any():
-            per_hand[k] = connected_to(mask, seeds) & mask
-    return mask, per_hand, certain
+    own, _ = hand_labels(image, keypoints, valid, capsule, arm)
+    return masks_from_labels(image, own, colour, iterations, max_side)
 
 
 def hand_arm_mask(

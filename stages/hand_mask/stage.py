@@ -14,7 +14,9 @@ Backends:
   the sleeve's or skin's colour connected to the wrist, found by GrabCut seeded with the hand
   skeleton and a strip beyond the wrist along the arm's image direction (searched round the
   hand's own, wrist minus middle knuckle, by colour, then re-aimed along the arm-coloured
-  region); a hand the keypoints miss in a frame is first carried there from the nearest frame
+  region; an arm whose direction swings away for a few frames and back, between frames that
+  agree, is drawn along theirs: see ``arm_region.steady_directions``); a hand the keypoints miss
+  in a frame is first carried there from the nearest frame
   that found it (at most ``carry_frames`` away) by tracking its pixels (see ``carry``); then
   each hand's mask is carried by optical flow up to ``propagate_frames`` frames backwards and
   forwards into the frames that missed that hand, and into those it was carried into by
@@ -57,7 +59,12 @@ from egosim.schemas import CLIPS, ShardSchema
 from egosim.schemas.hand_mask import HAND_MASK
 from egosim.schemas.hands import HANDS
 from egosim.stages.common.cameras import CAMERA_COLUMNS, CAMERA_ROLES, resolve_cameras
-from egosim.stages.hand_mask.arm_region import ArmParams, hand_arm_masks
+from egosim.stages.hand_mask.arm_region import (
+    ArmParams,
+    hand_labels,
+    masks_from_labels,
+    steady_directions,
+)
 from egosim.stages.hand_mask.capsules import CapsuleParams, draw_hands
 from egosim.stages.hand_mask.carry import CarryParams, carry_keypoints
 from egosim.stages.hand_mask.grow import GrowParams, grow_masks
@@ -151,19 +158,21 @@ def masks_from_keypoints(
         )
     capsule = CapsuleParams(radius_scale=config.radius_scale, forearm=config.forearm)
     arm = ArmParams(fan_half_angle_deg=config.fan_half_angle_deg)
+    labels = [
+        hand_labels(frames[t], keypoints[t], valid[t], capsule, arm) for t in range(len(frames))
+    ]
+    drawn = np.stack([d for _, d in labels])  # (T, K, 2) each frame's arm directions
+    steady = steady_directions(drawn, arm.steady_frames, arm.steady_jump_deg, arm.steady_agree_deg)
+    for t in np.nonzero(np.any(np.isfinite(steady[..., 0]), axis=1))[0]:
+        # An arm that swung away for a few frames and back: drawn between its neighbours.
+        labels[t] = hand_labels(frames[t], keypoints[t], valid[t], capsule, arm, steady[t])
     found = [
-        hand_arm_masks(
-            frames[t],
-            keypoints[t],
-            valid[t],
-            capsule,
-            arm,
-            config.colour_refine,
-            config.grabcut_iterations,
+        masks_from_labels(
+            frames[t], labels[t][0], config.colour_refine, config.grabcut_iterations,
             config.grabcut_max_side,
         )
         for t in range(len(frames))
-    ]
+    ]  # fmt: skip
     masks = np.stack([f[0] for f in found])  # (T, H, W)
     if config.propagate_frames > 0 and config.colour_refine:
         params = PropagationParams(
@@ -254,7 +263,7 @@ class HandMaskStage(ClipStage):
     # cleaned joints and a replacement camera (see the module docstring)
     optional_inputs: ClassVar[Mapping[str, ShardSchema]] = {**CAMERA_ROLES, "hands": HANDS}
     output = HAND_MASK
-    version = 17  # 2: image-space arm masks (no world axis). 3: arm found by a colour walk, masks
+    version = 18  # 2: image-space arm masks (no world axis). 3: arm found by a colour walk, masks
     # carried into frames whose hands were missed. 4: arm re-aimed along its colour region.
     # 5: that region is probably arm wherever it runs. 6: each hand carried into the frames that
     # missed it, and only its certain seeds (skeleton, arm strip) carried with confidence.
@@ -273,6 +282,8 @@ class HandMaskStage(ClipStage):
     # 16: a hand whose arm search is unsure prefers the other hand's arm colour, when rare
     # 17: a carry stops where the carried skeleton's colour jumps (the hand left, background
     # tracked); letterbox bars (rows / columns of black from the edge) are never hand
+    # 18: a hand's arm that swings more than 45 degrees away for at most 10 frames, between
+    # frames that agree, is drawn along the direction between those (steady_directions)
     backends = ("keypoints", "sam")
     # What process reads (the executor decodes nothing else): the frames, joints and camera
     # of the clip, the robot arm's mask, the cleaned joints.
