@@ -104,7 +104,7 @@ def dwm_figures(video: Path, render_path: Path, ingested: bool = False) -> dict[
     frames, render = frames[:t], render[:t]
     w = frames.shape[2]
     start, cpu = time.perf_counter(), time.process_time()
-    res = _run(frames)
+    res = _run(frames, DWM.fps)  # the files and ingest's dwm preset: 8 fps
     seconds, cpu = time.perf_counter() - start, time.process_time() - cpu
     masks = render_masks(render)  # (T, 2, H, W)
     shown = masks.sum(axis=(2, 3)) >= MIN_RENDER_PIXELS  # (T, 2)
@@ -167,12 +167,13 @@ def _dist_to_mask(mask: np.ndarray, point: np.ndarray) -> float:
     return float(np.min(np.hypot(cols + 0.5 - point[0], rows + 0.5 - point[1])))
 
 
-def _run(frames: np.ndarray, params: MediaPipeParams | None = None):
-    """The whole backend on ``frames (T, H, W, 3)`` with a 90-degree camera (2D figures only)."""
+def _run(frames: np.ndarray, fps: float, params: MediaPipeParams | None = None):
+    """The whole backend on ``frames (T, H, W, 3)`` at ``fps`` with a 90-degree camera (2D
+    figures, and which hands keep their 3D)."""
     params = params or MediaPipeParams()
     k = intrinsics_from_fov(frames.shape[2], frames.shape[1], 90.0)
     raw = detect_landmarks(frames, params)
-    return hands_from_raw(raw, frames.shape[2], k, None, None, params)
+    return hands_from_raw(raw, frames.shape[2], k, None, None, params, fps)
 
 
 def ingest_windows(path: Path) -> list[Window]:
@@ -201,7 +202,7 @@ def count_figures(path: Path) -> list[dict[str, float]]:
     for window in ingest_windows(path):
         frames = window.frames
         start, cpu = time.perf_counter(), time.process_time()
-        res = _run(frames)
+        res = _run(frames, EGOSIM.fps)
         seconds, cpu = time.perf_counter() - start, time.process_time() - cpu
         n = res.valid.sum(axis=1)  # (T,)
         first = float(window.index * EGOSIM.num_frames)
@@ -272,7 +273,7 @@ def synthetic_figures(
         )
         for lift in parts:
             p = replace(params, **lifts[lift])
-            res = hands_from_raw(raw, clip.width, clip.intrinsics, None, None, p)
+            res = hands_from_raw(raw, clip.width, clip.intrinsics, None, None, p, clip.fps)
             if misses is not None and lift == "palm_pnp":
                 from egosim.stages.common.roi_landmarks import LandmarkModel
 
@@ -427,7 +428,7 @@ def main(argv: list[str] | None = None) -> None:
                     else "  missed hand-frames 0"
                 )
             if args.per_joint:
-                print("  joint     wrist-relative mm   2D px  (palm_pnp, found hand-frames)")
+                print("  joint     wrist-relative mm   2D px  (palm_pnp, found hand-frames in 3D)")
                 for name, (mm, px) in zip(JOINT_NAMES, tables["palm_pnp"], strict=True):
                     print(f"  {name:8s} {mm:12.1f} {px:13.1f}")
 
