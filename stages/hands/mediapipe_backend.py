@@ -461,6 +461,8 @@ def repair_unsure(
             a, b = int(before[-1]), int(after[0])
             if f - a > reach or b - f > reach or b - a > reach + 1:
                 continue
+            if not np.all(np.isfinite(rot[[a, b], s])):  # a degenerate palm (knuckles on the
+                continue  # wrist) has no frame to turn from
             w = (f - a) / (b - a)
             turn = slerp_rotations(
                 np.array([a, b], dtype=np.float64), rot[[a, b], s], np.array([float(f)])
