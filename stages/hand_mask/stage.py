@@ -158,21 +158,21 @@ def masks_from_keypoints(
         )
     capsule = CapsuleParams(radius_scale=config.radius_scale, forearm=config.forearm)
     arm = ArmParams(fan_half_angle_deg=config.fan_half_angle_deg)
-    labels = [
-        hand_labels(frames[t], keypoints[t], valid[t], capsule, arm) for t in range(len(frames))
-    ]
-    drawn = np.stack([d for _, d in labels])  # (T, K, 2) each frame's arm directions
+
+    def frame_masks(t: int, directions: np.ndarray | None = None) -> tuple[np.ndarray, ...]:
+        """``(mask, per_hand, certain, drawn)`` of frame ``t`` (see ``arm_region``)."""
+        own, drawn = hand_labels(frames[t], keypoints[t], valid[t], capsule, arm, directions)
+        mask, per_hand, certain = masks_from_labels(
+            frames[t], own, config.colour_refine, config.grabcut_iterations, config.grabcut_max_side
+        )
+        return mask, per_hand, certain, drawn
+
+    found = [frame_masks(t) for t in range(len(frames))]
+    drawn = np.stack([f[3] for f in found])  # (T, K, 2) each frame's arm directions
     steady = steady_directions(drawn, arm.steady_frames, arm.steady_jump_deg, arm.steady_agree_deg)
     for t in np.nonzero(np.any(np.isfinite(steady[..., 0]), axis=1))[0]:
         # An arm that swung away for a few frames and back: drawn between its neighbours.
-        labels[t] = hand_labels(frames[t], keypoints[t], valid[t], capsule, arm, steady[t])
-    found = [
-        masks_from_labels(
-            frames[t], labels[t][0], config.colour_refine, config.grabcut_iterations,
-            config.grabcut_max_side,
-        )
-        for t in range(len(frames))
-    ]  # fmt: skip
+        found[t] = frame_masks(int(t), steady[t])
     masks = np.stack([f[0] for f in found])  # (T, H, W)
     if config.propagate_frames > 0 and config.colour_refine:
         params = PropagationParams(
