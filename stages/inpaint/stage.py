@@ -12,7 +12,10 @@ inputs when a workflow connects them, else the clip's own. Backends:
   the image instead: the identity for a static camera (the
   ``cameras`` row's ``static_camera``, or poses that do not move), which makes the fill a plain
   temporal median, else homographies fitted to features and checked round the hole (see
-  ``aligned_fill``). Masks grow by ``dilate_px`` plus ``dilate_fraction`` of the image diagonal
+  ``aligned_fill``). With depth and poses, each hole pixel then takes the per-channel median
+  of the depth fill, the image-aligned fill and Telea (``vote``, see the ``vote`` module):
+  estimated cameras can put the depth fill far off, and the two others fail in other ways.
+  Masks grow by ``dilate_px`` plus ``dilate_fraction`` of the image diagonal
   first (motion blur, shadows and mask edges), and a hand that a later frame's mask dropped
   (masked a frame or two before or after, nothing near it in this frame) is carried into that
   frame's mask (:func:`carry_lost_hands`), so the frame does not paste it into frame 0;
@@ -68,6 +71,7 @@ from egosim.stages.inpaint.reproject_fill import (
     opencv_fill,
     reproject_fill,
 )
+from egosim.stages.inpaint.vote import median_vote
 
 STILL_TRANSLATION_M = 1e-4  # poses closer than this (and STILL_ROTATION_RAD) are a still camera
 STILL_ROTATION_RAD = 1e-4
@@ -106,6 +110,9 @@ class InpaintConfig(StageConfig):
     # this, that best aligns frame 0's ring (estimated poses drift; a whole-frame homography
     # sits off round the hole; 0: off)
     ring_shift_gain: float = 0.2  # ... kept when it lowers the ring's mean residual by this
+    vote: bool = True  # depth fill: each hole pixel takes the per-channel median of the depth
+    # fill, the image-aligned fill and Telea (the colour two of three agree on; false: the
+    # depth fill alone; see the ``vote`` module)
     model_path: str = ""  # local folder of a diffusers inpainting pipeline (backend diffusers)
     device: str = "cpu"  # torch device of the diffusers pipeline
     prompt: str = "empty table, no hands"  # text prompt of the diffusers pipeline
@@ -159,7 +166,7 @@ class InpaintStage(ClipStage):
     """Remove hands from the first frame: reprojected later frames, then OpenCV inpainting."""
 
     name = "inpaint"
-    version = 12  # 3: median of several frames; clips without depth aligned in the image. 4: more
+    version = 13  # 3: median of several frames; clips without depth aligned in the image. 4: more
     # frames in the median, dilation with the image size. 5: hand-coloured samples not used.
     # 6: large holes no longer rejected (chunked sampling). 7: the image-aligned fill checks
     # each homography near every hole pixel (local_residual). 8: a hand a later frame's mask
@@ -168,7 +175,8 @@ class InpaintStage(ClipStage):
     # 10: the cameras row's depth0 counts only where its confidence0 is at least
     # min_depth_confidence; the rest is inpainted with the hole's depth (and lifts the ring).
     # 11: each frame's reprojection is moved by the shift that aligns the ring (ring_shift_px).
-    # 12: so is the image-aligned fill's homography warp
+    # 12: so is the image-aligned fill's homography warp. 13: the depth fill is voted on with
+    # the image-aligned fill and Telea, per pixel (``vote``)
 
     description = "remove hands from the first frame (reprojected frames + OpenCV inpainting)"
     config_class = InpaintConfig
@@ -232,8 +240,9 @@ class InpaintStage(ClipStage):
         measured = None  # (H, W) depth0 pixels kept as measured; None = every known one
         if depth0_confidence is not None and cfg.min_depth_confidence > 0:
             measured = depth0_confidence >= cfg.min_depth_confidence
-        if depth0 is None or world_from_cam is None:
-            still = static_camera or (world_from_cam is not None and _still(world_from_cam))
+        still = static_camera or (world_from_cam is not None and _still(world_from_cam))
+
+        def image_aligned() -> FillResult:
             return aligned_fill(
                 frames,
                 hand_mask,
@@ -247,8 +256,11 @@ class InpaintStage(ClipStage):
                 shift_px=cfg.ring_shift_px,
                 shift_gain=cfg.ring_shift_gain,
             )
+
+        if depth0 is None or world_from_cam is None:
+            return image_aligned()
         try:
-            return reproject_fill(
+            result = reproject_fill(
                 frames,
                 hand_mask,
                 depth0,
@@ -268,6 +280,12 @@ class InpaintStage(ClipStage):
             )
         except InpaintInputError as exc:
             raise ClipRejected(f"clip {clip_id!r}: {exc}") from exc
+        if not cfg.vote or not result.filled.any():
+            return result
+        telea = opencv_fill(frames[0], result.filled, cfg.inpaint_radius)
+        opencv = FillResult(telea, (result.filled * FILL_OPENCV).astype(np.uint8), zeros16,
+                            result.filled)  # fmt: skip
+        return median_vote([result, image_aligned(), opencv])
 
     def process(self, rows: Mapping[str, Mapping[str, Any]]) -> dict[str, Any]:
         """The inpainted first frame of one clip; see the module docstring."""
