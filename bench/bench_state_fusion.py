@@ -92,6 +92,7 @@ def clip_rows(clip: Clip, static: bool = False) -> dict[str, dict[str, Any]]:
         .astype(np.float32)
         .reshape(t, -1)
         .tolist(),
+        "hand_lifted": valid.tolist(),
         "num_duplicates_removed": 0,
         "num_outliers_removed": 0,
         **dict.fromkeys(MANO_COLUMNS),  # no MANO fit: the joints are given

@@ -426,6 +426,14 @@ class HandsRecord(HandArraysRecord):
 
     schema = HANDS
 
+    @property
+    def hand_lifted(self) -> np.ndarray:
+        """``(T, 2)`` bool: the valid hand's 3D joints are trusted (False: 2D only, joints on its
+        landmarks' rays at a guessed depth, or not valid); what needs the hand in 3D uses these."""
+        lifted = self.array("hand_lifted", bool, (self.num_frames, 2))
+        assert lifted is not None  # not nullable in the schema
+        return lifted
+
 
 class KeypointsRecord(FramedRecord):
     """A ``keypoints`` row: projected hand joints and the skeleton video."""

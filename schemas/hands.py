@@ -3,6 +3,9 @@
 Joints follow the project convention (MANO/OpenPose order, hand 0 = left, 1 = right, world
 metres). A hand that the filters removed in a frame (duplicate or temporal outlier) or that was
 never detected has ``hand_valid`` False and NaN joints, so it can never be drawn by mistake.
+A valid hand whose ``hand_lifted`` is False is trusted in 2D only: its joints lie on the rays of
+its image landmarks (so projecting them draws the hand where it is seen) at a depth that is a
+guess; what needs the hand in 3D (depth, contact, exported state) skips it.
 """
 
 from __future__ import annotations
@@ -53,7 +56,9 @@ def _check_mano(row: Mapping[str, Any], valid: np.ndarray) -> list[str]:
 
 
 def _check_hands(row: Mapping[str, Any]) -> list[str]:
-    problems = frame_count_problems(row, ("hand_joints", "hand_valid", "hand_confidence"))
+    problems = frame_count_problems(
+        row, ("hand_joints", "hand_valid", "hand_confidence", "hand_lifted")
+    )
     t = row["num_frames"]
     if problems:
         return problems
@@ -63,6 +68,11 @@ def _check_hands(row: Mapping[str, Any]) -> list[str]:
         problems.append("valid hands have NaN or infinite joints")
     if np.any(np.isfinite(joints[~valid])):
         problems.append("invalid hands must have NaN joints")
+    lifted = np.asarray(row["hand_lifted"], dtype=bool)
+    if lifted.shape != valid.shape:
+        problems.append(f"hand_lifted shape {lifted.shape}, expected {valid.shape}")
+    elif np.any(lifted & ~valid):
+        problems.append("hand_lifted True where hand_valid is False")
     conf = np.asarray(row["hand_confidence"], dtype=np.float64)
     if np.any((conf < 0) | (conf > 1)):
         problems.append("hand_confidence outside [0, 1]")
@@ -92,7 +102,8 @@ def _mano_column(name: str, what: str) -> Column:
 HANDS = ShardSchema(
     name="hands",
     # 2: optional MANO fits (mano_global_orient, mano_hand_pose, mano_transl, mano_betas)
-    version=2,
+    # 3: hand_lifted (which valid hands' 3D is trusted; the rest are 2D only)
+    version=3,
     doc="Per-frame 3D hand joints after de-duplication and temporal outlier removal.",
     columns=(
         Column("clip_id", pa.string(), "Clip id, joins with the clips shard."),
@@ -113,6 +124,12 @@ HANDS = ShardSchema(
             "hand_confidence",
             pa.list_(pa.list_(pa.float32(), 42)),
             "(T, 2*21) per-joint confidence in [0, 1]; 0 where the hand is not valid.",
+        ),
+        Column(
+            "hand_lifted",
+            pa.list_(pa.list_(pa.bool_(), 2)),
+            "(T, 2) the valid hand's 3D joints are trusted; False where the hand is not valid and "
+            "where only its 2D is (joints on its landmarks' rays at a guessed depth).",
         ),
         Column(
             "num_duplicates_removed",

@@ -470,6 +470,7 @@ def test_stage_uses_connected_hands_and_poses(tmp_path: Path) -> None:
         "hand_joints": joints.reshape(t, -1).tolist(),
         "hand_valid": valid.tolist(),
         "hand_confidence": valid.repeat(21, axis=1).astype(np.float32).tolist(),  # (T, 42)
+        "hand_lifted": valid.tolist(),
         "num_duplicates_removed": 0,
         "num_outliers_removed": 0,
         **dict.fromkeys(MANO_COLUMNS),  # no MANO fit: the joints are given

@@ -143,6 +143,8 @@ def test_stage_end_to_end(tmp_path: Path) -> None:
     assert np.isnan(joints[3, 1]).all()
     keep = valid.copy()
     np.testing.assert_allclose(joints[keep], good[keep], atol=1e-6)
+    # Given joints are 3D: every kept hand is lifted, the de-spiked one is not.
+    np.testing.assert_array_equal(np.asarray(row["hand_lifted"]), valid)
 
     # Poses that no shard writer accepts still reach process() from other callers: reject them.
     for damage in ("nan", "scale"):
@@ -271,3 +273,29 @@ def test_rotation_spikes_caught(tracks) -> None:
         assert others.sum() <= 0.01 * others.size
         assert not temporal_outliers(joints, valid, poses, FPS).any()  # clean: nothing dropped
     assert caught >= 0.9 * total, f"{caught} of {total} rotation spikes caught"
+
+
+def test_hands_trusted_in_2d_only_are_not_lifted(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A backend's withheld 3D (``Detections.lifted`` False) reaches the row's ``hand_lifted``
+    by side, the hand staying valid; a despiked hand is neither valid nor lifted; the schema
+    refuses a lifted hand that is not valid."""
+    import egosim.stages.hands.stage as hands_stage
+
+    clip = render_clip(WorldConfig(seed=2, mode="tabletop", height=48, width=80, num_frames=6))
+    t = clip.num_frames
+    det = _detections(clip.hand_joints[:, ::-1])  # slot 0 holds the right hand: sides swapped
+    det = Detections(det.joints, det.side[:, ::-1].copy(), det.confidence, det.present)
+    det.lifted = np.ones((t, 2), dtype=bool)
+    det.lifted[1:3, 0] = False  # slot 0 = the right hand, frames 1-2: 2D only
+    monkeypatch.setattr(hands_stage, "_detections", lambda *args: det)
+    row = HandsStage().process({"clips": row_from_clip(clip)})
+    valid, lifted = np.asarray(row["hand_valid"]), np.asarray(row["hand_lifted"])
+    assert valid.all()
+    want = np.ones((t, 2), dtype=bool)
+    want[1:3, 1] = False
+    np.testing.assert_array_equal(lifted, want)
+    assert HANDS.row_problems(row) == []
+    bad = {**row, "hand_valid": np.zeros((t, 2), dtype=bool).tolist()}
+    assert "hand_lifted True where hand_valid is False" in HANDS.row_problems(bad)
+    short = {**row, "hand_lifted": [[True, True]] * t + [[True, True]]}
+    assert any("hand_lifted has" in p for p in HANDS.row_problems(short))

@@ -496,3 +496,22 @@ def test_state_workflow_runs_through_the_runner(tmp_path: Path):
     for row in rows:
         assert sum(row["instance_interactive"]) >= 1, row["clip_id"]
         assert row["previous_clip_id"] == row["clip_id"]
+
+
+def test_hands_trusted_in_2d_only_neither_fill_depth_nor_carry(world):
+    """A hand whose 3D the hands step withheld (``hand_lifted`` False) keeps its 2D box but
+    reaches fusion without 3D joints: carry and the hand-depth fill skip it."""
+    clip, rows, _ = world
+    t = clip.num_frames
+    lifted = np.asarray(rows["hands"]["hand_valid"], dtype=bool).copy()  # (T, 2)
+    assert lifted[:, 1].any()
+    lifted[:, 1] = False
+    obs = observation_from_rows(
+        {**rows, "hands": {**rows["hands"], "hand_lifted": lifted.tolist()}}, StateFusionConfig()
+    )
+    np.testing.assert_array_equal(obs.hand_valid, lifted)
+    assert np.isnan(obs.hand_joints[:, 1]).all()
+    assert np.isfinite(obs.hand_joints[lifted]).all()
+    valid = np.asarray(rows["hands"]["hand_valid"], dtype=bool)
+    assert np.isfinite(obs.hand_boxes[valid[:, 1], 1]).all()  # 2D: still the hand's box
+    assert obs.hand_valid.shape == (t, 2)

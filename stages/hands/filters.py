@@ -41,6 +41,10 @@ class Detections:
     # vectors, transl (3), betas (B) (:func:`egosim.stages.hands.mano.hand_joints_from_params`);
     # NaN where a slot has none; None: the backend fits no MANO
     mano: np.ndarray | None = None
+    # (T, K) bool: the slot's 3D is trusted (the backend lifted it, or interpolated it from lifted
+    # neighbours); False: only its 2D is (joints on the landmarks' rays at a guessed depth).
+    # None: every detection's 3D is trusted (backends that regress or are given 3D)
+    lifted: np.ndarray | None = None
 
     def check(self, num_frames: int) -> None:
         """Raise :class:`HandFilterError` when the arrays disagree with each other."""
@@ -54,6 +58,8 @@ class Detections:
             problems.append(f"side {self.side.shape} / confidence {self.confidence.shape} bad")
         if self.mano is not None and (self.mano.ndim != 3 or self.mano.shape[:2] != (t, k)):
             problems.append(f"mano shape {self.mano.shape} != ({t}, {k}, 51 + B)")
+        if self.lifted is not None and self.lifted.shape != (t, k):
+            problems.append(f"lifted shape {self.lifted.shape} != ({t}, {k})")
         if problems:
             raise HandFilterError("; ".join(problems))
 
@@ -171,6 +177,17 @@ def mano_to_sides(det: Detections) -> np.ndarray | None:
     out = np.full((t, 2, det.mano.shape[2]), np.nan)
     for f, k in zip(*np.nonzero(det.present), strict=True):
         out[f, int(det.side[f, k])] = det.mano[f, k]
+    return out
+
+
+def lifted_to_sides(det: Detections) -> np.ndarray:
+    """``(T, 2)`` bool: :func:`to_hands`'s hand is there and its 3D trusted (every present one
+    where the backend does not say, :attr:`Detections.lifted` None)."""
+    t = det.present.shape[0]
+    out = np.zeros((t, 2), dtype=bool)
+    lifted = det.present if det.lifted is None else det.present & det.lifted
+    for f, k in zip(*np.nonzero(det.present), strict=True):
+        out[f, int(det.side[f, k])] = lifted[f, k]
     return out
 
 

@@ -517,4 +517,6 @@ def mediapipe_detections(clip: Clip, params: MediaPipeParams | None = None) -> D
     )
     side = np.tile(np.array([LEFT, RIGHT]), (clip.num_frames, 1))  # (T, 2)
     joints = np.where(res.valid[..., None, None], res.joints, 0.0)
-    return Detections(joints=joints, side=side, confidence=res.confidence, present=res.valid)
+    return Detections(
+        joints=joints, side=side, confidence=res.confidence, present=res.valid, lifted=res.lifted
+    )

@@ -10,8 +10,8 @@ only then). The filters of
 de-duplication (projected joint boxes, IoU, breadth-first grouping, most confident per side) and
 temporal outlier removal (bidirectional speed test in camera space). The ``mediapipe`` backend
 also repairs a palm turned off its own track before that (interpolated between trusted
-neighbours, or kept valid for its 2D with a tenth of the confidence: a ``hand_confidence`` of at
-most 0.1 there means "2D only, 3D withheld"). Intrinsics and poses come
+neighbours, or kept valid for its 2D with a tenth of the confidence and ``hand_lifted`` False:
+"2D only, 3D withheld"). Intrinsics and poses come
 from :func:`egosim.stages.common.cameras.resolve_cameras`: the optional ``poses`` (cleaned) or
 ``cameras`` (estimated) inputs when a workflow connects them, else the clips row. The ``given``
 backend's world joints do not depend on them; the de-duplication (projected boxes) and the
@@ -39,6 +39,7 @@ from egosim.stages.hands.filters import (
     Detections,
     HandFilterError,
     deduplicate,
+    lifted_to_sides,
     mano_to_sides,
     temporal_outliers,
     to_hands,
@@ -126,6 +127,19 @@ def _detections(
     return hamer_detections(clip, path_under(config.hamer_dir, f"{validate_id(clip.clip_id)}.npz"))
 
 
+@dataclasses.dataclass(frozen=True)
+class CleanedHands:
+    """One clip's hands after the backend and both filters (hand 0 left, 1 right)."""
+
+    joints: np.ndarray  # (T, 2, 21, 3) float64 world metres; NaN where not valid
+    valid: np.ndarray  # (T, 2) bool hand kept in the frame
+    confidence: np.ndarray  # (T, 2, 21) float32 per-joint confidence; 0 where not valid
+    lifted: np.ndarray  # (T, 2) bool valid and its 3D trusted (False: 2D only, see HANDS)
+    duplicates: int  # detections dropped by the de-duplication
+    outliers: int  # hand-frames dropped as temporal outliers
+    mano: np.ndarray | None  # (T, 2, 51 + B) MANO fits, NaN where not valid; None: no fits
+
+
 def clean_hands(
     row: Mapping[str, Any], config: HandsConfig, cameras: Cameras | None = None
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, int, int]:
@@ -135,17 +149,17 @@ def clean_hands(
     :func:`resolve_cameras`) defaults to the clips row's own camera.
     Returns ``(joints (T, 2, 21, 3), valid (T, 2), confidence (T, 2, 21), duplicates removed,
     outliers removed)``; raises :class:`ClipRejected` naming the clip when it cannot.
+    :func:`cleaned_hands` also gives which hands' 3D is trusted and the MANO fits.
     """
-    *cleaned, _ = clean_hands_with_mano(row, config, cameras)
-    return tuple(cleaned)  # type: ignore[return-value]
+    out = cleaned_hands(row, config, cameras)
+    return out.joints, out.valid, out.confidence, out.duplicates, out.outliers
 
 
-def clean_hands_with_mano(
+def cleaned_hands(
     row: Mapping[str, Any], config: HandsConfig, cameras: Cameras | None = None
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, int, int, np.ndarray | None]:
-    """:func:`clean_hands` plus the kept hands' MANO fits ``(T, 2, 51 + B)`` (NaN where a hand
-    is not valid; :data:`~egosim.stages.hands.filters.Detections.mano`'s layout), or None when
-    the backend fits no MANO."""
+) -> CleanedHands:
+    """:func:`clean_hands` with the hands whose 3D is trusted (``lifted``) and the kept hands'
+    MANO fits (:data:`~egosim.stages.hands.filters.Detections.mano`'s layout)."""
     clip = ClipsRecord.of(row)
     cid, t = clip.clip_id, clip.num_frames
     cams = cameras if cameras is not None else resolve_cameras({"clips": clip})
@@ -159,6 +173,7 @@ def clean_hands_with_mano(
         det.check(t)
         det, dups = deduplicate(det, poses, intrinsics, config.iou_threshold)
         joints, valid, conf = to_hands(det)
+        lifted = lifted_to_sides(det)  # (T, 2)
         mano = mano_to_sides(det)  # (T, 2, 51 + B) or None
         outliers = 0
         if config.despike:
@@ -169,11 +184,12 @@ def clean_hands_with_mano(
             joints[spikes] = np.nan
             conf[spikes] = 0.0
             outliers = int(spikes.sum())
+        lifted &= valid
         if mano is not None:
             mano[~valid] = np.nan
     except (NoHandLabelsError, HandFilterError, HamerFileError) as exc:
         raise ClipRejected(f"clip {cid!r}: {exc}") from exc
-    return joints, valid, conf, dups, outliers, mano
+    return CleanedHands(joints, valid, conf, lifted, dups, outliers, mano)
 
 
 class HandsStage(ClipStage):
@@ -198,7 +214,8 @@ class HandsStage(ClipStage):
     # 10: a palm turned more than 30 degrees off its track's neighbours (filters.turn_outliers)
     # is interpolated between trusted frames (mediapipe), or where there are none its 3D is
     # withheld: joints kept on its landmarks' rays (masks keep the hand), confidence x 0.1.
-    version = 10
+    # 11: the hands schema's hand_lifted column says which hands' 3D is trusted (v10's withheld).
+    version = 11
     description = "3D hand joints per frame from the clip's labels, de-duplicated and de-spiked"
     config_class = HandsConfig
     inputs: ClassVar[Mapping[str, ShardSchema]] = {"clips": CLIPS}
@@ -229,19 +246,18 @@ class HandsStage(ClipStage):
         """Clean the joints of one clip."""
         row = ClipsRecord.of(rows["clips"])
         t = row.num_frames
-        joints, valid, conf, dups, outliers, mano = clean_hands_with_mano(
-            row, self.config, resolve_cameras(rows)
-        )
+        out = cleaned_hands(row, self.config, resolve_cameras(rows))
         return {
             "clip_id": row["clip_id"],
             "num_frames": t,
             "backend": resolved_backend(row, self.config),
-            "hand_joints": joints.astype(np.float32).reshape(t, -1).tolist(),
-            "hand_valid": valid.tolist(),
-            "hand_confidence": conf.astype(np.float32).reshape(t, -1).tolist(),
-            "num_duplicates_removed": dups,
-            "num_outliers_removed": outliers,
-            **mano_columns(mano, t),
+            "hand_joints": out.joints.astype(np.float32).reshape(t, -1).tolist(),
+            "hand_valid": out.valid.tolist(),
+            "hand_confidence": out.confidence.astype(np.float32).reshape(t, -1).tolist(),
+            "hand_lifted": out.lifted.tolist(),
+            "num_duplicates_removed": out.duplicates,
+            "num_outliers_removed": out.outliers,
+            **mano_columns(out.mano, t),
         }
 
 

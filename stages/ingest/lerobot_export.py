@@ -7,7 +7,8 @@ One episode per clip. From the run folder (``OUT/<step>/shard-*.parquet``):
   qz, qw``: ``world_from_cam``, OpenCV axes, the cleaned ``poses`` step's when present), the
   constant ``observation.camera_intrinsics`` (``fx, fy, cx, cy``), ``observation.hand_joints``
   (``2 * 21 * 3`` world metres, the ``hands`` step's when present, else the clip's) and
-  ``observation.hand_valid`` (2 flags);
+  ``observation.hand_valid`` (2 flags) and ``observation.hand_lifted`` (2 flags: the valid hand's
+  3D is trusted, the ``hands`` step's ``hand_lifted``; else equal to ``hand_valid``);
 - ``keypoints``: the skeleton video -> ``observation.images.skeleton`` (the hand condition);
 - ``scene_render``: the scene video -> ``observation.images.scene`` (the scene condition);
 - ``captions``: the episode's task (else the clip's ``text``, else ``""``).
@@ -83,7 +84,7 @@ class _StepRows:
     conditions: dict[str, dict[str, dict]]  # condition step -> clip id -> {video column: bytes}
     captions: dict[str, dict]  # clip id -> {"text": ...}
     poses: dict[str, dict]  # clip id -> {"world_from_cam": ...} (cleaned poses)
-    hands: dict[str, dict]  # clip id -> {"hand_joints": ..., "hand_valid": ...}
+    hands: dict[str, dict]  # clip id -> {"hand_joints": ..., "hand_valid": ..., "hand_lifted"}
 
     @classmethod
     def read(cls, run: Path) -> _StepRows:
@@ -96,7 +97,7 @@ class _StepRows:
             },
             captions=_index(run, "captions", CAPTIONS, ["text"]),
             poses=_index(run, "poses", POSES, ["world_from_cam"]),
-            hands=_index(run, "hands", HANDS, ["hand_joints", "hand_valid"]),
+            hands=_index(run, "hands", HANDS, ["hand_joints", "hand_valid", "hand_lifted"]),
         )
 
     def missing(self, clip: dict[str, Any]) -> str | None:
@@ -185,6 +186,8 @@ def _frames_table(
     valid = hand.get("hand_valid")
     joints = np.zeros((t, 126)) if joints is None else np.asarray(joints).reshape(t, 126)
     valid = np.zeros((t, 2), bool) if valid is None else np.asarray(valid, bool).reshape(t, 2)
+    lifted = hand.get("hand_lifted")  # only the hands step says; a clip's labels are 3D
+    lifted = valid if lifted is None else np.asarray(lifted, bool).reshape(t, 2) & valid
     stamps = np.asarray(clip["timestamps"], dtype=np.float64)
     f32 = pa.float32()
     return pa.table(
@@ -205,6 +208,7 @@ def _frames_table(
                 joints.astype(np.float32).tolist(), pa.list_(f32, 126)
             ),
             "observation.hand_valid": pa.array(valid.tolist(), pa.list_(pa.bool_(), 2)),
+            "observation.hand_lifted": pa.array(lifted.tolist(), pa.list_(pa.bool_(), 2)),
         }
     )
 
@@ -267,6 +271,7 @@ def _write_meta(
         },
         "observation.hand_joints": {"dtype": "float32", "shape": [126], "names": None},
         "observation.hand_valid": {"dtype": "bool", "shape": [2], "names": ["left", "right"]},
+        "observation.hand_lifted": {"dtype": "bool", "shape": [2], "names": ["left", "right"]},
     }
     for name in ("timestamp",):
         features[name] = {"dtype": "float32", "shape": [1], "names": None}

@@ -286,6 +286,7 @@ def hands_row(clip: Mapping[str, Any]) -> dict[str, Any]:
         "hand_joints": clip["hand_joints"],
         "hand_valid": valid.tolist(),
         "hand_confidence": np.asarray(conf, np.float32).reshape(t, 42).tolist(),
+        "hand_lifted": valid.tolist(),  # given joints: their 3D is the action
         "num_duplicates_removed": 0,
         "num_outliers_removed": 0,
         **dict.fromkeys(MANO_COLUMNS),  # no MANO fit: the joints are given

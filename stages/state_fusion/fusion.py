@@ -120,7 +120,8 @@ class Observation:
     # True when depth was estimated (plane sweep: every stride-th frame, consistency-checked)
     depth_estimated: bool = False
     # (T, 2, 21, 3) hand joints in the frame of world_from_cam (0 = left, 1 = right) and
-    # (T, 2) bool valid: carried objects follow them (carry.py); None = not carried
+    # (T, 2) bool valid with its 3D trusted (hands' hand_lifted): carried objects follow them
+    # (carry.py); None = not carried
     hand_joints: np.ndarray | None = None
     hand_valid: np.ndarray | None = None
 

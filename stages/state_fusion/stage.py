@@ -152,7 +152,8 @@ def observation_from_rows(
     if cams.source != "clips" and cam_row is not None:
         depth0 = DepthCameraRecord.of(cam_row).depth0
     joints, valid = hands.hand_joints, hands.hand_valid  # (T, 2, 21, 3), (T, 2)
-    boxes = hand_boxes(joints, valid, world_from_cam, cams.intrinsics)
+    boxes = hand_boxes(joints, valid, world_from_cam, cams.intrinsics)  # 2D: every valid hand
+    lifted = hands.hand_lifted  # (T, 2) the hands whose depth and 3D contact can be trusted
     if estimate:
         prior = depth0
         if prior is None and previous is not None and cams.source == "clips":
@@ -164,7 +165,9 @@ def observation_from_rows(
             )
         except PlaneSweepError as exc:
             raise ClipRejected(f"clip {cid!r}: per-frame depth by plane sweep: {exc}") from exc
-        depth = fill_hand_depth(depth, masks, joints, valid, boxes, world_from_cam, cams.intrinsics)
+        depth = fill_hand_depth(
+            depth, masks, joints, lifted, boxes, world_from_cam, cams.intrinsics
+        )
     elif depth0 is not None:
         both = (depth0 > 0) & (depth[0] > 0)
         if both.sum() < 100:
@@ -183,8 +186,8 @@ def observation_from_rows(
         world_from_cam=world_from_cam,
         reference_world_from_cam=reference,
         depth_estimated=estimate,
-        hand_joints=joints,
-        hand_valid=valid,
+        hand_joints=np.where(lifted[:, :, None, None], joints, np.nan),
+        hand_valid=lifted,
     )
 
 
@@ -238,14 +241,15 @@ class StateFusionStage(ClipStage):
     # 2: a clip without per-frame depth is fused from a plane sweep (was rejected);
     # 3: objects a closed hand lifts and puts down are carried by its motion (carry.py);
     # 4: the support plane by seeded RANSAC (fusion.ransac_plane): the same state on every run
-    version = 4
+    # 5: hands trusted in 2D only (hands' hand_lifted False) neither fill depth nor carry objects
+    version = 5
     backends = ("geometric", "grounded_sam")
     # What process reads (the executor decodes nothing else): the clip's frames, depth and
     # camera, the cleaned joints, the hand masks; the state roles are read whole.
     columns: ClassVar[Mapping[str, tuple[str, ...]]] = join_columns(
         {
             "clips": ("num_frames", "height", "width", "video", "depth", "depth_unit_m"),
-            "hands": ("num_frames", "hand_joints", "hand_valid"),
+            "hands": ("num_frames", "hand_joints", "hand_valid", "hand_lifted"),
             "hand_mask": ("num_frames", "height", "width", "hand_mask"),
             "cameras": ("depth0", "depth_unit_m"),
         },
