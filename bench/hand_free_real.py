@@ -277,11 +277,8 @@ def background_like_misses(
 
 def fill_grow_px(height: int, width: int, config: InpaintConfig | None = None) -> int:
     """Pixels the ``inpaint`` stage grows a ``height x width`` clip's hand masks by before it
-    fills: ``dilate_px`` plus ``dilate_fraction`` of the image diagonal, from ``config``
-    (default: :class:`InpaintConfig`'s). The same line as ``InpaintStage.fill``; to be replaced
-    by the stage's own function once it has one (requested)."""
-    cfg = InpaintConfig() if config is None else config
-    return cfg.dilate_px + round(cfg.dilate_fraction * float(np.hypot(height, width)))
+    fills (:meth:`InpaintConfig.grow_px` of ``config``, default :class:`InpaintConfig`'s)."""
+    return (InpaintConfig() if config is None else config).grow_px(height, width)
 
 
 def filled_region(masks: np.ndarray, config: InpaintConfig | None = None) -> np.ndarray:

@@ -161,6 +161,11 @@ class InpaintConfig(StageConfig):
         if problems:
             raise ConfigError("; ".join(problems))
 
+    def grow_px(self, height: int, width: int) -> int:
+        """Pixels a ``height x width`` clip's hand masks grow by before filling: ``dilate_px``
+        plus ``dilate_fraction`` of the image diagonal."""
+        return self.dilate_px + round(self.dilate_fraction * float(np.hypot(height, width)))
+
 
 class InpaintStage(ClipStage):
     """Remove hands from the first frame: reprojected later frames, then OpenCV inpainting."""
@@ -222,7 +227,7 @@ class InpaintStage(ClipStage):
         """
         cfg: InpaintConfig = self.config  # type: ignore[assignment]
         h, w = frames.shape[1:3]
-        grow = cfg.dilate_px + round(cfg.dilate_fraction * float(np.hypot(h, w)))
+        grow = cfg.grow_px(h, w)
         target = dilate(hand_mask[0] > 0, grow)  # (H, W)
         zeros16 = np.zeros((h, w), np.uint16)
         if cfg.backend == "opencv":
