@@ -19,7 +19,7 @@ from egosim.stages.hands.filters import (
     temporal_outliers,
     to_hands,
 )
-from egosim.stages.hands.stage import HandsStage
+from egosim.stages.hands.stage import HandsConfig, HandsStage
 from egosim.world.camera_path import camera_path
 from egosim.world.clip import hand_joints, render_clip
 from egosim.world.config import WorldConfig
@@ -299,3 +299,27 @@ def test_hands_trusted_in_2d_only_are_not_lifted(monkeypatch: pytest.MonkeyPatch
     assert "hand_lifted True where hand_valid is False" in HANDS.row_problems(bad)
     short = {**row, "hand_lifted": [[True, True]] * t + [[True, True]]}
     assert any("hand_lifted has" in p for p in HANDS.row_problems(short))
+
+
+def test_the_spike_test_leaves_hands_trusted_in_2d_only(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A hand whose 3D the backend withheld has a guessed depth: the spike test neither drops it
+    (its 2D stays valid for masks and skeletons) nor takes it as a neighbour; the same jump on
+    a lifted hand is dropped."""
+    import egosim.stages.hands.stage as hands_stage
+
+    clip = render_clip(WorldConfig(seed=2, mode="tabletop", height=48, width=80, num_frames=6))
+    t = clip.num_frames
+    joints = clip.hand_joints.copy()
+    joints[3, 1] += 0.8  # a 0.8 m jump both ways at frame 3, right hand (12.8 m/s at 16 fps)
+    for trusted in (True, False):
+        det = _detections(joints)
+        det.lifted = np.ones((t, 2), dtype=bool)
+        det.lifted[3, 1] = trusted
+        monkeypatch.setattr(hands_stage, "_detections", lambda *args, d=det: d)
+        row = HandsStage(HandsConfig(max_speed=6.0)).process({"clips": row_from_clip(clip)})
+        valid, lifted = np.asarray(row["hand_valid"]), np.asarray(row["hand_lifted"])
+        assert valid[3, 1] != trusted and not lifted[3, 1]
+        assert row["num_outliers_removed"] == int(trusted)
+        others = np.ones((t, 2), dtype=bool)
+        others[3, 1] = False
+        assert valid[others].all() and lifted[others].all()

@@ -176,9 +176,14 @@ def cleaned_hands(
         lifted = lifted_to_sides(det)  # (T, 2)
         mano = mano_to_sides(det)  # (T, 2, 51 + B) or None
         outliers = 0
-        if config.despike:
+        if config.despike:  # on 3D-trusted hands only: a 2D-only hand's depth is a guess
             spikes = temporal_outliers(
-                joints, valid, poses, clip.fps, config.max_speed, config.max_angular_speed
+                np.where(lifted[..., None, None], joints, np.nan),
+                lifted,
+                poses,
+                clip.fps,
+                config.max_speed,
+                config.max_angular_speed,
             )
             valid &= ~spikes
             joints[spikes] = np.nan
@@ -211,10 +216,11 @@ class HandsStage(ClipStage):
     # takes MediaPipe's proximal phalanges 1 / 0.70 longer (hand_lift.landmark_bone_lengths).
     # 9: a gap is bridged only between ends as near as _tracks links (two hands given one side
     # are not interpolated into a hand between them).
-    # 10: a palm turned more than 30 degrees off its track's neighbours (filters.turn_outliers)
-    # is interpolated between trusted frames (mediapipe), or where there are none its 3D is
-    # withheld: joints kept on its landmarks' rays (masks keep the hand), confidence x 0.1.
-    # 11: the hands schema's hand_lifted column says which hands' 3D is trusted (v10's withheld).
+    # 10: a palm turning off its track's neighbours faster than max_turn_rate (filters.
+    # turn_outliers) is interpolated between trusted frames (mediapipe), or where there are none
+    # its 3D is withheld: joints kept on its landmarks' rays (masks keep the hand), confidence
+    # x 0.1. 11: the hands schema's hand_lifted column says which hands' 3D is trusted; the
+    # spike test runs on those only (it had dropped withheld hands, and good frames beside them).
     version = 11
     description = "3D hand joints per frame from the clip's labels, de-duplicated and de-spiked"
     config_class = HandsConfig
