@@ -68,6 +68,9 @@ def make_run(run: Path) -> dict[str, dict]:
         for clip in clips:
             row = row_from_clip(clip)
             hands = HandsStage().process({"clips": row})
+            lifted = np.asarray(hands["hand_lifted"], dtype=bool)
+            lifted[2:4] = False  # as if the backend had trusted only the 2D of frames 2-3
+            hands["hand_lifted"] = lifted.tolist()
             kp = render.process({"clips": row, "hands": hands})
             hands_w.write_row(hands)
             kp_w.write_row(kp)
@@ -99,6 +102,9 @@ def test_export_reads_back_with_the_documented_layout(tmp_path: Path) -> None:
         np.testing.assert_array_equal(
             data.column("observation.hand_valid").to_pylist(), want["hands"]["hand_valid"]
         )
+        lifted = np.asarray(data.column("observation.hand_lifted").to_pylist())  # (T, 2)
+        np.testing.assert_array_equal(lifted, want["hands"]["hand_lifted"])
+        assert not lifted[2:4].any() and lifted.any() == np.any(want["hands"]["hand_valid"])
         np.testing.assert_allclose(
             data.column("observation.camera_intrinsics").to_pylist()[0], clip.intrinsics, 1e-6
         )

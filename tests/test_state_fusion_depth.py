@@ -126,3 +126,33 @@ def test_a_clip_without_depth_is_fused_from_the_sweep(clip) -> None:
 
     near_top = np.abs(state.points[:, 2] - TABLE_TOP_Z) < 0.01
     assert near_top.mean() > 0.5, near_top.mean()
+
+
+def _box_slice(box: np.ndarray, grow: int = 0) -> tuple[slice, slice]:
+    """Rows and columns of a keypoint box ``(x0, y0, x1, y1)``, grown by ``grow`` px."""
+    x0, y0 = max(0, int(box[0]) - grow), max(0, int(box[1]) - grow)
+    return slice(y0, int(np.ceil(box[3])) + grow), slice(x0, int(np.ceil(box[2])) + grow)
+
+
+def test_swept_depth_fills_only_hands_whose_3d_is_trusted(clip) -> None:
+    """With depth from the sweep, a hand's mask pixels take its joints' depth only where the
+    hands step trusts its 3D (``hand_lifted``): a 2D-only hand's depth is a guess, left unknown."""
+    from egosim.stages.state_fusion.stage import observation_from_rows
+
+    rows = clip_rows(clip)
+    lifted = np.asarray(rows["hands"]["hand_valid"], dtype=bool).copy()  # (T, 2)
+    lifted[:, 1] = False  # the right hand: 2D only
+    rows["hands"] = {**rows["hands"], "hand_lifted": lifted.tolist()}
+    rows["clips"] = {**rows["clips"], "depth": None}
+    obs = observation_from_rows(rows, StateFusionConfig(depth_source="estimate"))
+    boxed = np.isfinite(obs.hand_boxes).all(axis=2)  # (T, 2)
+    for side, want_filled in ((0, True), (1, False)):
+        own = np.zeros_like(obs.hand_mask)  # (T, H, W) this hand's mask pixels in its box only
+        for k in np.flatnonzero(boxed[:, side]):
+            rows_, cols = _box_slice(obs.hand_boxes[k, side])
+            own[k, rows_, cols] = obs.hand_mask[k, rows_, cols]
+            if boxed[k, 1 - side]:
+                own[(k, *_box_slice(obs.hand_boxes[k, 1 - side], 1))] = False
+        assert own.sum() > 50, side
+        filled = (obs.depth[own] > 0).mean()
+        assert (filled > 0.9) if want_filled else (filled < 0.05), (side, filled)
