@@ -241,6 +241,17 @@ def test_a_wide_spread_of_hovering_hands_is_not_cut() -> None:
     assert plain.scale == pytest.approx(np.quantile(estimates, 0.9), abs=1e-9)
 
 
+def test_estimates_without_spread_are_not_cut() -> None:
+    """Over half the estimates equal (a MAD of 0): no tail can be measured, so none is cut (a
+    cut at the median would drop every estimate above it)."""
+    params = MetricScaleParams()
+    estimates = [1.0] * 12 + [1.05, 1.1, 1.2]
+    samples = samples_of(estimates, params.contact_offset_m)
+    plain = scale_from_samples(samples, dataclasses.replace(params, outlier_mads=None))
+    assert scale_from_samples(samples, params).scale == pytest.approx(plain.scale, abs=1e-12)
+    assert plain.scale > 1.01
+
+
 def test_params_name_every_bad_field() -> None:
     with pytest.raises(MetricScaleParamsError) as err:
         MetricScaleParams(joint_quantile=1.5, min_detections=0, joints=(3, 25), proximal_ratio=0.0)

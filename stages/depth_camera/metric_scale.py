@@ -17,8 +17,11 @@ Method, for one clip (:func:`estimate_metric_scale`):
 2. **Metric joints**: the hands stage's own lift (:mod:`egosim.stages.common.hand_lift`, the
    ``lift`` field): an average metric palm placed by planar PnP onto the palm landmarks, every
    joint on its pixel's ray at the depth the posed landmarks give it; so the scene ends up in
-   metres where the hands stage puts the hands. Detections without a palm pose in front of the
-   camera, or smaller than ``min_hand_px``, are skipped. (``lift="translation"``, depth_camera
+   metres where the hands stage puts the hands (those whose 3D it trusts: since hands v10 it
+   withholds the 3D of palms turning off their track, which this per-detection rule does not
+   link into tracks and so still uses; step 5's cut drops such a tail where it is large).
+   Detections without a palm pose in front of the camera, or smaller than ``min_hand_px``, are
+   skipped. (``lift="translation"``, depth_camera
    v6: MediaPipe's world landmarks translated only; on real clips that sits 6-67% nearer than
    the palm lift, and real hands came out 1.5x deeper than the surfaces they touch.)
 3. **Scene depth under each joint**: frame 0's depth is lifted to world points with
@@ -429,11 +432,13 @@ def without_outliers(estimates: np.ndarray, outlier_mads: float | None) -> np.nd
     """``estimates (N,)`` less those more than ``outlier_mads`` scaled MADs (1.4826 x the median
     absolute deviation) above their median (step 5 of the module docstring); None keeps all.
     Only the upper tail is cut (hovering hands below the median are the contact rule's to
-    skip), so at least half the estimates stay."""
+    skip), so at least half the estimates stay; with no spread (a MAD of 0) nothing is cut."""
     if outlier_mads is None or len(estimates) == 0:
         return estimates
     median = float(np.median(estimates))
     mad = 1.4826 * float(np.median(np.abs(estimates - median)))
+    if mad <= 0.0:  # over half the estimates equal: no spread to measure a tail by
+        return estimates
     return estimates[estimates <= median + outlier_mads * mad]
 
 
