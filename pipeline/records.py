@@ -420,8 +420,8 @@ class ClipsRecord(CameraRecord, HandArraysRecord):
 class HandsRecord(HandArraysRecord):
     """A ``hands`` row: cleaned 3D hand joints per frame and hand slot (0 left, 1 right).
 
-    ``hand_joints``, ``hand_valid`` and ``hand_confidence`` (:class:`HandArraysRecord`) are never
-    null in this schema.
+    ``hand_joints``, ``hand_valid`` and ``hand_confidence`` (:class:`HandArraysRecord`) and
+    ``hand_lifted`` are never null in this schema.
     """
 
     schema = HANDS

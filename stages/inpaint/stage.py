@@ -221,7 +221,9 @@ class InpaintStage(ClipStage):
 
         ``world_from_cam (T, 4, 4)``, ``intrinsics (4,)``, ``depth0 (H, W)`` metres (frame 0);
         ``depth (T, H, W)`` feeds the agreement test when ``depth_tolerance > 0``. Without
-        ``depth0`` or poses the image-aligned fill runs (identity when ``static_camera``).
+        ``depth0`` or poses the image-aligned fill runs (identity when ``static_camera``); with
+        them the depth fill, and with ``vote`` each hole pixel takes the per-channel median of
+        the depth fill, the image-aligned fill and Telea (:mod:`.vote`).
         ``depth0_confidence (H, W)`` in [0, 1] (the ``cameras`` row's ``confidence0``): depth0
         below ``min_depth_confidence`` is not trusted (None: all of depth0 is).
         """
