@@ -256,3 +256,21 @@ def test_state_cloud_of_a_state_run(tmp_path: Path) -> None:
     assert len(record) == n and cloud.fields[-1].name == "source"
     np.testing.assert_array_equal(record["xyz"].ravel(), np.frombuffer(state["points_xyz"], "<f4"))
     np.testing.assert_array_equal(record["s"], np.frombuffer(state["point_source"], "u1"))
+
+
+def test_the_3d_skeleton_shows_only_hands_whose_3d_is_trusted(run: Path) -> None:
+    """``/hands/skeleton`` is a 3D topic: a hand the hands step trusts in 2D only (``hand_lifted``
+    False, its depth a guess) is left out there (the skeleton image still draws it)."""
+    from egosim.pipeline.export.view import _ClipView, _gather_hands
+
+    rows = _rows(run)
+    valid = np.asarray(rows["hands"]["hand_valid"], dtype=bool)
+    lifted = valid.copy()
+    lifted[: len(lifted) // 2, 0] = False  # the left hand's first half: 2D only
+    hands = {**rows["hands"], "hand_lifted": lifted.tolist()}
+    view = _ClipView(
+        clip_from_row(rows["clips"]), rows["clips"], {"hands": hands}, {"hands": "hands"}, {}
+    )
+    _gather_hands(view)
+    np.testing.assert_array_equal(view.valid, lifted)
+    assert view.used == {"/hands/skeleton": "hands"} and (valid & ~lifted).any()

@@ -23,8 +23,8 @@ Topics (schema; frame; what, from the step that wrote which schema):
   ``confidence`` field (``scene_cloud``);
 - ``/state/cloud`` (PointCloud; ``world``): the world state at frame 0 with a uint8 ``source``
   field (``state``);
-- ``/hands/skeleton`` (SceneUpdate; ``world``): the 3D hand bones per frame (``hands``, else
-  ``clips``).
+- ``/hands/skeleton`` (SceneUpdate; ``world``): the 3D hand bones per frame (``hands``: the
+  hands whose 3D it trusts, ``hand_lifted``; else ``clips``).
 
 A topic whose step the run lacks (or that has no row for the clip) is left out; the file's
 ``egosim`` metadata record says which step each topic came from, the clip id and the prompt.
@@ -258,11 +258,14 @@ def _gather_images(view: _ClipView) -> None:
 
 
 def _gather_hands(view: _ClipView) -> None:
-    """The 3D hand joints of ``/hands/skeleton``: the ``hands`` step's, else the clip's own."""
+    """The 3D hand joints of ``/hands/skeleton``: the ``hands`` step's whose 3D it trusts (a
+    2D-only hand's depth is a guess; the skeleton image draws it), else the clip's own."""
     clip, t = view.clip, view.clip.num_frames
     if (hands := view.rows["hands"]) is not None:
         view.joints = np.asarray(hands["hand_joints"], dtype=np.float64).reshape(t, 2, 21, 3)
-        view.valid = np.asarray(hands["hand_valid"], dtype=bool).reshape(t, 2)
+        lifted = hands.get("hand_lifted")  # None in runs before hands schema v3
+        shown = hands["hand_valid"] if lifted is None else lifted
+        view.valid = np.asarray(shown, dtype=bool).reshape(t, 2)
         view.take("/hands/skeleton", "hands")
     elif clip.hand_joints is not None and clip.hand_valid is not None:
         view.joints, view.valid = clip.hand_joints, clip.hand_valid
