@@ -42,6 +42,15 @@ with the default :class:`~egosim.stages.hands.mediapipe_backend.MediaPipeParams`
   prior in a studio), the same with IPPE's palm poses unrefined, and the translation-only fit of
   MediaPipe's world landmarks; and each palm-PnP lift's wrist-relative MPJPE and orientation
   error once placed at the true median depth.
+- With ``--tracks``, per real clip (DWM, fixed-camera, EgoDex): each track the side step links
+  (:func:`track_rows`) with truth-free cues a filter of false hands could use: its frames and
+  side, median hand size and its ratio to the other hand in shared frames, its centre's median
+  step per frame (in hand sizes), its median height in the image, the median thinness of its
+  landmarks (minor over major spread: a hand seen edge-on, or a fold, is a line), MediaPipe's
+  median handedness confidence, the landmark model's median presence on the track's own ROIs
+  (:func:`~egosim.stages.common.hand_landmarks.landmark_presence`) and how many of its
+  detections were not found by the ROI tracker. None of them separated the false curtain hand of
+  the EgoDex portrait clip from every real hand (docs/design.md, "Hands v12").
 - Seconds per clip of the whole backend (detection, tracking, sides, smoothing, lift): wall clock
   and this process's CPU time (``cpu_s``; the wall clock counts other work on a shared machine).
 """
@@ -60,8 +69,12 @@ from egosim.pipeline.geometry import intrinsics_from_fov
 from egosim.pipeline.media import read_video_file
 from egosim.pipeline.stage import ClipRejected
 from egosim.stages.common.frame_plan import plan_resize
+from egosim.stages.common.hand_landmarks import hand_centres, hand_size, landmark_presence
 from egosim.stages.hands.mediapipe_backend import (
     MediaPipeParams,
+    MediaPipeResult,
+    _tracks,
+    assign_sides,
     detect_landmarks,
     hands_from_raw,
 )
@@ -93,9 +106,12 @@ def render_masks(render: np.ndarray) -> np.ndarray:
     return np.stack([green, red], axis=1)
 
 
-def dwm_figures(video: Path, render_path: Path, ingested: bool = False) -> dict[str, float]:
+def dwm_figures(
+    video: Path, render_path: Path, ingested: bool = False, tracks: list | None = None
+) -> dict[str, float]:
     """Recall, false positives, side agreement and centroid distance on one DWM clip; with
-    ``ingested``, on the frames the ``hands`` stage gets (:func:`as_ingested`)."""
+    ``ingested``, on the frames the ``hands`` stage gets (:func:`as_ingested`); given a
+    ``tracks`` list, the clip's :func:`track_rows` are added to it."""
     frames, _ = read_video_file(video)
     if ingested:
         frames = as_ingested(frames)
@@ -106,6 +122,8 @@ def dwm_figures(video: Path, render_path: Path, ingested: bool = False) -> dict[
     start, cpu = time.perf_counter(), time.process_time()
     res = _run(frames, DWM.fps)  # the files and ingest's dwm preset: 8 fps
     seconds, cpu = time.perf_counter() - start, time.process_time() - cpu
+    if tracks is not None:
+        tracks += track_rows(frames, res)
     masks = render_masks(render)  # (T, 2, H, W)
     shown = masks.sum(axis=(2, 3)) >= MIN_RENDER_PIXELS  # (T, 2)
     any_hand = masks.any(axis=1)  # (T, H, W)
@@ -195,9 +213,10 @@ def ingest_windows(path: Path) -> list[Window]:
         return []
 
 
-def count_figures(path: Path) -> list[dict[str, float]]:
+def count_figures(path: Path, tracks: list | None = None) -> list[dict[str, float]]:
     """Per ingest window of one video: frames with 0 / 1 / 2 hands, the fraction with any
-    (pack's gate wants >= 0.1) and the first frame of each side."""
+    (pack's gate wants >= 0.1) and the first frame of each side; given a ``tracks`` list, each
+    window's :func:`track_rows` are added to it (the window's start in ``"start"``)."""
     out = []
     for window in ingest_windows(path):
         frames = window.frames
@@ -206,6 +225,8 @@ def count_figures(path: Path) -> list[dict[str, float]]:
         seconds, cpu = time.perf_counter() - start, time.process_time() - cpu
         n = res.valid.sum(axis=1)  # (T,)
         first = float(window.index * EGOSIM.num_frames)
+        if tracks is not None:
+            tracks += [{"start": first, **row} for row in track_rows(frames, res)]
         fig = {"start": first, "frames": float(len(frames)), "seconds": seconds, "cpu_s": cpu}
         for c in range(3):
             fig[f"{c}_hands"] = float((n == c).sum())
@@ -216,6 +237,61 @@ def count_figures(path: Path) -> list[dict[str, float]]:
             fig[f"first_{SIDES[s]}"] = float(hit[0]) if hit.size else float("nan")
         out.append(fig)
     return out
+
+
+def landmark_thinness(uv: np.ndarray) -> float:
+    """Minor over major spread of landmarks ``uv (21, 2)`` (square root of the ratio of their
+    covariance's eigenvalues): about 0.6-0.9 for a hand seen from the palm or back, towards 0
+    for landmarks along a line (a hand seen edge-on, a fold the model fits a hand to)."""
+    centred = uv - uv.mean(axis=0)  # (21, 2)
+    low, high = np.linalg.eigvalsh(centred.T @ centred)
+    return float(np.sqrt(max(low, 0.0) / high)) if high > 0 else 0.0
+
+
+def track_rows(
+    frames: np.ndarray, res: MediaPipeResult, params: MediaPipeParams | None = None
+) -> list[dict[str, float]]:
+    """Per track of ``res.raw`` (the detections the side step links, ``frames (T, H, W, 3)``
+    those of the clip) the cues listed in the module docstring (``--tracks``): ``first``,
+    ``last``, ``frames``, ``side`` (-1 none, 2 both), ``size_px``, ``size_ratio`` (median of
+    its size over the other detection's in frames with one; NaN without), ``step`` (median
+    centre move per frame in hand sizes), ``height`` (median centre height over the image's,
+    0 top), ``thinness`` (:func:`landmark_thinness`), ``handedness`` (median of
+    ``|2 P(right) - 1|``), ``presence`` and ``not_tracked``."""
+    params = params or MediaPipeParams()
+    raw = res.raw
+    presence = landmark_presence(frames, raw, params)  # (T, K)
+    side = assign_sides(raw, frames.shape[2], params)  # (T, K)
+    centre, size = hand_centres(raw.uv), hand_size(raw.uv)  # (T, K, 2), (T, K)
+    tracked = raw.tracked if raw.tracked is not None else np.zeros_like(raw.present)
+    rows = []
+    for track in _tracks(raw, params):
+        f, k = np.array(track).T  # (N,), (N,)
+        ratios = [  # this track's size over the other detection's, frame by frame
+            size[g, j] / size[g, o]
+            for g, j in zip(f, k, strict=True)
+            for o in np.flatnonzero(raw.present[g])
+            if o != j
+        ]
+        steps = np.linalg.norm(np.diff(centre[f, k], axis=0), axis=1) / size[f[1:], k[1:]]
+        sides = set(side[f, k].tolist())
+        rows.append(
+            {
+                "first": float(f[0]),
+                "last": float(f[-1]),
+                "frames": float(len(f)),
+                "side": float(sides.pop()) if len(sides) == 1 else 2.0,
+                "size_px": float(np.median(size[f, k])),
+                "size_ratio": float(np.median(ratios)) if ratios else float("nan"),
+                "step": float(np.median(steps)) if steps.size else float("nan"),
+                "height": float(np.median(centre[f, k, 1])) / frames.shape[1],
+                "thinness": float(np.median([landmark_thinness(raw.uv[g, j]) for g, j in track])),
+                "handedness": float(np.median(np.abs(2.0 * raw.label_right[f, k] - 1.0))),
+                "presence": float(np.nanmedian(presence[f, k])),
+                "not_tracked": float((~tracked[f, k]).sum()),
+            }
+        )
+    return rows
 
 
 def missed_presence(clip, valid: np.ndarray, model) -> list[float]:
@@ -394,13 +470,16 @@ def main(argv: list[str] | None = None) -> None:
         "--per-joint", action="store_true", help="synthetic: per-joint error table (palm PnP)"
     )
     ap.add_argument(
+        "--tracks", action="store_true", help="real: each track's cues for false-hand filters"
+    )
+    ap.add_argument(
         "--misses",
         action="store_true",
         help="synthetic: the landmark model's presence on the true ROI of each missed hand",
     )
     args = ap.parse_args(argv)
     if not args.skip_real:
-        real(args.data)
+        real(args.data, args.tracks)
         print("InterHand real hands, lifted depth / true depth (landmarks on the true hand's ROI)")
         figures = interhand_depth_figures(args.data / "interhand_fixture")
         for i, fig in enumerate(figures):
@@ -433,21 +512,29 @@ def main(argv: list[str] | None = None) -> None:
                     print(f"  {name:8s} {mm:12.1f} {px:13.1f}")
 
 
-def real(data: Path) -> None:
-    """Print the real-video tables (DWM dynamic clips, fixed-camera and EgoDex windows)."""
+def real(data: Path, tracks: bool = False) -> None:
+    """Print the real-video tables (DWM dynamic clips, fixed-camera and EgoDex windows); with
+    ``tracks``, each clip's :func:`track_rows` after its line."""
     dyn = data / "dwm_realworld" / "realworld_dynamic"
     print("DWM dynamic clips (ground-truth hand renders; 'false_pos' = far from any render)")
     for video in sorted((dyn / "videos").glob("*.mp4")):
         render = dyn / "videos_hands" / video.name
-        print(_line(video.stem, dwm_figures(video, render)))
-        print(_line(f"{video.stem} (as ingested)", dwm_figures(video, render, ingested=True)))
+        for ingested in (False, True):
+            rows: list | None = [] if tracks else None
+            name = f"{video.stem} (as ingested)" if ingested else video.stem
+            print(_line(name, dwm_figures(video, render, ingested, rows)))
+            for row in rows or []:
+                print(_line("  track", row))
     print("Fixed-camera and EgoDex videos (16 fps, 480x832, ingest's windows: NAME@START)")
     others = sorted((data / "dwm_realworld" / "realworld_fixed").glob("*.mp4"))
     others.append(data / "egodex_sample" / "sample.mp4")
     for video in others:
         if video.is_file():
-            for fig in count_figures(video):
+            rows = [] if tracks else None
+            for fig in count_figures(video, rows):
                 print(_line(f"{video.stem}@{fig['start']:.0f}", fig))
+            for row in rows or []:
+                print(_line("  track", row))
 
 
 if __name__ == "__main__":

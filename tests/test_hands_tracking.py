@@ -442,3 +442,38 @@ def test_missed_presence_asks_the_model_on_each_missed_true_hand_in_view() -> No
     for centre, (f, s) in zip(asked, [(1, 0), (1, 1), (2, 0)], strict=True):
         true_uv = joints[f, s, :, :2] / joints[f, s, :, 2:] * k[:2] + k[2:]  # (21, 2)
         assert np.linalg.norm(centre - true_uv.mean(axis=0)) < 0.5 * hand_size(true_uv)
+
+
+def test_landmark_presence_is_high_on_real_hands_and_low_where_none_is(egodex) -> None:
+    """The landmark model's presence on each detection's own ROI
+    (:func:`~egosim.stages.common.hand_landmarks.landmark_presence`): on the EgoDex frames'
+    real hands 0.82-0.96 (measured); the same landmarks moved onto the bare wall, the curtain
+    and the table, where no hand is (checked by eye), 0.00-0.03; NaN in empty slots."""
+    from dataclasses import replace
+
+    from egosim.stages.common.hand_landmarks import hand_centres, landmark_presence
+
+    frames, raw = egodex
+    real = landmark_presence(frames, raw)  # (6, 2)
+    assert real.min() > 0.75, real
+    centres = hand_centres(raw.uv)[:, :, None, :]  # (6, 2, 1, 2)
+    for empty in ((120.0, 120.0), (700.0, 100.0), (150.0, 400.0), (420.0, 80.0)):
+        moved = replace(raw, uv=raw.uv - centres + np.array(empty))
+        assert landmark_presence(frames, moved).max() < 0.1, empty
+    none = replace(raw, present=np.zeros_like(raw.present))
+    assert np.isnan(landmark_presence(frames, none)).all()
+
+
+def test_landmark_thinness_of_a_line_a_square_and_a_stretched_square() -> None:
+    """``bench.hands_real.landmark_thinness``: 0 for points on a line, 1 for a square grid (equal
+    spread both ways), 0.5 for that grid stretched twice along one axis, whatever its turn."""
+    from bench.hands_real import landmark_thinness
+
+    line = np.stack([np.linspace(0.0, 100.0, 21), np.linspace(0.0, 50.0, 21)], axis=1)  # (21, 2)
+    assert landmark_thinness(line) == pytest.approx(0.0, abs=1e-6)
+    square = np.stack(np.meshgrid(np.arange(4.0), np.arange(4.0)), -1).reshape(-1, 2)  # (16, 2)
+    square = np.concatenate([square, [[1.5, 1.5]] * 5])  # (21, 2) symmetric about (1.5, 1.5)
+    assert landmark_thinness(square) == pytest.approx(1.0, abs=1e-9)
+    turn = np.array([[np.cos(0.4), -np.sin(0.4)], [np.sin(0.4), np.cos(0.4)]])  # (2, 2)
+    stretched = (square * [2.0, 1.0]) @ turn.T  # (21, 2)
+    assert landmark_thinness(stretched) == pytest.approx(0.5, abs=1e-9)

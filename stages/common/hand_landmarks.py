@@ -28,7 +28,12 @@ from dataclasses import dataclass, replace
 import cv2
 import numpy as np
 
-from egosim.stages.common.roi_landmarks import LandmarkModel, TrackParams, track_through_misses
+from egosim.stages.common.roi_landmarks import (
+    LandmarkModel,
+    TrackParams,
+    roi_from_landmarks,
+    track_through_misses,
+)
 
 NUM_JOINTS = 21  # MediaPipe / MANO joint count per hand
 MAX_HANDS = 2  # hands detected per frame
@@ -143,6 +148,30 @@ def detect_hand_landmarks(
         out.tracked = track_through_misses(
             frames, out.uv, out.world, out.label_right, out.present, model, params.track
         )
+    return out
+
+
+def landmark_presence(
+    frames: np.ndarray, raw: RawLandmarks, params: HandLandmarkParams | None = None
+) -> np.ndarray:
+    """``(T, K)`` the landmark model's hand-presence score on the ROI that each detection's own
+    landmarks give (:func:`~egosim.stages.common.roi_landmarks.roi_from_landmarks`, the crop
+    contrast-stretched as the tracker does), NaN where a slot holds no detection.
+
+    One score for every detection, whoever found it (the palm detector, MediaPipe's own tracking
+    or :func:`~egosim.stages.common.roi_landmarks.track_through_misses`), asked the same way: is
+    there a hand where these landmarks say one is? ``frames (T, H, W, 3)`` uint8 RGB, those
+    ``raw`` was found in. A diagnostic (``bench.hands_real --tracks``), not a filter: as a track
+    filter it did not separate a false hand on a curtain fold from real dim or edge-on hands
+    (docs/design.md, "Hands v12")."""
+    params = params or HandLandmarkParams()
+    out = np.full(raw.present.shape, np.nan)  # (T, K)
+    if not raw.present.any():
+        return out
+    model = LandmarkModel(params.model_complexity)
+    for f, k in zip(*np.nonzero(raw.present), strict=True):
+        roi = roi_from_landmarks(raw.uv[f, k])
+        out[f, k] = model.run(np.ascontiguousarray(frames[f]), roi, params.track.max_gain).presence
     return out
 
 
