@@ -402,6 +402,32 @@ def test_a_gap_between_two_hands_given_one_side_is_not_bridged() -> None:
     assert np.abs(hand_centres(lm.uv)[:3, 0, 0] - hand_centres(uv)[:3, 0, 0]).max() < 2.0
 
 
+def test_two_hands_given_one_side_in_adjacent_frames_are_not_smoothed_together() -> None:
+    """The right hand at frames 0-5 and another hand 250 px to its left from frame 6, both in the
+    left slot with no gap (as on HOT3D window 0, frames 24-28, where a false sleeve detection
+    took the right hand's side for one frame): each frame keeps its own hand (before, the
+    Gaussian ran across the switch and put frames 4-7 up to 100 px between the hands), while
+    one hand's jitter is still smoothed."""
+    t = 12
+    shape_uv = _hand_shape()[:, :2] * 800  # (21, 2) about 60 px across
+    uv = np.full((t, 2, 21, 2), np.nan)
+    jitter = np.array([0.0, 3.0, -3.0, 3.0, -3.0, 3.0, -3.0, 3.0, -3.0, 3.0, -3.0, 0.0])  # (T,)
+    for f in range(t):
+        u = 350.0 if f < 6 else 100.0
+        uv[f, 0] = shape_uv + np.array([u + jitter[f], 200.0])
+    present = np.zeros((t, 2), dtype=bool)
+    present[:, 0] = True
+    raw = RawLandmarks(uv=uv, world=np.zeros((t, 2, 21, 3)), label_right=np.full((t, 2), 0.5),
+                       present=present)  # fmt: skip
+    side = np.where(present, 0, -1)
+    lm = bridge_and_smooth(raw, side)
+    centre = hand_centres(lm.uv)[:, 0, 0]  # (T,) smoothed centre u
+    truth = np.where(np.arange(t) < 6, 350.0, 100.0) + hand_centres(uv[:, :1])[0, 0, 0] - 350.0
+    assert np.abs(centre - truth).max() < 3.0, centre - truth  # each hand where it is
+    raw_err = np.abs(hand_centres(uv)[:, 0, 0] - truth)[1:-1].mean()  # 3 px jitter
+    assert np.abs(centre - truth)[1:-1].mean() < 0.5 * raw_err  # still smoothed
+
+
 # ----------------------------------------------------------------------------- hamer import
 
 

@@ -32,7 +32,10 @@ Steps, for one clip:
    track (ends no further apart than ``_tracks`` links) are filled by linear interpolation (lower
    confidence), then image and world landmarks
    are smoothed over time with a Gaussian of ``smooth_sigma`` frames (landmarks jitter by a few
-   percent of the hand's size frame to frame).
+   percent of the hand's size frame to frame), within runs of frames whose centres are as near
+   as ``_tracks`` links one frame apart: two tracks given one side in adjacent frames are not
+   blended (HOT3D window 0: the right hand was pulled 20-110 px onto the forearm at frames
+   24-28 by a false sleeve detection that took its side at frame 26).
 4. **Lift** (:func:`lift_to_camera`): MediaPipe's world landmarks give a hand *shape* but their
    axes are not the camera's (on the synthetic world they were 74-82 degrees off), so the palm is
    placed by a planar PnP of an average palm template onto the 2D palm landmarks, refined on the
@@ -211,30 +214,27 @@ def assign_sides(
     return side
 
 
-def _gaussian_smooth(values: np.ndarray, ok: np.ndarray, sigma: float) -> np.ndarray:
-    """Smooth ``values (T, ...)`` over time within runs of ``ok (T,)``, edges renormalised."""
+def _gaussian_smooth(
+    values: np.ndarray, ok: np.ndarray, sigma: float, starts: np.ndarray | None = None
+) -> np.ndarray:
+    """Smooth ``values (T, ...)`` over time within runs of ``ok (T,)``, edges renormalised; a
+    frame where ``starts (T,)`` is True begins a new run even after an ``ok`` frame."""
     if sigma <= 0:
         return values
     radius = int(np.ceil(3 * sigma))
     kernel = np.exp(-0.5 * (np.arange(-radius, radius + 1) / sigma) ** 2)  # (2r+1,)
     out = values.copy()
     t = len(values)
+    begins = ok & ~np.concatenate([[False], ok[:-1]])  # (T,) first frame of each ok run
+    if starts is not None:
+        begins |= ok & starts
+    label = np.cumsum(begins)  # (T,) run number of each ok frame
     for f in np.flatnonzero(ok):
-        lo, hi = max(0, f - radius), min(t, f + radius + 1)
-        window = np.arange(lo, hi)
-        # Stay within the contiguous run around f.
-        run = ok[lo:hi].copy()
-        rel = f - lo
-        breaks = np.flatnonzero(~run)
-        if breaks.size:
-            left = breaks[breaks < rel]
-            right = breaks[breaks > rel]
-            run[: (left.max() + 1) if left.size else 0] = False
-            if right.size:
-                run[right.min() :] = False
-        wts = kernel[window - f + radius] * run  # (n,)
-        picked = np.nan_to_num(values[window[run]])  # frames outside the run have weight 0
-        out[f] = np.tensordot(wts[run] / wts[run].sum(), picked, axes=1)
+        window = np.arange(max(0, f - radius), min(t, f + radius + 1))
+        run = ok[window] & (label[window] == label[f])  # the same run as f only
+        wts = kernel[window[run] - f + radius]  # (n,)
+        picked = np.nan_to_num(values[window[run]])
+        out[f] = np.tensordot(wts / wts.sum(), picked, axes=1)
     return out
 
 
@@ -271,8 +271,16 @@ def bridge_and_smooth(
                     world[f, s] = (1 - w) * world[a, s] + w * world[b, s]
                     conf[f, s] = BRIDGED_CONFIDENCE_FACTOR * min(conf[a, s], conf[b, s])
                     present[f, s] = True
-        uv[:, s] = _gaussian_smooth(uv[:, s], present[:, s], params.smooth_sigma)
-        world[:, s] = _gaussian_smooth(world[:, s], present[:, s], params.smooth_sigma)
+        # Two tracks given this side in adjacent frames are two hands: not smoothed together
+        centre_s = hand_centres(uv[:, s : s + 1])[:, 0]  # (T, 2) after bridging
+        size_s = hand_size(uv[:, s])  # (T,)
+        starts = np.zeros(t, dtype=bool)  # (T,)
+        for f in range(1, t):
+            if present[f - 1, s] and present[f, s]:
+                jump = np.linalg.norm(centre_s[f] - centre_s[f - 1])
+                starts[f] = not jump <= link_limit(size_s[f - 1], size_s[f], 1, params)
+        uv[:, s] = _gaussian_smooth(uv[:, s], present[:, s], params.smooth_sigma, starts)
+        world[:, s] = _gaussian_smooth(world[:, s], present[:, s], params.smooth_sigma, starts)
     return SideLandmarks(uv, world, conf, present, detected)
 
 
