@@ -221,7 +221,10 @@ class HandsStage(ClipStage):
     # its 3D is withheld: joints kept on its landmarks' rays (masks keep the hand), confidence
     # x 0.1. 11: the hands schema's hand_lifted column says which hands' 3D is trusted; the
     # spike test runs on those only (it had dropped withheld hands, and good frames beside them).
-    version = 11
+    # 12: (mediapipe) landmarks smoothed over time only within runs of frames one link apart
+    # (_tracks' link_limit at one frame): two tracks given one side in adjacent frames are not
+    # blended into a hand between them.
+    version = 12
     description = "3D hand joints per frame from the clip's labels, de-duplicated and de-spiked"
     config_class = HandsConfig
     inputs: ClassVar[Mapping[str, ShardSchema]] = {"clips": CLIPS}
