@@ -50,7 +50,14 @@ Steps, for one clip:
    sets the distance. A palm seen edge-on has no PnP pose in front of the camera: it takes the
    rotation and depth of the same hand's nearest frame with one (within ``max_gap`` frames;
    :func:`lift_with_rotation`) rather than MediaPipe's own axes, whose 74-82 degree turn the
-   spike filter would drop. Then to world with ``world_from_cam``.
+   spike filter would drop.
+5. **Repair** (:func:`repair_unsure`, hands v10): a palm turning off its own track faster than
+   ``max_turn_rate`` (:func:`~egosim.stages.hands.filters.turn_outliers`, over ``turn_window``
+   frames either side, in the camera frame) is interpolated between trusted frames of its track
+   within ``max_gap`` (turn slerped, wrist lerped); where there are none its 3D is withheld: the
+   hand stays valid with its joints on its landmarks' rays (its 2D), confidence times 0.1, and
+   ``MediaPipeResult.lifted`` False, which the stage writes as ``hand_lifted`` (hands schema v3).
+   Then to world with ``world_from_cam``.
 
 :func:`mediapipe_hands` runs all of it; :func:`mediapipe_detections` wraps it for the stage.
 MediaPipe is imported lazily: install it as ``make setup`` does (``--no-deps mediapipe==0.10.21``).
