@@ -28,7 +28,10 @@ with the default :class:`~egosim.stages.hands.mediapipe_backend.MediaPipeParams`
   orientation error and wrist-relative MPJPE (:mod:`egosim.stages.hands.metrics`),
   for the palm-PnP lift (the default: palm poses refined on the reprojection error), the same
   with IPPE's palm poses as they are (``palm_pnp_ippe``: ``MediaPipeParams.refine_palm`` off,
-  the default before hands v8) and the old translation-only lift on the same detections; with
+  the default before hands v8) and the old translation-only lift on the same detections (2D
+  error of the landmarks; ``drawn_2d_px``: of the palm-PnP joints' own projection, what masks
+  and skeletons draw, which the hands v10 repair moves off the landmarks where it interpolates a
+  palm); with
   ``--per-joint``, each joint's mean wrist-relative error (mm) and 2D error (px) for the palm-PnP
   lift (which joints carry the MPJPE: on the drawn hands the wrist and thumb, whose 2D points
   MediaPipe puts 24-40 px from the world's joints where the fingers are 4-9 px off); with
@@ -65,7 +68,7 @@ from pathlib import Path
 import numpy as np
 
 from egosim.pipeline import media
-from egosim.pipeline.geometry import intrinsics_from_fov
+from egosim.pipeline.geometry import intrinsics_from_fov, project_points
 from egosim.pipeline.media import read_video_file
 from egosim.pipeline.stage import ClipRejected
 from egosim.stages.common.frame_plan import plan_resize
@@ -336,6 +339,7 @@ def synthetic_figures(
         "translation": {"lift": "translation"},
     }  # bench row -> MediaPipeParams fields
     parts: dict[str, list] = {name: [] for name in lifts}
+    drawn_parts: list = []  # palm_pnp, 2D of the joints themselves (what masks and skeletons draw)
     seconds = []
     for seed in seeds:
         mode = "tabletop" if seed % 2 else "wild"
@@ -367,7 +371,24 @@ def synthetic_figures(
                     lifted=res.lifted,
                 )
             )
+            if lift == "palm_pnp":  # the joints' projection: moved off the landmarks where
+                # the repair interpolated a palm (withheld hands stay on their landmarks' rays)
+                drawn = project_points(res.joints, clip.intrinsics)[0]  # (T, 2, 21, 2)
+                drawn_parts.append(
+                    hand_accuracy(
+                        res.joints,
+                        drawn,
+                        res.valid,
+                        clip.hand_joints,
+                        truth_valid,
+                        clip.world_from_cam,
+                        clip.intrinsics,
+                        (clip.width, clip.height),
+                        lifted=res.lifted,
+                    )
+                )
     out = {lift: combine(p).summary() for lift, p in parts.items()}
+    out["palm_pnp"]["drawn_2d_px"] = combine(drawn_parts).summary()["error_2d_px"]
     if per_joint is not None:
         per_joint.update({lift: combine(p).per_joint() for lift, p in parts.items()})
     for figures in out.values():
@@ -394,7 +415,6 @@ def interhand_depth_figures(folder: Path) -> list[dict[str, float]]:
 
     import cv2
 
-    from egosim.pipeline.geometry import project_points
     from egosim.stages.common.hand_landmarks import place_in_camera
     from egosim.stages.common.hand_lift import (
         PROXIMAL_PHALANGES,
