@@ -358,26 +358,16 @@ def synthetic_figures(
                 from egosim.stages.common.roi_landmarks import LandmarkModel
 
                 misses += missed_presence(clip, res.valid, LandmarkModel(params.model_complexity))
-            parts[lift].append(
-                hand_accuracy(
-                    res.joints,
-                    res.landmarks.uv,
-                    res.valid,
-                    clip.hand_joints,
-                    truth_valid,
-                    clip.world_from_cam,
-                    clip.intrinsics,
-                    (clip.width, clip.height),
-                    lifted=res.lifted,
-                )
-            )
-            if lift == "palm_pnp":  # the joints' projection: moved off the landmarks where
-                # the repair interpolated a palm (withheld hands stay on their landmarks' rays)
-                drawn = project_points(res.joints, clip.intrinsics)[0]  # (T, 2, 21, 2)
-                drawn_parts.append(
+            # 2D of the landmarks, and (palm_pnp) of the joints' own projection, which the
+            # repair moves off the landmarks where it interpolates a palm
+            drawn = project_points(res.joints, clip.intrinsics)[0]  # (T, 2, 21, 2)
+            pairs = [(parts[lift], res.landmarks.uv)]
+            pairs += [(drawn_parts, drawn)] if lift == "palm_pnp" else []
+            for into, uv in pairs:
+                into.append(
                     hand_accuracy(
                         res.joints,
-                        drawn,
+                        uv,
                         res.valid,
                         clip.hand_joints,
                         truth_valid,
