@@ -46,7 +46,8 @@ landmarks, fill by the image-aligned path). Hand truth: ``videos_hands`` pixels 
   replaces, each frame's mask grown as the ``inpaint`` stage grows it before filling
   (:func:`filled_region`: ``InpaintConfig.dilate_px`` plus ``dilate_fraction`` of the image
   diagonal), with what that costs: ``mask_px_mean`` / ``filled_px_mean``, pixels per frame of
-  the mask and of the grown region;
+  the mask and of the grown region. A per-frame proxy: the stage fills frame 0's region only,
+  so each frame is scored as if a clip started there (as the inpainting figures below are);
 - ``far_px``: mask pixels per frame farther than 50 px from the allowed region: hand truth plus,
   for each hand blob, the cone from it down to the bottom border within 45 degrees of vertical
   (where an egocentric arm comes from; see :func:`allowed_region`), dilated by 50 px; taken on

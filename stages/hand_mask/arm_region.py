@@ -110,8 +110,8 @@ class ArmParams:
     # more than ``steady_jump_deg`` from the frames either side of it, which agree within
     # ``steady_agree_deg``, is drawn along the direction between those (0: off; see
     # :func:`steady_directions`)
-    steady_jump_deg: float = 45.0
-    steady_agree_deg: float = 30.0
+    steady_jump_deg: float = 45.0  # ... degrees a run's directions lie from both frames beside it
+    steady_agree_deg: float = 30.0  # ... degrees within which those two frames must agree
 
     def __post_init__(self) -> None:
         problems = []
