@@ -276,16 +276,11 @@ def background_like_misses(
     return count
 
 
-def fill_grow_px(height: int, width: int, config: InpaintConfig | None = None) -> int:
-    """Pixels the ``inpaint`` stage grows a ``height x width`` clip's hand masks by before it
-    fills (:meth:`InpaintConfig.grow_px` of ``config``, default :class:`InpaintConfig`'s)."""
-    return (InpaintConfig() if config is None else config).grow_px(height, width)
-
-
 def filled_region(masks: np.ndarray, config: InpaintConfig | None = None) -> np.ndarray:
     """The pixels the hand-free frame replaces given ``masks (T, H, W)``: each frame's mask grown
-    as the ``inpaint`` stage grows it before filling (:func:`fill_grow_px`); ``(T, H, W)`` bool."""
-    grow = fill_grow_px(masks.shape[1], masks.shape[2], config)
+    as the ``inpaint`` stage grows it before filling (:meth:`InpaintConfig.grow_px` of ``config``,
+    default :class:`InpaintConfig`'s); ``(T, H, W)`` bool."""
+    grow = (InpaintConfig() if config is None else config).grow_px(*masks.shape[1:3])
     return dilate(masks > 0, grow) > 0
 
 

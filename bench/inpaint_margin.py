@@ -155,10 +155,11 @@ def world_rows(
         stage = InpaintStage(cfg)
         start = time.perf_counter()
         poses, d0 = (None, None) if aligned else (world_from_cam, depth0)
-        extra = {"depth0_confidence": conf0}
-        pred = stage.fill(clip.frames, masks, poses, clip.intrinsics, d0, **extra)
+        pred = stage.fill(clip.frames, masks, poses, clip.intrinsics, d0, depth0_confidence=conf0)
         secs = time.perf_counter() - start
-        true = stage.fill(clip.frames, clip.hand_mask, poses, clip.intrinsics, d0, **extra)
+        true = stage.fill(
+            clip.frames, clip.hand_mask, poses, clip.intrinsics, d0, depth0_confidence=conf0
+        )
         contact_sheet(
             out / f"{name}_{case.replace(':', '_')}.png",
             [clip.frames[0], pred.image, true.image, clip.first_frame_clean, telea],

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from bench.hand_free_real import background_like_misses, fill_grow_px, filled_region
+from bench.hand_free_real import background_like_misses, filled_region
 from egosim.stages.inpaint.reproject_fill import dilate
 from egosim.stages.inpaint.stage import InpaintConfig, InpaintStage
 
@@ -60,7 +60,7 @@ def test_filled_region_is_the_region_the_inpaint_stage_replaces() -> None:
     mask[0, 30:60, 40:80] = 1
     truth = dilate(mask, 3) > 0  # the mask plus a 3 px band
     default = filled_region(mask)
-    assert fill_grow_px(96, 128) == 3
+    assert InpaintConfig().grow_px(96, 128) == 3
     assert float(default[truth].mean()) == 1.0
     assert float((mask > 0)[truth].mean()) < 0.8
     narrow = filled_region(mask, InpaintConfig(dilate_fraction=0.0))

@@ -554,7 +554,7 @@ def _world_shards(tmp_path: Path, seed: int) -> tuple[Clip, Path, Path]:
 def _stage_fill_args(frames: np.ndarray, masks: np.ndarray) -> tuple[np.ndarray, dict]:
     """The masks and keyword arguments the stage's default config gives ``reproject_fill``."""
     cfg = InpaintConfig()
-    grow = cfg.dilate_px + round(cfg.dilate_fraction * float(np.hypot(*frames.shape[1:3])))
+    grow = cfg.grow_px(*frames.shape[1:3])
     masks = carry_lost_hands(masks, cfg.carry_frames, cfg.carry_cover, cfg.carry_reach)
     kw = {"dilate_px": grow, "candidates": cfg.candidates, "occluder_ratio": cfg.occluder_ratio,
           "local_residual": cfg.local_residual, "shift_px": cfg.ring_shift_px,

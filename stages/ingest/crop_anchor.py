@@ -28,6 +28,7 @@ rejected by cameras otherwise.
 
 from __future__ import annotations
 
+import functools
 import importlib.metadata
 import logging
 from collections.abc import Callable, Sequence
@@ -68,6 +69,7 @@ MATCH_RANSAC_PX = 1.0  # fundamental-matrix RANSAC threshold, pixels of the samp
 DETECT_PARAMS = HandLandmarkParams(video_mode=False, track_misses=False)
 
 
+@functools.cache  # one lookup of the package's metadata per process, not one per file unit
 def crop_detector() -> str:
     """What the hands crop looks for hands with, for run fingerprints: ``mediapipe <version>``,
     or ``none`` when MediaPipe is not installed (every band then stays at the anchor), so that a

@@ -232,9 +232,13 @@ class InpaintStage(ClipStage):
         grow = cfg.grow_px(h, w)
         target = dilate(hand_mask[0] > 0, grow)  # (H, W)
         zeros16 = np.zeros((h, w), np.uint16)
+
+        def telea(hole: np.ndarray) -> FillResult:  # OpenCV alone over ``hole (H, W)`` bool
+            image = opencv_fill(frames[0], hole, cfg.inpaint_radius)
+            return FillResult(image, (hole * FILL_OPENCV).astype(np.uint8), zeros16, hole)
+
         if cfg.backend == "opencv":
-            image = opencv_fill(frames[0], target, cfg.inpaint_radius)
-            return FillResult(image, (target * FILL_OPENCV).astype(np.uint8), zeros16, target > 0)
+            return telea(target > 0)
         if cfg.backend == "diffusers":
             if self._diffusers is None:
                 self._diffusers = DiffusersInpainter(
@@ -289,10 +293,7 @@ class InpaintStage(ClipStage):
             raise ClipRejected(f"clip {clip_id!r}: {exc}") from exc
         if not cfg.vote or not result.filled.any():
             return result
-        telea = opencv_fill(frames[0], result.filled, cfg.inpaint_radius)
-        opencv = FillResult(telea, (result.filled * FILL_OPENCV).astype(np.uint8), zeros16,
-                            result.filled)  # fmt: skip
-        return median_vote([result, image_aligned(), opencv])
+        return median_vote([result, image_aligned(), telea(result.filled)])
 
     def process(self, rows: Mapping[str, Mapping[str, Any]]) -> dict[str, Any]:
         """The inpainted first frame of one clip; see the module docstring."""
