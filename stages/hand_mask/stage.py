@@ -159,20 +159,26 @@ def masks_from_keypoints(
     capsule = CapsuleParams(radius_scale=config.radius_scale, forearm=config.forearm)
     arm = ArmParams(fan_half_angle_deg=config.fan_half_angle_deg)
 
-    def frame_masks(t: int, directions: np.ndarray | None = None) -> tuple[np.ndarray, ...]:
-        """``(mask, per_hand, certain, drawn)`` of frame ``t`` (see ``arm_region``)."""
-        own, drawn = hand_labels(frames[t], keypoints[t], valid[t], capsule, arm, directions)
-        mask, per_hand, certain = masks_from_labels(
-            frames[t], own, config.colour_refine, config.grabcut_iterations, config.grabcut_max_side
-        )
-        return mask, per_hand, certain, drawn
+    def labels(t: int, directions: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Frame ``t``'s GrabCut labels ``(K, H, W)`` and arm directions ``(K, 2)``."""
+        return hand_labels(frames[t], keypoints[t], valid[t], capsule, arm, directions)
 
-    found = [frame_masks(t) for t in range(len(frames))]
-    drawn = np.stack([f[3] for f in found])  # (T, K, 2) each frame's arm directions
-    steady = steady_directions(drawn, arm.steady_frames, arm.steady_jump_deg, arm.steady_agree_deg)
+    # Labels first (arm searches), GrabCut once per frame after: an arm that swung away for a
+    # few frames and back is drawn between its neighbours (steady_directions) before the cut.
+    own, drawn = zip(*(labels(t) for t in range(len(frames))), strict=True)
+    own = list(own)  # T of (K, H, W) uint8
+    steady = steady_directions(
+        np.stack(drawn), arm.steady_frames, arm.steady_jump_deg, arm.steady_agree_deg
+    )  # (T, K, 2)
     for t in np.nonzero(np.any(np.isfinite(steady[..., 0]), axis=1))[0]:
-        # An arm that swung away for a few frames and back: drawn between its neighbours.
-        found[t] = frame_masks(int(t), steady[t])
+        own[t] = labels(int(t), steady[t])[0]
+    found = [
+        masks_from_labels(
+            frames[t], own[t], config.colour_refine, config.grabcut_iterations,
+            config.grabcut_max_side,
+        )
+        for t in range(len(frames))
+    ]  # fmt: skip
     masks = np.stack([f[0] for f in found])  # (T, H, W)
     if config.propagate_frames > 0 and config.colour_refine:
         params = PropagationParams(
