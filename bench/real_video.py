@@ -18,7 +18,7 @@
   horizontal FOV, not the 70 degree guess. Nothing in the pipeline reads it;
 - ``scale``: metres per reconstruction unit and where it came from;
 - ``hand/surf``: hand-to-surface depth ratio at contact: for each hand and frame whose 3D is
-  trusted (``hand_lifted``; ``hand_valid`` in runs before hands schema v3), the median
+  trusted (``hand_lifted``), the median
   over the five fingertips of fingertip depth / depth of the scene cloud under the fingertip
   (cleaned poses, scene cloud rendered into that frame); the contact frames of a hand are the
   quarter of its frames where that ratio is largest (the fingertips closest to the surface behind
@@ -193,8 +193,7 @@ def hand_surface_ratio(
     hw = (int(cams["height"]), int(cams["width"]))
     cam_from_world = invert_se3(_poses(poses, cams))  # (T, 4, 4)
     joints = np.asarray(hands["hand_joints"], dtype=np.float64).reshape(-1, 2, 21, 3)
-    lifted = hands.get("hand_lifted")  # hands schema v3: a 2D-only hand's depth is a guess
-    valid = np.asarray(hands["hand_valid"] if lifted is None else lifted, dtype=bool)  # (T, 2)
+    valid = np.asarray(hands["hand_lifted"], dtype=bool)  # (T, 2) a 2D-only hand's depth: a guess
     per_hand: list[list[float]] = [[], []]
     for t in np.flatnonzero(valid.any(axis=1)):
         depth = _scene_depth(pts, cam_from_world[t], k, hw)
@@ -364,7 +363,7 @@ def summarise(case: RealCase, run: Path, data: Path, seconds: float) -> dict[str
     packed = read_step(run, "pack", ["clip_id"])
     # Each step's shards read once for all clips (not once per clip and figure).
     clouds = read_step(run, "scene_cloud")
-    hands = read_step(run, "hands")  # every column: runs before hands schema v3 lack hand_lifted
+    hands = read_step(run, "hands", ["clip_id", "hand_joints", "hand_lifted"])
     poses = read_step(run, "poses", ["clip_id", "world_from_cam"])
     renders = read_step(run, "scene_render")
     videos = read_step(run, "ingest") if case.static_truth else {}

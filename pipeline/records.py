@@ -431,7 +431,8 @@ class HandsRecord(HandArraysRecord):
         """``(T, 2)`` bool: the valid hand's 3D joints are trusted (False: 2D only, joints on its
         landmarks' rays at a guessed depth, or not valid); what needs the hand in 3D uses these."""
         lifted = self.array("hand_lifted", bool, (self.num_frames, 2))
-        assert lifted is not None  # not nullable in the schema
+        if lifted is None:  # not nullable in the schema: only a hand-made row gets here
+            raise ClipRejected(f"{self.what('hand_lifted')} is null")
         return lifted
 
 

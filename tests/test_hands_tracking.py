@@ -267,14 +267,14 @@ def _dwm_recall(name: str, ingested: bool = False) -> dict[str, float]:
     from egosim.stages.hands.stage import HandsConfig
 
     folder = shared_data("dwm_realworld", "realworld_dynamic")
-    frames, _ = read_video_file(folder / "videos" / f"{name}.mp4")
+    frames, times = read_video_file(folder / "videos" / f"{name}.mp4")
     if ingested:
         frames = as_ingested(frames)
     render, _ = read_video_file(folder / "videos_hands" / f"{name}.mp4")
     masks = render_masks(render)  # (T, 2, H, W) left, right
     shown = masks.sum(axis=(2, 3)) >= MIN_RENDER_PIXELS  # (T, 2)
     k = np.array([360.0, 360.0, frames.shape[2] / 2, frames.shape[1] / 2])
-    res = mediapipe_hands(frames, k)
+    res = mediapipe_hands(frames, k, fps=(len(times) - 1) / float(times[-1] - times[0]))
     gaps = RENDER_GAPS[name]
     out: dict[str, float] = {}
     # Frames the spike filter would drop for a palm turning too fast (the stage's default limits;

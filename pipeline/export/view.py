@@ -263,9 +263,7 @@ def _gather_hands(view: _ClipView) -> None:
     clip, t = view.clip, view.clip.num_frames
     if (hands := view.rows["hands"]) is not None:
         view.joints = np.asarray(hands["hand_joints"], dtype=np.float64).reshape(t, 2, 21, 3)
-        lifted = hands.get("hand_lifted")  # None in runs before hands schema v3
-        shown = hands["hand_valid"] if lifted is None else lifted
-        view.valid = np.asarray(shown, dtype=bool).reshape(t, 2)
+        view.valid = np.asarray(hands["hand_lifted"], dtype=bool).reshape(t, 2)
         view.take("/hands/skeleton", "hands")
     elif clip.hand_joints is not None and clip.hand_valid is not None:
         view.joints, view.valid = clip.hand_joints, clip.hand_valid

@@ -22,7 +22,12 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from egosim.pipeline.geometry import invert_se3, project_world_points, transform_points
+from egosim.pipeline.geometry import (
+    invert_se3,
+    project_world_points,
+    rotation_angle_deg,
+    transform_points,
+)
 
 
 class HandFilterError(ValueError):
@@ -275,8 +280,6 @@ def turn_outliers(
         near = np.array([g for g in near if valid[g, s]], dtype=int)  # (G,)
         if not near.size:
             continue
-        relative = np.einsum("ji,gjk->gik", rot[f, s], rot[near, s])  # (G, 3, 3) R_f^T R_g
-        cos = (np.trace(relative, axis1=-2, axis2=-1) - 1.0) / 2.0  # (G,)
-        turn = np.degrees(np.arccos(np.clip(np.nan_to_num(cos, nan=1.0), -1.0, 1.0)))  # (G,)
+        turn = np.nan_to_num(rotation_angle_deg(rot[f, s], rot[near, s]), nan=0.0)  # (G,)
         out[f, s] = float(np.median(turn / np.abs(near - f))) * fps > max_turn_rate
     return out

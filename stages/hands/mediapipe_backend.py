@@ -90,7 +90,6 @@ from egosim.stages.common.hand_lift import (  # one lift for the hands and the m
 )
 from egosim.stages.hands.filters import Detections, palm_rotations, turn_outliers
 
-CLIP_FPS = 16.0  # frame rate assumed when none is given (the egosim clip preset's)
 BRIDGED_CONFIDENCE_FACTOR = 0.5  # confidence of interpolated frames relative to detected ones
 WITHHELD_CONFIDENCE_FACTOR = 0.1  # confidence of a hand whose 3D is withheld (2D kept)
 MIDDLE_MCP = 9  # joint index of the middle finger's knuckle (hand size: wrist to it)
@@ -380,18 +379,19 @@ def mediapipe_hands(
     world_from_cam: np.ndarray | None = None,
     depth: np.ndarray | None = None,
     params: MediaPipeParams | None = None,
-    fps: float = CLIP_FPS,
+    *,
+    fps: float,
 ) -> MediaPipeResult:
     """Detect, assign sides, bridge, smooth and lift hands in one clip.
 
     ``frames (T, H, W, 3)`` uint8 RGB, ``intrinsics (4,)``, ``world_from_cam (T, 4, 4)`` (None:
     joints stay in camera coordinates), ``depth (T, H, W)`` metres with 0 = unknown (None: the
     world landmarks' size prior sets the distance), ``fps`` the clip's frame rate (the turn
-    test's time).
+    test's limit is per second; no default, so a clip's rate is never assumed).
     """
     params = params or MediaPipeParams()
     raw = detect_landmarks(frames, params)
-    return hands_from_raw(raw, frames.shape[2], intrinsics, world_from_cam, depth, params, fps)
+    return hands_from_raw(raw, frames.shape[2], intrinsics, world_from_cam, depth, params, fps=fps)
 
 
 def side_landmarks(
@@ -410,7 +410,8 @@ def hands_from_raw(
     world_from_cam: np.ndarray | None = None,
     depth: np.ndarray | None = None,
     params: MediaPipeParams | None = None,
-    fps: float = CLIP_FPS,
+    *,
+    fps: float,
 ) -> MediaPipeResult:
     """Everything after detection: sides, bridging, smoothing, lifting and the repair of palms
     turned off their track (:func:`~egosim.stages.hands.filters.turn_outliers`,
@@ -528,7 +529,7 @@ def _nearest_pose(
 def mediapipe_detections(clip: Clip, params: MediaPipeParams | None = None) -> Detections:
     """The stage's detections (``K = 2``, slot = side) from a decoded clip with poses."""
     res = mediapipe_hands(
-        clip.frames, clip.intrinsics, clip.world_from_cam, clip.depth, params, clip.fps
+        clip.frames, clip.intrinsics, clip.world_from_cam, clip.depth, params, fps=clip.fps
     )
     side = np.tile(np.array([LEFT, RIGHT]), (clip.num_frames, 1))  # (T, 2)
     joints = np.where(res.valid[..., None, None], res.joints, 0.0)

@@ -140,26 +140,15 @@ class CleanedHands:
     mano: np.ndarray | None  # (T, 2, 51 + B) MANO fits, NaN where not valid; None: no fits
 
 
-def clean_hands(
-    row: Mapping[str, Any], config: HandsConfig, cameras: Cameras | None = None
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, int, int]:
-    """Run the backend and both filters on one clips row.
-
-    ``row`` is a :class:`ClipsRecord` or a plain mapping (wrapped in one). ``cameras`` (from
-    :func:`resolve_cameras`) defaults to the clips row's own camera.
-    Returns ``(joints (T, 2, 21, 3), valid (T, 2), confidence (T, 2, 21), duplicates removed,
-    outliers removed)``; raises :class:`ClipRejected` naming the clip when it cannot.
-    :func:`cleaned_hands` also gives which hands' 3D is trusted and the MANO fits.
-    """
-    out = cleaned_hands(row, config, cameras)
-    return out.joints, out.valid, out.confidence, out.duplicates, out.outliers
-
-
 def cleaned_hands(
     row: Mapping[str, Any], config: HandsConfig, cameras: Cameras | None = None
 ) -> CleanedHands:
-    """:func:`clean_hands` with the hands whose 3D is trusted (``lifted``) and the kept hands'
-    MANO fits (:data:`~egosim.stages.hands.filters.Detections.mano`'s layout)."""
+    """Run the backend and both filters on one clips row (:class:`CleanedHands`).
+
+    ``row`` is a :class:`ClipsRecord` or a plain mapping (wrapped in one). ``cameras`` (from
+    :func:`resolve_cameras`) defaults to the clips row's own camera. Raises
+    :class:`ClipRejected` naming the clip when it cannot.
+    """
     clip = ClipsRecord.of(row)
     cid, t = clip.clip_id, clip.num_frames
     cams = cameras if cameras is not None else resolve_cameras({"clips": clip})

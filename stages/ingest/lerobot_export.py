@@ -187,7 +187,7 @@ def _frames_table(
     joints = np.zeros((t, 126)) if joints is None else np.asarray(joints).reshape(t, 126)
     valid = np.zeros((t, 2), bool) if valid is None else np.asarray(valid, bool).reshape(t, 2)
     lifted = hand.get("hand_lifted")  # only the hands step says; a clip's labels are 3D
-    lifted = valid if lifted is None else np.asarray(lifted, bool).reshape(t, 2) & valid
+    lifted = valid if lifted is None else np.asarray(lifted, bool).reshape(t, 2)
     stamps = np.asarray(clip["timestamps"], dtype=np.float64)
     f32 = pa.float32()
     return pa.table(
