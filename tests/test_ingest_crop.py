@@ -53,6 +53,11 @@ def _red_pixels(frames: np.ndarray) -> int:
     return int(((f[..., 0] > 180) & (f[..., 1] < 80) & (f[..., 2] < 80)).sum())
 
 
+def _without_following(frames: list[np.ndarray]) -> crop_anchor.FrameSample:
+    """A sample of ``frames`` with no frame after any of them (no static-scene count)."""
+    return crop_anchor.FrameSample(lambda n: [(f, None) for f in frames[:n]])
+
+
 def test_crop_config_is_checked_with_the_bad_value() -> None:
     with pytest.raises(ConfigError, match=r"crop_anchor must be two fractions .* got \(0.5,\)"):
         IngestConfig(crop_anchor=(0.5,))
@@ -149,8 +154,10 @@ def test_hands_mode_without_hands_or_cut_keeps_the_anchor(
     np.testing.assert_allclose(clip.source_crop, plan_resize(SRC_W, SRC_H, 104, 60).source_crop)
     assert "no hand found on 8 sampled frames; crop at anchor (0.50, 0.50)" in caplog.text
 
-    def fail(count: int) -> list:
+    def no_read(count: int) -> list:
         raise AssertionError("sampled a source whose crop cuts under 10%")
+
+    fail = crop_anchor.FrameSample(no_read)
 
     cfg = IngestConfig()
     assert crop_anchor.choose_anchor(cfg, 1920, 1080, fail, "x") == (0.5, 0.5)
@@ -325,7 +332,7 @@ def test_without_mediapipe_the_crop_stays_at_the_anchor_with_a_warning(
     frames = [np.zeros((64, 36, 3), np.uint8)] * crop_anchor.SAMPLE_FRAMES
     cfg = IngestConfig(crop_anchor=(0.5, 0.75))
     with caplog.at_level(logging.WARNING, logger=crop_anchor.__name__):
-        anchor = crop_anchor.choose_anchor(cfg, 1080, 1920, lambda n: frames[:n], "portrait")
+        anchor = crop_anchor.choose_anchor(cfg, 1080, 1920, _without_following(frames), "portrait")
     assert anchor == (0.5, 0.75)
     assert "portrait: crop at anchor (0.5, 0.75), hands not looked for" in caplog.text
 
@@ -435,7 +442,9 @@ def test_the_scene_check_needs_the_next_frame() -> None:
     import unittest.mock
 
     with unittest.mock.patch.object(crop_anchor, "frame_hand_boxes", boxes):
-        plain = crop_anchor.choose_anchor(IngestConfig(), SRC_W, SRC_H, lambda n: frames[:n], "x")
+        plain = crop_anchor.choose_anchor(
+            IngestConfig(), SRC_W, SRC_H, _without_following(frames), "x"
+        )
         both = crop_anchor.sample_frames(8, lambda i: _scene((260, 420), i % 2 * 2))
         moved = crop_anchor.choose_anchor(IngestConfig(), SRC_W, SRC_H, both, "x")
     placed = crop_anchor.hands_anchor(

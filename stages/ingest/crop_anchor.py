@@ -98,20 +98,20 @@ def choose_anchor(
     cfg: CropFormat,
     src_width: int,
     src_height: int,
-    sample: Callable[[int], Sequence[np.ndarray]],
+    sample: FrameSample,
     what: str,
 ) -> Anchor:
     """The anchor of a ``src_width x src_height`` source: ``crop_anchor``, or with
     ``crop="hands"`` the window over the hands found on ``sample(SAMPLE_FRAMES)`` (evenly spread
-    ``(H, W, 3)`` uint8 RGB source frames; called only when the crop cuts enough to matter).
-    When ``sample`` is a :class:`FrameSample` (it also gives the source frame after each), a
-    hands' band with too little static scene for the cameras moves (:func:`texture_anchor`).
+    ``(H, W, 3)`` uint8 RGB source frames; read only when the crop cuts enough to matter); a
+    hands' band with too little static scene for the cameras moves (:func:`texture_anchor`,
+    against the source frame after each sampled one).
     ``what`` names the source in the log line."""
     anchor = configured(cfg)
     plan = plan_resize(src_width, src_height, cfg.width, cfg.height)
     if cfg.crop != "hands" or cut_fraction(plan) < MIN_CUT_FRACTION:
         return anchor
-    frames = [f for f in sample(SAMPLE_FRAMES) if f is not None]
+    frames = sample(SAMPLE_FRAMES)
     try:
         per_frame = frame_hand_boxes(frames)
     except MediaPipeUnavailableError as exc:
@@ -127,10 +127,8 @@ def choose_anchor(
         )
         return anchor
     placed = hands_anchor(plan, boxes, anchor)
-    scene = ""
-    if isinstance(sample, FrameSample):
-        following = sample.following(SAMPLE_FRAMES)
-        placed, scene = texture_anchor(plan, frames, following, per_frame, placed)
+    following = sample.following(SAMPLE_FRAMES)
+    placed, scene = texture_anchor(plan, frames, following, per_frame, placed)
     crop = plan_resize(src_width, src_height, cfg.width, cfg.height, placed).source_crop
     log.info(
         "%s: %d hands on %d sampled frames; crop anchor (%.3f, %.3f), source pixels %s%s",
