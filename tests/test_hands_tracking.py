@@ -29,7 +29,7 @@ from egosim.stages.common.roi_landmarks import (
     stretch_contrast,
     track_through_misses,
 )
-from egosim.stages.hands.mediapipe_backend import hand_size
+from egosim.stages.hands.mediapipe_backend import hand_centres, hand_size
 from tests.conftest import shared_data
 
 DWM_FPS = 8.0  # frame rate of the DWM real-world clips
@@ -477,3 +477,112 @@ def test_landmark_thinness_of_a_line_a_square_and_a_stretched_square() -> None:
     turn = np.array([[np.cos(0.4), -np.sin(0.4)], [np.sin(0.4), np.cos(0.4)]])  # (2, 2)
     stretched = (square * [2.0, 1.0]) @ turn.T  # (21, 2)
     assert landmark_thinness(stretched) == pytest.approx(0.5, abs=1e-9)
+
+
+def test_scene_check_params_say_every_bad_value() -> None:
+    from egosim.stages.hands.scene_check import SceneCheckParams
+
+    with pytest.raises(ValueError, match=r"max_skin_distance.*got 0.*analysis_scale.*got 2"):
+        SceneCheckParams(max_skin_distance=0.0, analysis_scale=2.0)
+
+
+def test_scene_travel_is_zero_for_a_point_on_the_background() -> None:
+    """``scene_check.scene_travel`` against hand-computed answers: the background turns 2 deg,
+    grows 1% and moves (3, -2) px per frame; a point carried with it travels 0 hand sizes, a
+    point fixed in the image while the background pans (3, -2) px per frame travels what the
+    3-frame running median leaves of the pan over 6 frames: 4 steps of 3.6 px, over a 36 px
+    hand, 0.4 hand sizes."""
+    from egosim.stages.hands.scene_check import scene_travel
+
+    a = np.deg2rad(2.0)
+    turn = 1.01 * np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])  # (2, 2)
+    step = np.concatenate([turn, [[3.0], [-2.0]]], axis=1)  # (2, 3) frame f -> f + 1
+    motion = np.tile(step, (8, 1, 1))  # (8, 2, 3)
+    frames = np.arange(2, 8)  # (6,) a track on frames 2-7
+    glued = [np.array([100.0, 50.0])]
+    for _ in frames[1:]:
+        glued.append(step[:, :2] @ glued[-1] + step[:, 2])
+    assert scene_travel(np.array(glued), frames, motion, 36.0) == pytest.approx(0.0, abs=1e-9)
+    pan = np.tile(np.array([[1.0, 0.0, 3.0], [0.0, 1.0, -2.0]]), (8, 1, 1))  # (8, 2, 3)
+    still = np.tile([100.0, 50.0], (6, 1))  # (6, 2) fixed in the image
+    travel = scene_travel(still, frames, pan, 36.0)
+    assert travel == pytest.approx(4 * np.hypot(3.0, 2.0) / 36.0, rel=1e-9)
+
+
+def test_background_motion_finds_a_known_shift_outside_the_hands() -> None:
+    """``scene_check.background_motion``: a smooth random texture shifted (4, 3) px per frame,
+    with a patch that moves the other way (a "hand") excluded, gives that shift within 0.1 px
+    and no turn or scale; with the patch not excluded it still does (RANSAC), and a frame pair
+    with nothing to track gives the identity."""
+    import cv2
+
+    from egosim.stages.hands.scene_check import background_motion
+
+    rng = np.random.default_rng(0)
+    base = cv2.GaussianBlur(rng.uniform(0, 255, (300, 400)).astype(np.float32), (0, 0), 3.0)
+    base = cv2.normalize(base, None, 0, 255, cv2.NORM_MINMAX).astype(np.uint8)  # (300, 400)
+    grey = []
+    for f in range(4):
+        m = np.array([[1.0, 0.0, 4.0 * f], [0.0, 1.0, 3.0 * f]])
+        im = cv2.warpAffine(base, m, (400, 300), borderMode=cv2.BORDER_REFLECT)
+        im[100:160, 150:210] = np.roll(base[100:160, 150:210], -5 * f, axis=1)  # the "hand"
+        grey.append(im)
+    hand = np.zeros((300, 400), bool)
+    hand[90:170, 140:220] = True
+    for exclude in ([hand] * 4, [np.zeros_like(hand)] * 4):
+        motion = background_motion(grey, exclude)  # (3, 2, 3)
+        np.testing.assert_allclose(motion[:, :, :2], np.tile(np.eye(2), (3, 1, 1)), atol=2e-3)
+        np.testing.assert_allclose(motion[:, :, 2], np.tile([4.0, 3.0], (3, 1)), atol=0.1)
+    flat = [np.full((300, 400), 128, np.uint8)] * 2
+    np.testing.assert_array_equal(background_motion(flat, [hand] * 2)[0], np.eye(2, 3))
+
+
+def test_skin_distance_against_a_seed_and_never_from_itself() -> None:
+    """``scene_check.skin_distance``: pixels drawn from the seed's own distribution sit about
+    one Mahalanobis unit away (median of a 2D normal's radius: 1.18), pixels 6 standard
+    deviations off sit about 6 away; a judged detection is never its own seed (none left: NaN)."""
+    from egosim.stages.hands.scene_check import skin_distance
+
+    rng = np.random.default_rng(1)
+    centre, sd = np.array([146.0, 161.0]), np.array([6.0, 9.0])
+    pixels = {(f, 0): centre + sd * rng.standard_normal((4000, 2)) for f in range(3)}
+    pixels[(3, 1)] = centre + sd * rng.standard_normal((4000, 2))
+    pixels[(4, 1)] = centre + np.array([0.0, 6.0 * 9.0]) + rng.standard_normal((4000, 2))
+    seed = [(0, 0), (1, 0), (2, 0)]
+    assert skin_distance(pixels, seed, [(3, 1)]) == pytest.approx(1.18, abs=0.1)
+    assert skin_distance(pixels, seed, [(4, 1)]) == pytest.approx(6.0, abs=0.3)
+    assert np.isnan(skin_distance(pixels, [], [(3, 1)]))
+
+
+def test_still_off_skin_detection_on_real_frames_is_dropped_and_real_hands_kept(egodex) -> None:
+    """``scene_check.scene_tracks`` on the EgoDex frames: a third "hand" (the left hand's own
+    landmarks shrunk to 0.4 of its size) held still on the bare wall, where no hand is (the
+    landmark model's presence there 0.02), is dropped: measured 4.7 from the clip's skin (the
+    two real hands, presence 0.82-0.96) and still; the same "hand" moving 12 px per frame across
+    the wall is kept (not still), and so are the real hands (skin 0.6-1.4)."""
+    from egosim.stages.common.hand_landmarks import RawLandmarks, landmark_presence
+    from egosim.stages.hands.mediapipe_backend import MediaPipeParams, _tracks
+    from egosim.stages.hands.scene_check import scene_tracks
+
+    frames, raw = egodex
+    centre = hand_centres(raw.uv)[:, 0]  # (6, 2)
+
+    def with_third(path: np.ndarray) -> RawLandmarks:
+        third = 0.4 * (raw.uv[:, 0] - centre[:, None]) + path[:, None]  # (6, 21, 2)
+        return RawLandmarks(
+            np.concatenate([raw.uv, third[:, None]], axis=1),
+            np.concatenate([raw.world, raw.world[:, :1]], axis=1),
+            np.concatenate([raw.label_right, raw.label_right[:, :1]], axis=1),
+            np.ones((len(frames), 3), dtype=bool),
+        )
+
+    for step, dropped in ((0.0, [2]), (12.0, [])):
+        path = np.array([150.0, 150.0]) + np.outer(np.arange(len(frames)), [step, 0.0])  # (6, 2)
+        three = with_third(path)
+        tracks = _tracks(three, MediaPipeParams())
+        assert sorted(len(tr) for tr in tracks) == [6, 6, 6]  # one track each
+        third = [ti for ti, tr in enumerate(tracks) if tr[0][1] == 2]
+        presence = landmark_presence(frames, three)  # (6, 3)
+        assert presence[:, 2].max() < 0.1 and presence[:, :2].min() > 0.75, presence
+        got = scene_tracks(frames, three, tracks, presence)
+        assert got == (third if dropped else []), (step, got)

@@ -21,7 +21,11 @@ Steps, for one clip:
    (a blurred frame while the head turns, a hand half out of the frame) is carried on by the
    optical flow alone for up to ``track.max_coast`` frames and looked for again there, and dark
    crops are contrast-stretched (``track.max_gain``) before the model sees them.
-2. **Sides** (:func:`assign_sides`): MediaPipe's labels assume a mirrored (selfie) image, so on
+2. **Scene check** (:func:`drop_scene_tracks`, hands v13): a track whose hull colour is off the
+   clip's confident hands' skin and that stays still against the background is part of the
+   scene and dropped (:mod:`egosim.stages.hands.scene_check`: the EgoDex portrait variant's
+   curtain fold, found and followed on 20 of 33 frames).
+   **Sides** (:func:`assign_sides`): MediaPipe's labels assume a mirrored (selfie) image, so on
    egocentric video its "Left" is the real right hand, and the labels flip now and then. Detections
    are linked into tracks (nearest centroid frame to frame); each track takes one side from its
    swapped labels' summed scores plus an image-position vote (left half = left hand); two tracks
@@ -66,7 +70,7 @@ MediaPipe is imported lazily: install it as ``make setup`` does (``--no-deps med
 from __future__ import annotations
 
 import itertools
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -79,6 +83,7 @@ from egosim.stages.common.hand_landmarks import (  # one detector for hands and 
     drop_overlapping,
     hand_centres,
     hand_size,
+    landmark_presence,
     place_in_camera,
 )
 from egosim.stages.common.hand_landmarks import detect_hand_landmarks as detect_landmarks
@@ -89,6 +94,7 @@ from egosim.stages.common.hand_lift import (  # one lift for the hands and the m
     scale_to_depth,
 )
 from egosim.stages.hands.filters import Detections, palm_rotations, turn_outliers
+from egosim.stages.hands.scene_check import SceneCheckParams, scene_tracks
 
 BRIDGED_CONFIDENCE_FACTOR = 0.5  # confidence of interpolated frames relative to detected ones
 WITHHELD_CONFIDENCE_FACTOR = 0.1  # confidence of a hand whose 3D is withheld (2D kept)
@@ -113,6 +119,8 @@ class MediaPipeParams(HandLandmarkParams):
     max_turn_rate: float = 320.0  # deg/s: a palm turning faster than this from its track's
     # neighbours (filters.turn_outliers) is interpolated between them or withheld; inf = no test
     turn_window: int = 3  # frames either side the turn test compares with
+    scene_check: SceneCheckParams | None = SceneCheckParams()  # noqa: RUF009 (frozen) a track
+    # off the clip's skin and still against the scene is dropped (scene_check); None = keep all
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -391,7 +399,9 @@ def mediapipe_hands(
     """
     params = params or MediaPipeParams()
     raw = detect_landmarks(frames, params)
-    return hands_from_raw(raw, frames.shape[2], intrinsics, world_from_cam, depth, params, fps=fps)
+    return hands_from_raw(
+        raw, frames.shape[2], intrinsics, world_from_cam, depth, params, fps=fps, frames=frames
+    )
 
 
 def side_landmarks(
@@ -412,13 +422,17 @@ def hands_from_raw(
     params: MediaPipeParams | None = None,
     *,
     fps: float,
+    frames: np.ndarray | None = None,
 ) -> MediaPipeResult:
     """Everything after detection: sides, bridging, smoothing, lifting and the repair of palms
     turned off their track (:func:`~egosim.stages.hands.filters.turn_outliers`,
     :func:`repair_unsure`) of ``raw`` landmarks found in frames ``width`` pixels wide (arguments
-    otherwise as :func:`mediapipe_hands`)."""
+    otherwise as :func:`mediapipe_hands`). With the ``frames (T, H, W, 3)`` they were found in,
+    tracks that are part of the scene are dropped first (:func:`drop_scene_tracks`)."""
     params = params or MediaPipeParams()
     raw = drop_overlapping(raw, params.duplicate_distance)
+    if frames is not None and params.scene_check is not None:
+        raw = drop_scene_tracks(raw, frames, params)
     lm = side_landmarks(raw, width, params)
     t = raw.present.shape[0]
     joints = np.full((t, 2, NUM_HAND_JOINTS, 3), np.nan)  # camera metres, world below
@@ -454,6 +468,26 @@ def hands_from_raw(
     factor = np.where(lifted, 1.0, WITHHELD_CONFIDENCE_FACTOR)  # (T, 2)
     conf = np.repeat(np.where(valid, lm.confidence * factor, 0.0)[..., None], NUM_HAND_JOINTS, 2)
     return MediaPipeResult(joints, valid, conf, lm, raw, lifted)
+
+
+def drop_scene_tracks(
+    raw: RawLandmarks, frames: np.ndarray, params: MediaPipeParams
+) -> RawLandmarks:
+    """``raw`` without the tracks (:func:`_tracks`) that are part of the scene: off the clip's
+    skin colour and still against its background (:func:`~egosim.stages.hands.scene_check.
+    scene_tracks`; the EgoDex portrait variant's curtain fold). ``raw`` without overlaps."""
+    tracks = _tracks(raw, params)
+    if len(tracks) < 2 or params.scene_check is None:
+        return raw  # one track has no other hand to seed the skin from
+    presence = landmark_presence(frames, raw, params)  # (T, K)
+    dropped = scene_tracks(frames, raw, tracks, presence, params.scene_check)
+    if not dropped:
+        return raw
+    present = raw.present.copy()  # (T, K)
+    for ti in dropped:
+        f, k = np.array(tracks[ti]).T
+        present[f, k] = False
+    return replace(raw, present=present)
 
 
 def repair_unsure(
