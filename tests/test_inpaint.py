@@ -23,6 +23,7 @@ from egosim.pipeline.stage import ClipRejected
 from egosim.schemas.depth_camera import DEPTH_CAMERA
 from egosim.schemas.hand_mask import HAND_MASK
 from egosim.schemas.inpaint import INPAINT
+from egosim.stages.inpaint import reproject_fill as reproject_module
 from egosim.stages.inpaint.aligned_fill import image_shift
 from egosim.stages.inpaint.diffusers_backend import (
     DiffusersInpainter,
@@ -30,9 +31,11 @@ from egosim.stages.inpaint.diffusers_backend import (
     prepare_inputs,
 )
 from egosim.stages.inpaint.reproject_fill import (
+    MAX_SHIFT_EVIDENCE,
     FillResult,
     InpaintInputError,
     dilate,
+    evidence,
     opencv_fill,
     reproject_fill,
     ring_residual,
@@ -324,6 +327,39 @@ def test_image_shift_aligns_a_warp_that_sits_off_round_the_hole() -> None:
     assert image_shift(warped, grey0, ring, 4, 0.2) == (0, 0)  # the best is on the edge
     assert image_shift(warped, grey0, ring, 0, 0.2) == (0, 0)  # off
     assert image_shift(np.full_like(grey0, 90), grey0, ring, 6, 0.2) == (0, 0)  # no gain
+
+
+def test_shifts_on_a_large_ring_are_scored_on_an_even_subsample(monkeypatch) -> None:
+    """A 26k-point ring (a large hole, as HOT3D's): each shift is scored on at most
+    MAX_SHIFT_EVIDENCE points spread over the whole ring, and both searches still find the
+    drift they are given (ring_shift: 3 px right, 2 px up; image_shift: 4 px right, 1 px up)."""
+    counts = [len(np.arange(n)[evidence(n)]) for n in (20, 4000, 4001, 8000, 45000)]
+    assert counts == [20, 4000, 2001, 4000, 3750]
+    rng = np.random.default_rng(5)
+    scene = cv2.GaussianBlur(rng.integers(0, 256, (400, 600, 3)).astype(np.uint8), (0, 0), 1.5)
+    hole = np.zeros((400, 600), bool)
+    hole[40:360, 40:560] = True
+    ring = (dilate(hole, 15) > 0) & ~hole
+    ry, rx = np.nonzero(ring)
+    assert len(ry) > 6 * MAX_SHIFT_EVIDENCE
+    k = np.array([300.0, 300.0, 300.0, 200.0])
+    world = unproject_depth(np.ones((400, 600), np.float32), k)[ry, rx]  # (R, 3) plane at 1 m
+    grey0 = cv2.cvtColor(scene, cv2.COLOR_RGB2GRAY).astype(np.float32)
+    check = (ry, rx, world, grey0[ry, rx])
+    scored = []
+    sample = reproject_module.sample_bilinear
+
+    def counted(image: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        scored.append(len(x))
+        return sample(image, x, y)
+
+    monkeypatch.setattr(reproject_module, "sample_bilinear", counted)
+    moved = np.roll(scene, (-2, 3), axis=(0, 1))
+    free = np.zeros((400, 600), np.uint8)
+    assert ring_shift(check, moved, free, np.eye(4), k, 6, 0.2) == (3.0, -2.0)
+    assert len(scored) == 13 * 13 and max(scored) <= MAX_SHIFT_EVIDENCE
+    grey = cv2.cvtColor(np.roll(scene, (-1, 4), axis=(0, 1)), cv2.COLOR_RGB2GRAY)
+    assert image_shift(grey.astype(np.int16), grey0.astype(np.int16), ring, 6, 0.2) == (4, -1)
 
 
 def test_aligned_fill_moves_a_warp_that_sits_off_by_the_ring_shift(monkeypatch) -> None:

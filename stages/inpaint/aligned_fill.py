@@ -27,6 +27,7 @@ from egosim.stages.inpaint.reproject_fill import (
     OccluderColours,
     best_shift,
     dilate,
+    evidence,
     local_residual_map,
     slot_median,
     unseen_fill,
@@ -82,6 +83,8 @@ def image_shift(
     cy, cx = cy[inner], cx[inner]
     if len(cy) < MIN_SHIFT_EVIDENCE:
         return (0, 0)
+    keep = evidence(len(cy))
+    cy, cx = cy[keep], cx[keep]  # (C',) at most MAX_SHIFT_EVIDENCE
     ref = grey0[cy, cx].astype(np.float32)  # (C,)
     return best_shift(
         lambda dx, dy: np.mean(np.abs(grey[cy + dy, cx + dx] - ref)), radius, min_gain
