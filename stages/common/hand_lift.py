@@ -16,7 +16,10 @@ pixel's ray at that depth, so the result reprojects exactly onto the landmarks. 
 (and the thumb from the wrist) a joint's depth is then blended with the depth at which its ray
 meets a sphere of the bone's length about its parent (:func:`refine_by_bone_lengths`; lengths
 from the world landmarks, scaled to the template palm, the proximal phalanges lengthened:
-:func:`landmark_bone_lengths`), weighted by how well that sphere fixes the depth. The
+:func:`landmark_bone_lengths`), weighted by how well that sphere fixes the depth. The four
+fingers' depths are then taken from MediaPipe's fingers bent (and splayed) by the angles that
+best fit their 2D landmarks with a pull towards MediaPipe's own bends
+(:func:`fit_finger_bends`; hands stage v13), each joint kept on its ray. The
 template's size sets the distance. A left palm is the right template mirrored; a mirrored planar
 template reaches the same camera points (the plane turned over), so the placed points and their
 depth do not depend on the side, only the rotation returned does.
@@ -43,6 +46,13 @@ MIN_POSE_DEPTH = 0.05  # metres: a palm pose with a joint nearer the camera does
 # alt world, 0.62-0.78 on real InterHand hands). The bone-length depths take them that much longer.
 PROXIMAL_PHALANGES = (6, 10, 14, 18)  # joints ending the index, middle, ring and pinky's first bone
 MEDIAPIPE_PROXIMAL_RATIO = 0.70  # MediaPipe's proximal phalanx length / the hand's
+# The four fingers' bend fit (:func:`fit_finger_bends`): its two scales are MediaPipe's errors
+# measured on the default synthetic world (seeds 1-4, 11, 13, 333 found hand-frames): finger
+# landmarks 0.035 of the landmark box's diagonal off in 2D (median), bends 21.8 degrees off (rms
+# per joint, MediaPipe's bones turned onto the true palm).
+FINGER_PIXEL_SIGMA = 0.05  # a finger joint's 2D residual scale, of the hand's landmark box diagonal
+FINGER_ANGLE_SIGMA_DEG = 20.0  # the pull of each splay and bend change towards MediaPipe's shape
+FINGER_ITERATIONS = 20  # damped Gauss-Newton steps of the bend fit
 # An average adult right palm (metres; x from the wrist towards the fingers, y towards the thumb,
 # z = 0: the palm is taken as flat): wrist to middle knuckle 9 cm, index to pinky knuckle 6.4 cm.
 # Rows follow PALM_JOINTS; a left hand mirrors y.
@@ -145,13 +155,17 @@ def palm_pnp_pose(
     prefer_fingers_away: bool = True,
     refine: bool = True,
     proximal_ratio: float = MEDIAPIPE_PROXIMAL_RATIO,
+    fit_fingers: bool = True,
 ) -> tuple[np.ndarray, np.ndarray] | None:
     """The palm-PnP lift (see :func:`lift_to_camera`) and its rotation: ``(points (21, 3) camera
     metres, cam_from_landmarks (3, 3))`` taking MediaPipe's world-landmark axes to the camera's;
     None when the PnP fails (a palm seen edge-on: its knuckles on one image line). ``refine``:
     the palm poses refined on the reprojection error (:func:`palm_candidates`).
     ``proximal_ratio``: how short the landmarks' proximal phalanges are
-    (:func:`landmark_bone_lengths`; 1.0 for true joints, e.g. a test's oracle landmarks)."""
+    (:func:`landmark_bone_lengths`; 1.0 for true joints, e.g. a test's oracle landmarks).
+    ``fit_fingers``: the four fingers' depths from MediaPipe's fingers bent to fit their 2D
+    (:func:`fit_finger_bends`; hands stage v13) instead of the bone-length blend
+    (:func:`refine_by_bone_lengths`, which still places the thumb)."""
     candidates = palm_candidates(uv, intrinsics, right, refine)  # each (5, 3)
     if not candidates:
         return None
@@ -166,9 +180,13 @@ def palm_pnp_pose(
     model = (world_landmarks - world_landmarks[palm].mean(axis=0)) @ rot.T + chosen.mean(axis=0)
     z = np.maximum(model[:, 2], 1e-3)  # (21,) depth of each joint from the posed model
     lengths = landmark_bone_lengths(world_landmarks, proximal_ratio)  # (21,) m, template size
-    return refine_by_bone_lengths(
+    points = refine_by_bone_lengths(
         on_rays(uv, z, intrinsics), model[:, 2], uv, intrinsics, lengths
-    ), rot
+    )
+    if fit_fingers:  # the fit's depths, each joint kept on its own landmark's ray
+        fitted = fit_finger_bends(points, uv, world_landmarks, rot, intrinsics, lengths)
+        points = on_rays(uv, np.maximum(fitted[:, 2], 1e-3), intrinsics)
+    return points, rot
 
 
 def bone_lengths(world_landmarks: np.ndarray) -> np.ndarray:
@@ -250,6 +268,154 @@ def refine_by_bone_lengths(
                 w = min(1.0, r / length)
                 depth = w * bone + (1.0 - w) * model
             out[child] = ray * (max(depth, 1e-3) / ray[2])
+    return out
+
+
+def palm_axes(points: np.ndarray) -> np.ndarray | None:
+    """Rows ``(3, 3)``: the palm's unit axes from ``points (21, 3)`` (any frame): ``x`` from the
+    wrist to the middle knuckle, ``t`` from the pinky knuckle towards the index one (made
+    orthogonal to ``x``) and ``n = x cross t``, normal to the palm; None when degenerate. The same
+    rule on a left and a right hand gives normals out of opposite sides of the palm (out of the
+    back of a right hand), so a bend towards ``n`` closes a left hand and opens a right one; the
+    fit (:func:`fit_finger_bends`) pulls bends towards MediaPipe's either way, so it does not
+    need the side."""
+    x = points[9] - points[0]  # (3,) wrist to middle knuckle
+    t = points[5] - points[17]  # (3,) pinky knuckle to index knuckle
+    x_norm = float(np.linalg.norm(x))
+    if not np.isfinite(x_norm) or x_norm <= 0:
+        return None
+    x = x / x_norm
+    t = t - (t @ x) * x
+    t_norm = float(np.linalg.norm(t))
+    if not np.isfinite(t_norm) or t_norm <= 1e-9:
+        return None
+    t = t / t_norm
+    return np.stack([x, t, np.cross(x, t)])  # (3, 3)
+
+
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``a x b`` over the last axis (size 3), broadcast (np.cross's overhead dominated the fit)."""
+    return np.stack(
+        [
+            a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1],
+            a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2],
+            a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0],
+        ],
+        axis=-1,
+    )
+
+
+def _turn(axis: np.ndarray, angle: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """``v (F, B, 3)`` turned about unit ``axis (F, 3)`` by ``angle (F, B)`` radians (Rodrigues)."""
+    c, s = np.cos(angle)[..., None], np.sin(angle)[..., None]  # (F, B, 1)
+    a = axis[:, None, :]  # (F, 1, 3)
+    return v * c + _cross(a, v) * s + a * np.sum(a * v, axis=-1, keepdims=True) * (1.0 - c)
+
+
+def bend_fingers(
+    knuckles: np.ndarray,
+    directions: np.ndarray,
+    lengths: np.ndarray,
+    changes: np.ndarray,
+    normal: np.ndarray,
+) -> np.ndarray:
+    """``(F, 3, 3)`` the three joints after each of ``knuckles (F, 3)`` of fingers whose bones
+    point along unit ``directions (F, 3, 3)`` with ``lengths (F, 3)`` metres, changed by
+    ``changes (F, 4)`` radians: a splay of the whole finger about the palm's ``normal (3,)``, then
+    a bend of each bone and those after it about the finger's hinge axis (the first bone's
+    direction in the palm plane crossed with ``normal``: a positive bend turns the finger towards
+    ``normal``). Zero changes give the bones as they are."""
+    count = len(knuckles)
+    normals = np.broadcast_to(normal, (count, 3))  # (F, 3)
+    along = directions[:, 0] - (directions[:, 0] @ normal)[:, None] * normal  # (F, 3) in plane
+    along /= np.maximum(np.linalg.norm(along, axis=1, keepdims=True), 1e-12)
+    hinge = _cross(along, normal)  # (F, 3)
+    dirs = _turn(normals, np.repeat(changes[:, :1], 3, axis=1), directions)  # (F, 3, 3) splayed
+    hinge = _turn(normals, changes[:, :1], hinge[:, None, :])[:, 0]  # (F, 3)
+    dirs = _turn(hinge, np.cumsum(changes[:, 1:], axis=1), dirs)  # (F, 3, 3) bent
+    return knuckles[:, None, :] + np.cumsum(lengths[..., None] * dirs, axis=1)
+
+
+def fit_finger_bends(
+    points: np.ndarray,
+    uv: np.ndarray,
+    world_landmarks: np.ndarray,
+    cam_from_landmarks: np.ndarray,
+    intrinsics: np.ndarray,
+    lengths: np.ndarray,
+    pixel_sigma: float = FINGER_PIXEL_SIGMA,
+    angle_sigma_deg: float = FINGER_ANGLE_SIGMA_DEG,
+    iterations: int = FINGER_ITERATIONS,
+) -> np.ndarray:
+    """Camera points ``(21, 3)``: ``points (21, 3)`` (the lift, palm placed) with the four
+    fingers' joints replaced by MediaPipe's fingers bent to fit their landmarks ``uv (21, 2)``.
+
+    Each finger (index..pinky) hangs from its placed knuckle with MediaPipe's bone directions
+    (``world_landmarks (21, 3)`` turned by ``cam_from_landmarks (3, 3)``) and the bone
+    ``lengths (21,)`` (:func:`landmark_bone_lengths`), changed by four angles
+    (:func:`bend_fingers`): a splay about the placed palm's normal (:func:`palm_axes`) and a bend
+    at each of its three joints about the finger's hinge axis. The angles minimise the joints'
+    reprojection error (scaled by ``pixel_sigma`` of the landmark box's diagonal) plus a pull
+    towards zero (MediaPipe's own shape, scaled by ``angle_sigma_deg``), from zero, by damped
+    Gauss-Newton (the four fingers at once). Why: each finger's three joints give six 2D
+    measures for its four angles, so the 2D (good on the four fingers: 4-10 px on the synthetic
+    worlds) decides how far each finger bends towards or away from the camera, where the
+    bone-length blend (:func:`refine_by_bone_lengths`) kept MediaPipe's depths wherever a bone
+    is seen sideways; the pull keeps the side of the ray MediaPipe's bend is on. MediaPipe's
+    shape is kept wherever it already reprojects onto the landmarks (zero changes). The thumb and
+    the palm are unchanged. Returns ``points`` unchanged where the palm's axes are degenerate or
+    the fit is not finite."""
+    axes = palm_axes(points)
+    if axes is None or not np.all(np.isfinite(uv)) or not np.all(np.isfinite(world_landmarks)):
+        return points
+    fx, fy, cx, cy = np.asarray(intrinsics, dtype=np.float64)
+    chains = np.array(FINGER_CHAINS[1:])  # (4, 4) knuckle to tip
+    knuckles = points[chains[:, 0]]  # (4, 3)
+    bones = np.asarray(lengths, dtype=np.float64)[chains[:, 1:]]  # (4, 3)
+    directions = np.diff(world_landmarks[chains], axis=1) @ cam_from_landmarks.T  # (4, 3, 3)
+    norms = np.linalg.norm(directions, axis=2, keepdims=True)  # (4, 3, 1)
+    if np.any(norms <= 0):
+        return points
+    directions = directions / norms
+    target = uv[chains[:, 1:]]  # (4, 3, 2)
+    sigma_px = max(pixel_sigma * float(np.linalg.norm(np.ptp(uv, axis=0))), 1.0)
+    sigma_angle = np.deg2rad(angle_sigma_deg)
+
+    tiled = {c: (np.tile(knuckles, (c, 1)), np.tile(directions, (c, 1, 1)), np.tile(bones, (c, 1)))
+             for c in (1, 4)}  # fmt: skip
+
+    def residuals(changes: np.ndarray) -> np.ndarray:  # (C, 4, 4) -> (C, 4, 10), C = 1 or 4
+        c = len(changes)  # sets of changes, all fingers of all sets in one call
+        joints = bend_fingers(*tiled[c], changes.reshape(-1, 4), axes[2]).reshape(c, 4, 3, 3)
+        z = np.maximum(joints[..., 2], 1e-3)  # (C, 4, 3)
+        pix = np.stack([fx * joints[..., 0] / z + cx, fy * joints[..., 1] / z + cy], axis=-1)
+        return np.concatenate(
+            [((pix - target) / sigma_px).reshape(c, 4, 6), changes / sigma_angle], axis=2
+        )
+
+    changes = np.zeros((4, 4))  # radians: MediaPipe's own shape
+    damping = np.full(4, 1e-3)  # per finger
+    res = residuals(changes[None])[0]  # (4, 10)
+    eps = 1e-6  # radians, forward-difference step
+    nudges = eps * np.eye(4)[:, None, :]  # (4, 1, 4): each angle of every finger at once
+    for _ in range(iterations):
+        jac = np.moveaxis((residuals(changes + nudges) - res) / eps, 0, 2)  # (4, 10, 4)
+        normal = np.einsum("fri,frj->fij", jac, jac)  # (4, 4, 4)
+        grad = np.einsum("fri,fr->fi", jac, res)  # (4, 4)
+        lhs = normal + damping[:, None, None] * (np.eye(4) + normal * np.eye(4))
+        step = -np.linalg.solve(lhs, grad[..., None])[..., 0]  # (4, 4)
+        trial = residuals((changes + step)[None])[0]  # (4, 10)
+        better = (trial**2).sum(axis=1) < (res**2).sum(axis=1)  # (4,)
+        changes = np.where(better[:, None], changes + step, changes)
+        res = np.where(better[:, None], trial, res)
+        damping = np.where(better, damping * 0.3, damping * 10.0)
+        if np.abs(step).max() < 1e-5:  # radians: converged (or stuck) on every finger
+            break
+    joints = bend_fingers(knuckles, directions, bones, changes, axes[2])  # (4, 3, 3)
+    if not np.all(np.isfinite(joints)):
+        return points
+    out = np.array(points, dtype=np.float64)  # (21, 3)
+    out[chains[:, 1:].ravel()] = joints.reshape(-1, 3)
     return out
 
 

@@ -213,7 +213,9 @@ class HandsStage(ClipStage):
     # 12: (mediapipe) landmarks smoothed over time only within runs of frames one link apart
     # (_tracks' link_limit at one frame): two tracks given one side in adjacent frames are not
     # blended into a hand between them.
-    version = 12
+    # 13: the palm lift's four fingers are hinge fingers fitted to their 2D landmarks with a pull
+    # towards MediaPipe's own bends (hand_lift.fit_finger_flexion); the 2D is unchanged.
+    version = 13
     description = "3D hand joints per frame from the clip's labels, de-duplicated and de-spiked"
     config_class = HandsConfig
     inputs: ClassVar[Mapping[str, ShardSchema]] = {"clips": CLIPS}
