@@ -213,8 +213,10 @@ class HandsStage(ClipStage):
     # 12: (mediapipe) landmarks smoothed over time only within runs of frames one link apart
     # (_tracks' link_limit at one frame): two tracks given one side in adjacent frames are not
     # blended into a hand between them.
-    # 13: the palm lift's four fingers are hinge fingers fitted to their 2D landmarks with a pull
-    # towards MediaPipe's own bends (hand_lift.fit_finger_flexion); the 2D is unchanged.
+    # 13: the palm lift's four fingers are MediaPipe's fingers bent to fit their 2D landmarks,
+    # pulled towards MediaPipe's own bends (hand_lift.fit_finger_bends); the 2D is unchanged.
+    # Also (mediapipe) a track off the clip's skin colour and still against the background is
+    # dropped before sides are chosen (scene_check; the EgoDex portrait variant's curtain hand).
     version = 13
     description = "3D hand joints per frame from the clip's labels, de-duplicated and de-spiked"
     config_class = HandsConfig
