@@ -482,8 +482,10 @@ def test_landmark_thinness_of_a_line_a_square_and_a_stretched_square() -> None:
 def test_scene_check_params_say_every_bad_value() -> None:
     from egosim.stages.hands.scene_check import SceneCheckParams
 
-    with pytest.raises(ValueError, match=r"max_skin_distance.*got 0.*analysis_scale.*got 2"):
-        SceneCheckParams(max_skin_distance=0.0, analysis_scale=2.0)
+    with pytest.raises(
+        ValueError, match=r"max_skin_distance.*got 0.*seed_samples.*got 0.*analysis_scale.*got 2"
+    ):
+        SceneCheckParams(max_skin_distance=0.0, seed_samples=0, analysis_scale=2.0)
 
 
 def test_scene_travel_is_zero_for_a_point_on_the_background() -> None:
@@ -641,3 +643,16 @@ def test_curtain_fold_of_the_egodex_portrait_cut_is_not_a_hand() -> None:
     res = hands_from_raw(raw, 832, k, params=params, fps=16.0, frames=frames)
     assert on_fold(res) == 0
     assert res.valid[:, 1].sum() >= 20
+
+
+def test_seed_candidates_spread_over_each_track() -> None:
+    """``scene_check.seed_candidates``: at most ``samples`` detections a track, its first and
+    last among them, evenly spaced; a short track is asked about whole."""
+    from egosim.stages.hands.scene_check import seed_candidates
+
+    long = [(f, 0) for f in range(61)]
+    short = [(f, 1) for f in range(10, 13)]
+    asked = seed_candidates([long, short], (61, 2), 12)  # (61, 2)
+    assert asked[:, 0].sum() == 12 and asked[0, 0] and asked[60, 0]
+    np.testing.assert_array_equal(np.flatnonzero(asked[:, 0]), np.round(np.linspace(0, 60, 12)))
+    np.testing.assert_array_equal(np.flatnonzero(asked[:, 1]), [10, 11, 12])

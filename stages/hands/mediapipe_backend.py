@@ -94,7 +94,7 @@ from egosim.stages.common.hand_lift import (  # one lift for the hands and the m
     scale_to_depth,
 )
 from egosim.stages.hands.filters import Detections, palm_rotations, turn_outliers
-from egosim.stages.hands.scene_check import SceneCheckParams, scene_tracks
+from egosim.stages.hands.scene_check import SceneCheckParams, scene_tracks, seed_candidates
 
 BRIDGED_CONFIDENCE_FACTOR = 0.5  # confidence of interpolated frames relative to detected ones
 WITHHELD_CONFIDENCE_FACTOR = 0.1  # confidence of a hand whose 3D is withheld (2D kept)
@@ -479,7 +479,10 @@ def drop_scene_tracks(
     tracks = _tracks(raw, params)
     if len(tracks) < 2 or params.scene_check is None:
         return raw  # one track has no other hand to seed the skin from
-    presence = landmark_presence(frames, raw, params)  # (T, K)
+    asked = seed_candidates(tracks, raw.present.shape, params.scene_check.seed_samples)  # (T, K)
+    presence = landmark_presence(
+        frames, replace(raw, present=asked), params
+    )  # (T, K) NaN: not asked
     dropped = scene_tracks(frames, raw, tracks, presence, params.scene_check)
     if not dropped:
         return raw

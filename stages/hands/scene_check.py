@@ -10,8 +10,9 @@ two cues across the scene do, together:
   whose landmark-model presence is at least ``seed_presence``; a track never seeds itself): the
   median over the hull's pixels of their Mahalanobis distance from the seed pixels'
   distribution, the median over the track. Real hands measured 0.7-3.5 (3.5: EgoDex's right
-  hand judged against a small hand in the cup's shadow), the curtain fold 4.5-5.5 on each of
-  its four encodes.
+  hand judged against a small hand in the cup's shadow), the curtain fold 4.5-5.9 on each of
+  its four encodes. Presence is asked of at most ``seed_samples`` detections a track
+  (:func:`seed_candidates`).
 - **Still in the scene** (:func:`scene_travel`): the track's centre carried into its first
   frame's coordinates by the background's motion (a similarity per frame pair fitted to tracked
   corners outside every detection), the extent of its 3-frame running median in hand sizes. The
@@ -41,6 +42,7 @@ class SceneCheckParams:
     see the module docstring)."""
 
     seed_presence: float = 0.8  # detections at least this present seed the clip's skin colour
+    seed_samples: int = 12  # detections per track asked for their presence (evenly spaced; speed)
     max_skin_distance: float = 4.0  # a track further than this from the seed is off-skin
     min_scene_travel: float = 0.5  # a track moving less (hand sizes, against the scene) is still
     analysis_scale: float = 0.5  # images are analysed at this scale (speed)
@@ -53,10 +55,26 @@ class SceneCheckParams:
             problems.append(f"max_skin_distance must be > 0, got {self.max_skin_distance!r}")
         if not self.min_scene_travel >= 0:
             problems.append(f"min_scene_travel must be >= 0, got {self.min_scene_travel!r}")
+        if self.seed_samples < 1:
+            problems.append(f"seed_samples must be >= 1, got {self.seed_samples!r}")
         if not 0 < self.analysis_scale <= 1:
             problems.append(f"analysis_scale must be in (0, 1], got {self.analysis_scale!r}")
         if problems:
             raise ValueError("invalid SceneCheckParams: " + "; ".join(problems))
+
+
+def seed_candidates(
+    tracks: list[list[tuple[int, int]]], shape: tuple[int, int], samples: int
+) -> np.ndarray:
+    """``shape (T, K)`` bool: at most ``samples`` detections of each track, evenly spaced over
+    it (first and last included), whose presence is asked to seed the skin colour (the landmark
+    model costs about 6 ms a detection: a 61-frame clip with both hands took 0.7 s for all)."""
+    out = np.zeros(shape, dtype=bool)
+    for tr in tracks:
+        pick = np.unique(np.round(np.linspace(0, len(tr) - 1, min(samples, len(tr)))).astype(int))
+        for i in pick:
+            out[tr[i]] = True
+    return out
 
 
 def hull_mask(shape: tuple[int, int], uv: np.ndarray, grow: int = 0) -> np.ndarray:
