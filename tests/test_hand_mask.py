@@ -980,3 +980,98 @@ def test_steady_directions_keeps_turns_that_stay_or_runs_too_long() -> None:
     got = np.degrees(np.arctan2(out[:, 0, 1], out[:, 0, 0]))
     assert np.isnan(got[[0, 1, 4, 5]]).all()
     np.testing.assert_allclose(got[2:4], [86.7, 93.3], atol=0.1)  # 80 -> 100, by time
+
+
+def _floor_edge_frame() -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """``(frame (H, W, 3), keypoints (21, 2), arm (H, W), floor (H, W))``, after HOT3D window
+    1's frame 0: a hand whose own direction (wrist minus middle knuckle) is 44 degrees (image,
+    y down) lies on the edge of a white table, 20 degrees below the horizontal through its
+    wrist; below the edge a near-black, uniform floor; the skin forearm runs from the wrist at
+    110 degrees over the floor. A floor strip along the table's edge stands out from the table
+    on one side and not from the floor on the other: by the mean contrast of its two sides
+    (and a smaller turn) it beats the forearm, which stands out from both (v18: 44 degrees,
+    score 0.03; nearer side: the forearm, 0.32)."""
+    h, w = 160, 240
+    rng = np.random.default_rng(3)
+    wrist = np.array([100.5, 60.5])
+    table = np.clip(rng.normal((235, 232, 225), 6, (h, w, 3)), 0, 255)
+    floor = np.clip(rng.normal(12, 1.5, (h, w, 3)), 0, 255)
+    yy, xx = np.mgrid[0:h, 0:w] + 0.5
+    edge = np.radians(20.0)
+    below = (yy - wrist[1]) * np.cos(edge) - (xx - wrist[0]) * np.sin(edge) > 0  # (H, W)
+    image = np.where(below[..., None], floor, table).astype(np.uint8)
+    d = np.array([np.cos(np.radians(110.0)), np.sin(np.radians(110.0))])
+    skin = np.zeros((h, w), np.uint8)
+    cv2.line(skin, tuple(int(v) for v in wrist), tuple(int(v) for v in wrist + 400 * d), 1, 19)
+    texture = np.clip(rng.normal((200, 150, 130), 8, (h, w, 3)), 0, 255).astype(np.uint8)
+    image[skin > 0] = texture[skin > 0]
+    up = -np.array([np.cos(np.radians(50.0)), np.sin(np.radians(50.0))])  # wrist to knuckles
+    kp = _hand_keypoints(wrist, up, 30.0, 20.0)  # (21, 2)
+    arm = _sleeve_pixels(h, w, wrist, d)
+    near = cv2.dilate(skin, np.ones((3, 3), np.uint8), iterations=12) > 0  # the arm and its rim
+    return image, kp, arm, below & ~near
+
+
+def test_first_frame_arm_must_stand_out_from_both_sides(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """HOT3D window 1's frame 0 (hand_mask v19): the search took a uniform strip of dark floor
+    that stands out on one side only over the forearm, and no steady run can correct a track's
+    first frame. There the strip's contrast is the nearer side's: the forearm is masked and
+    the floor is not; without the rule (``start_both_sides`` False) the floor is masked and the
+    forearm missed."""
+    import egosim.stages.hand_mask.stage as stage
+    from egosim.stages.hand_mask import arm_region
+
+    image, kp, arm, floor = _floor_edge_frame()
+    start = arm_region._arm_start(kp, CapsuleParams(), arm_region.ArmParams(), *image.shape[:2])
+    assert start is not None
+    mask, wrist, d, hand_len, radius, _ = start
+    lab = cv2.cvtColor(image, cv2.COLOR_RGB2LAB).astype(np.float32)
+    angles = {}
+    for nearer in (False, True):
+        best, _, _ = arm_region.arm_search(lab, wrist, d, hand_len, mask, 90.0, 3.0, radius,
+                                           nearer_side=nearer)  # fmt: skip
+        angles[nearer] = float(np.degrees(np.arctan2(best[1], best[0])))
+    assert abs(angles[True] - 110.0) <= 15.0, angles  # the forearm
+    assert abs(angles[False] - 110.0) > 30.0, angles  # a floor strip
+
+    frames = np.stack([image, image])  # (2, H, W, 3): the hand's track starts at t=0
+    keypoints = np.full((2, 2, 21, 2), np.nan)
+    keypoints[:, 0] = kp
+    valid = np.array([[True, False], [True, False]])
+    masks = stage.masks_from_keypoints(frames, keypoints, valid, HandMaskConfig()) > 0
+    assert masks[0][arm].mean() > 0.9, f"forearm {masks[0][arm].mean():.2f}"
+    assert masks[0][floor].mean() < 0.02, f"floor {masks[0][floor].mean():.3f}"
+    off = dataclasses.replace(stage.ArmParams(), start_both_sides=False)
+    monkeypatch.setattr(stage, "ArmParams", lambda **kw: dataclasses.replace(off, **kw))
+    old = stage.masks_from_keypoints(frames, keypoints, valid, HandMaskConfig()) > 0
+    assert old[0][floor].mean() > 0.3 and old[0][arm].mean() < 0.5, (
+        f"without the rule: floor {old[0][floor].mean():.2f}, forearm {old[0][arm].mean():.2f}"
+    )
+
+
+def test_track_starts_are_the_first_frames_of_each_hand(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The search asks a strip to stand out from both sides exactly in the frames where a
+    hand's track starts: frame 0, and a frame after one that missed that hand."""
+    import egosim.stages.hand_mask.stage as stage
+
+    seen: dict[int, list[bool]] = {}
+
+    def recording(
+        image: np.ndarray, keypoints: np.ndarray, valid: np.ndarray, capsule: CapsuleParams,
+        arm: object, directions: np.ndarray | None = None, starts: np.ndarray | None = None,
+    ) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+        assert starts is not None
+        seen[len(seen)] = [bool(v) for v in starts]
+        h, w = image.shape[:2]
+        return np.zeros((len(keypoints), h, w), np.uint8), np.full((len(keypoints), 2), np.nan)
+
+    monkeypatch.setattr(stage, "hand_labels", recording)
+    valid = np.array([[True, False], [True, True], [False, True], [True, True], [True, False]])
+    frames = np.zeros((5, 16, 16, 3), np.uint8)
+    keypoints = np.full((5, 2, 21, 2), np.nan)
+    stage.masks_from_keypoints(frames, keypoints, valid, HandMaskConfig(carry_frames=0))
+    assert [seen[t] for t in range(5)] == [
+        [True, False], [False, True], [False, False], [True, False], [False, False]
+    ]  # fmt: skip

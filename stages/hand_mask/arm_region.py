@@ -35,7 +35,9 @@ hand with 2D keypoints (MANO order, pixels, pixel centres at integer + 0.5):
 Over a clip (``stage.masks_from_keypoints``), a run of at most ``steady_frames`` frames whose
 arm directions all swing more than ``steady_jump_deg`` away from the frames either side, which
 agree within ``steady_agree_deg``, is drawn along the direction between those, with no search
-and no re-aim (:func:`steady_directions`).
+and no re-aim (:func:`steady_directions`). That cannot reach the first frame of a hand's track
+(no frame before it): there a strip that stands out from both of its sides, not only on
+average, is searched too, and drawn when it is another direction (``start_both_sides``).
 
 GrabCut (OpenCV) learns the colour models from these labels and relabels the two "probably"
 regions; only the pixels connected to a certain seed are kept, so a patch of skin-coloured table
@@ -112,6 +114,11 @@ class ArmParams:
     # :func:`steady_directions`)
     steady_jump_deg: float = 45.0  # ... degrees a run's directions lie from both frames beside it
     steady_agree_deg: float = 30.0  # ... degrees within which those two frames must agree
+    start_both_sides: bool = True  # at the first frame of a hand's track, which no steady run
+    # can reach (no frame before it), the arm is also searched for a strip that stands out from
+    # both sides (contrast of the nearer side, not the mean: a strip of uniform floor along a
+    # table's edge stands out from the table only; see :func:`arm_search`), and that direction
+    # is drawn when it lies more than ``steady_jump_deg`` from the plain search's
 
     def __post_init__(self) -> None:
         problems = []
@@ -210,6 +217,7 @@ def arm_search(
     other: np.ndarray | None = None,
     other_tolerance: float = 18.0,
     other_floor: float = 0.1,
+    nearer_side: bool = False,
 ) -> tuple[np.ndarray, np.ndarray | None, float]:
     """``(direction (2,), strip colour (3,) or None, score)`` of the forearm from ``wrist``.
 
@@ -224,7 +232,11 @@ def arm_search(
     the other hand's arm, a strip within ``other_tolerance`` of it has its score multiplied by
     ``((distance + 1) / (other_tolerance + 1)) ** 2``, at least ``other_floor``: both arms wear
     one shirt (or bare skin), while a smooth strip of table between the two arms stands out
-    from its sides (the arms) better than a knitted sleeve whose sides lie on itself. The
+    from its sides (the arms) better than a knitted sleeve whose sides lie on itself. With
+    ``nearer_side`` the contrast is the nearer side's instead of the mean of the two: a strip
+    must stand out from both sides, as an arm does, and a uniform strip along the edge of a
+    dark floor, which stands out from the table on one side only, does not (HOT3D window 1,
+    t=0: that floor scored 0.12, the forearm 0.33; nearer side: the forearm wins). The
     lowest score wins (lower is better); the hand's direction is kept, with no colour and an
     infinite score, when no candidate has enough samples.
     """
@@ -252,7 +264,10 @@ def arm_search(
             side = colours_at(wrist + steps[:, None] * d + off * n)  # (N', 3)
             if len(side) >= 4:
                 contrast.append(float(np.linalg.norm(np.median(side, axis=0) - centre)))
-        away = float(np.mean(contrast)) if contrast else 0.0
+        if not contrast:
+            away = 0.0
+        else:
+            away = float(min(contrast)) if nearer_side else float(np.mean(contrast))
         # +1 Lab unit of noise floor, so that a perfectly uniform strip still prefers no turn
         score = (spread + 1.0) / (away + 1.0) * (1.0 + turn_cost * abs(np.radians(turn)))
         if other is not None and other_tolerance > 0:
@@ -396,13 +411,17 @@ def draw_arm_labels(
     lab: np.ndarray | None = None,
     other: np.ndarray | None = None,
     direction: np.ndarray | None = None,
+    nearer_side: bool = False,
 ) -> np.ndarray | None:
     """Paint one hand's GrabCut labels into ``labels (H, W)`` uint8 in place (see module doc).
 
     Returns the arm's unit image direction ``(2,)`` from the wrist that was drawn (None when the
     hand has no arm start: no scale, no direction or no forearm). ``direction (2,)``, when
     given, is drawn as it is: no search and no re-aim (a direction the neighbouring frames
-    agree on, see :func:`steady_directions`).
+    agree on, see :func:`steady_directions`). With ``nearer_side`` the search is run again
+    asking the strip to stand out from both sides (:func:`arm_search`), and that direction is
+    drawn when it lies more than ``steady_jump_deg`` from the first: another arm, not the
+    same one a step off (the first search's choice within one valley is kept).
 
     With ``lab (H, W, 3)``, the image in float32 Lab, the forearm's direction is searched round
     the hand's own (:func:`arm_direction`, with ``other (3,)``, the Lab colour of the other
@@ -436,17 +455,14 @@ def draw_arm_labels(
             extra = {} if other is None else {
                 "other": other, "other_tolerance": arm.other_arm, "other_floor": arm.other_arm_floor
             }  # fmt: skip
-            d = arm_direction(
-                lab,
-                wrist,
-                d,
-                hand_len,
-                mask,
-                max_turn_deg=arm.max_turn_deg,
-                turn_cost=arm.turn_cost,
-                radius=r_wrist,
-                **extra,
-            )
+            search_args = (lab, wrist, hand_dir, hand_len, mask)
+            search_kw = {"max_turn_deg": arm.max_turn_deg, "turn_cost": arm.turn_cost,
+                         "radius": r_wrist, **extra}  # fmt: skip
+            d = arm_direction(*search_args, **search_kw)
+            if nearer_side:
+                both = arm_direction(*search_args, nearer_side=True, **search_kw)
+                if _turn_deg(both, d) > arm.steady_jump_deg:
+                    d = both  # another arm, not the same one a step off: see the docstring
         fan, band, seed, region = _arm_regions(lab, mask, wrist, d, hand_len, scale, capsule, arm)
         if region is not None and arm.refine_direction:
             better = region_direction(region, wrist, d)
@@ -476,7 +492,7 @@ def draw_arm_labels(
 
 def other_arm_colours(
     lab: np.ndarray, keypoints: np.ndarray, valid: np.ndarray, capsule: CapsuleParams,
-    arm: ArmParams,
+    arm: ArmParams, starts: np.ndarray | None = None,
 ) -> list[np.ndarray | None]:  # fmt: skip
     """Per hand, the Lab colour ``(3,)`` of the other hand's arm to prefer, or None.
 
@@ -485,18 +501,25 @@ def other_arm_colours(
     above ``other_arm_unsure`` (no clear arm found alone), the other's score is lower than its
     own and at most ``other_arm_rare`` of the frame (sampled every 4 px) lies
     within ``other_arm`` of that colour: the surer arm tells the other which colour the arms
-    are, when that colour is rare enough to mean arm.
+    are, when that colour is rare enough to mean arm. ``starts (K,)``: hands searched with
+    ``nearer_side`` (see :func:`hand_labels`).
     """
     h, w = lab.shape[:2]
     alone: list[tuple[np.ndarray, float] | None] = []
-    for hand, ok in zip(keypoints, valid, strict=True):
+    for k, (hand, ok) in enumerate(zip(keypoints, valid, strict=True)):
         start = _arm_start(np.asarray(hand, np.float64), capsule, arm, h, w) if ok else None
         if start is None or not start[5]:
             alone.append(None)
             continue
         mask, wrist, d, hand_len, r_wrist, _ = start
-        _, colour, score = arm_search(lab, wrist, d, hand_len, mask, arm.max_turn_deg,
-                                      arm.turn_cost, r_wrist)  # fmt: skip
+        best, colour, score = arm_search(lab, wrist, d, hand_len, mask, arm.max_turn_deg,
+                                         arm.turn_cost, r_wrist)  # fmt: skip
+        if starts is not None and starts[k]:  # as draw_arm_labels chooses
+            both, both_colour, both_score = arm_search(lab, wrist, d, hand_len, mask,
+                                                       arm.max_turn_deg, arm.turn_cost, r_wrist,
+                                                       nearer_side=True)  # fmt: skip
+            if _turn_deg(both, best) > arm.steady_jump_deg:
+                colour, score = both_colour, both_score
         alone.append(None if colour is None else (colour, score))
     out: list[np.ndarray | None] = []
     for k, own in enumerate(alone):
@@ -677,12 +700,15 @@ def hand_labels(
     capsule: CapsuleParams,
     arm: ArmParams,
     directions: np.ndarray | None = None,
+    starts: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """``(labels (K, H, W) uint8, drawn (K, 2))``: each hand's GrabCut labels of ``image (H, W,
     3)`` (``cv2.GC_*``; see :func:`draw_arm_labels`) and the arm direction drawn (NaN: none).
 
     ``keypoints (K, 21, 2)`` pixels, ``valid (K,)`` selects the hands; ``directions (K, 2)``:
-    per hand a direction to draw as it is (no search, no re-aim), NaN to search.
+    per hand a direction to draw as it is (no search, no re-aim), NaN to search; ``starts
+    (K,)`` bool: hands whose track starts in this frame, searched for a strip that stands out
+    from both sides (``nearer_side`` of :func:`arm_search`; ``ArmParams.start_both_sides``).
     """
     h, w = image.shape[:2]
     own = np.full((len(keypoints), h, w), cv2.GC_BGD, np.uint8)
@@ -692,15 +718,16 @@ def hand_labels(
         lab = cv2.cvtColor(image, cv2.COLOR_RGB2LAB).astype(np.float32)
     others: list[np.ndarray | None] = [None] * len(keypoints)
     if lab is not None and arm.other_arm > 0 and int(np.sum(valid)) > 1:
-        others = other_arm_colours(lab, keypoints, valid, capsule, arm)
+        others = other_arm_colours(lab, keypoints, valid, capsule, arm, starts)
     for k, (hand, ok) in enumerate(zip(keypoints, valid, strict=True)):
         if not ok:
             continue
         fixed = None
         if directions is not None and np.all(np.isfinite(directions[k])):
             fixed = directions[k]
+        nearer = bool(starts is not None and starts[k])
         d = draw_arm_labels(
-            own[k], np.asarray(hand, dtype=np.float64), capsule, arm, lab, others[k], fixed
+            own[k], np.asarray(hand, dtype=np.float64), capsule, arm, lab, others[k], fixed, nearer
         )
         if d is not None:
             drawn[k] = d

@@ -15,7 +15,9 @@ Backends:
   skeleton and a strip beyond the wrist along the arm's image direction (searched round the
   hand's own, wrist minus middle knuckle, by colour, then re-aimed along the arm-coloured
   region; an arm whose direction swings away for a few frames and back, between frames that
-  agree, is drawn along theirs: see ``arm_region.steady_directions``); a hand the keypoints miss
+  agree, is drawn along theirs: see ``arm_region.steady_directions``; in the first frame of a
+  hand's track, which that cannot reach, a strip that stands out from both of its sides, not
+  only on average, is preferred when it is another direction); a hand the keypoints miss
   in a frame is first carried there from the nearest frame
   that found it (at most ``carry_frames`` away) by tracking its pixels (see ``carry``); then
   each hand's mask is carried by optical flow up to ``propagate_frames`` frames backwards and
@@ -159,9 +161,16 @@ def masks_from_keypoints(
     capsule = CapsuleParams(radius_scale=config.radius_scale, forearm=config.forearm)
     arm = ArmParams(fan_half_angle_deg=config.fan_half_angle_deg)
 
+    # The first frame of each hand's track: no steady run reaches it, so its search asks that
+    # the arm's strip stand out from both sides (HOT3D window 1's frame 0: a floor strip).
+    starts = valid.copy()  # (T, K)
+    starts[1:] &= ~valid[:-1]
+    if not arm.start_both_sides:
+        starts[:] = False
+
     def labels(t: int, directions: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Frame ``t``'s GrabCut labels ``(K, H, W)`` and arm directions ``(K, 2)``."""
-        return hand_labels(frames[t], keypoints[t], valid[t], capsule, arm, directions)
+        return hand_labels(frames[t], keypoints[t], valid[t], capsule, arm, directions, starts[t])
 
     # Labels first (arm searches), GrabCut once per frame after: an arm that swung away for a
     # few frames and back is drawn between its neighbours (steady_directions) before the cut.
@@ -269,7 +278,7 @@ class HandMaskStage(ClipStage):
     # cleaned joints and a replacement camera (see the module docstring)
     optional_inputs: ClassVar[Mapping[str, ShardSchema]] = {**CAMERA_ROLES, "hands": HANDS}
     output = HAND_MASK
-    version = 18  # 2: image-space arm masks (no world axis). 3: arm found by a colour walk, masks
+    version = 19  # 2: image-space arm masks (no world axis). 3: arm found by a colour walk, masks
     # carried into frames whose hands were missed. 4: arm re-aimed along its colour region.
     # 5: that region is probably arm wherever it runs. 6: each hand carried into the frames that
     # missed it, and only its certain seeds (skeleton, arm strip) carried with confidence.
@@ -290,6 +299,9 @@ class HandMaskStage(ClipStage):
     # tracked); letterbox bars (rows / columns of black from the edge) are never hand
     # 18: a hand's arm that swings more than 45 degrees away for at most 10 frames, between
     # frames that agree, is drawn along the direction between those (steady_directions)
+    # 19: in the first frame of a hand's track a strip that stands out from both sides (the
+    # nearer side's contrast), not on average, is drawn when it is another direction
+    # (more than steady_jump_deg from the plain search's; start_both_sides)
     backends = ("keypoints", "sam")
     # What process reads (the executor decodes nothing else): the frames, joints and camera
     # of the clip, the robot arm's mask, the cleaned joints.
