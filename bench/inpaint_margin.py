@@ -49,6 +49,13 @@ fill, not the image-aligned one. ``--runs RUNS`` (default ``runs/real_s24b``, a 
   neither clip shows a hand, so the sub-clip's first frame needs its own;
 - ``dwm-run:<id>``: the same, with the masks of the run's ``hand_mask`` step (from its
   ``hands`` stage's joints: the masks the workflow ships) instead of the bench's.
+
+``--starts N`` also scores up to ``N - 1`` later sub-clips of each DWM clip (rows
+``<case>@<start>``, printed as the groups ``dwm@``, ``dwm-depth@``, ``dwm-run@``): each starts
+at a later frame with a visible hand that leaves 12 frames to fill from (:func:`start_frames`),
+against ``videos_static`` at that frame. The two clips hold few cases; later starts give other
+holes (a hand on a drawer it keeps touching, a held object) and other frames after them. The
+depth rows of a start are left out when the plane sweep finds too little parallax after it.
 """
 
 from __future__ import annotations
@@ -194,8 +201,12 @@ def sweep_depth(
     posed = np.ones(len(frames), bool)
     depth = window_depth(frames, None, intrinsics, cam_from_world, posed, points[pick], config)
     if isinstance(depth, str):
-        raise SystemExit(f"no plane-sweep depth{depth}")
+        raise NoSweepDepth(f"no plane-sweep depth{depth}")
     return depth[0], depth[1]
+
+
+class NoSweepDepth(SystemExit):
+    """The plane sweep made no depth (too little parallax after the sub-clip's first frame)."""
 
 
 def drifted_poses(world_from_cam: np.ndarray, step_deg: float, seed: int) -> np.ndarray:
@@ -216,11 +227,15 @@ def drifted_poses(world_from_cam: np.ndarray, step_deg: float, seed: int) -> np.
     return out
 
 
-def dwm_rows(cid: str, configs, data: Path, out: Path, runs: Path | None = None) -> list[dict]:
+def dwm_rows(
+    cid: str, configs, data: Path, out: Path, runs: Path | None = None, starts: int = 1
+) -> list[dict]:
     """Figures of one real DWM clip under every config (see the module docstring).
 
     ``runs``: a ``bench.real_video`` output folder; when it holds this clip's run, the depth
     fill with that run's cameras is measured too (``dwm-depth`` and ``dwm-run`` rows).
+    ``starts``: sub-clips measured, from :func:`start_frames` (1: the first frame with a
+    hand only); rows of a later start ``s`` are named ``<case>@<s>``.
     """
     video, static, inside, hands, _ = dwm_truth(cid, data)
     versions = f"hm{HandMaskStage.version}_hands{HandsStage.version}"  # masks, keypoints
@@ -231,18 +246,59 @@ def dwm_rows(cid: str, configs, data: Path, out: Path, runs: Path | None = None)
         uv, present = mediapipe_keypoints(video)
         masks = (masks_from_keypoints(video, uv, present, HandMaskConfig()) > 0).astype(np.uint8)
         np.savez_compressed(path, masks=masks)
+    run = None if runs is None else runs / f"dwm_{cid}"
+    if run is not None and not (run / "cameras").is_dir():
+        print(f"no run of dwm_{cid} in {runs}: depth-path rows left out", flush=True)
+        run = None
+    rows = []
+    for n, s in enumerate(start_frames(hands, starts)):
+        at = "" if n == 0 else f"@{s}"
+        rows += _dwm_start_rows(cid, at, s, configs, video, static, inside, hands, masks, out, run)
+    return rows
+
+
+def start_frames(hands: np.ndarray, starts: int, min_left: int = 12) -> list[int]:
+    """The frames sub-clips start at: the first frame whose ``hands (T, H, W)`` truth shows a
+    hand (``MIN_HAND_FRACTION``), then up to ``starts - 1`` more evenly spread over the later
+    frames with a hand that leave ``min_left`` frames to fill from (each scored as if a clip
+    started there: other holes, other frames after them)."""
     shown = np.nonzero(hands.reshape(len(hands), -1).mean(axis=1) >= MIN_HAND_FRACTION)[0]
-    s = int(shown[0]) if len(shown) else 0
+    if not len(shown):
+        return [0]
+    later = shown[(shown > shown[0]) & (shown <= len(hands) - min_left)]
+    if starts <= 1 or not len(later):
+        return [int(shown[0])]
+    pick = np.unique(np.round(np.linspace(0, len(later) - 1, min(starts - 1, len(later)))))
+    return [int(shown[0])] + [int(later[int(i)]) for i in pick]
+
+
+def _dwm_start_rows(
+    cid: str,
+    at: str,
+    s: int,
+    configs: list[tuple[str, InpaintConfig]],
+    video: np.ndarray,
+    static: np.ndarray,
+    inside: np.ndarray,
+    hands: np.ndarray,
+    masks: np.ndarray,
+    out: Path,
+    run: Path | None,
+) -> list[dict]:
+    """:func:`dwm_rows`' figures of the sub-clip ``video[s:]`` (row names end in ``at``);
+    ``video``, ``static (T, H, W, 3)``, ``hands``, ``masks (T, H, W)``, ``inside (H, W)`` as
+    :func:`bench.hand_free_real.dwm_truth` and the mask cache give them."""
     region = (dilate(hands[s], HAND_DILATE_PX) > 0) & inside
     # case -> (masks, poses, intrinsics, depth of the sub-clip's first frame)
-    paths: dict[str, tuple] = {f"dwm:{cid}": (masks, None, np.zeros(4), (None, None))}
-    run = None if runs is None else runs / f"dwm_{cid}"
-    if run is not None and (run / "cameras").is_dir():
-        poses, intrinsics, depth, run_masks = run_cameras(run, video, s)
-        paths[f"dwm-depth:{cid}"] = (masks, poses, intrinsics, depth)
-        paths[f"dwm-run:{cid}"] = (run_masks, poses, intrinsics, depth)
-    elif run is not None:
-        print(f"no run of dwm_{cid} in {runs}: depth-path rows left out", flush=True)
+    paths: dict[str, tuple] = {f"dwm:{cid}{at}": (masks, None, np.zeros(4), (None, None))}
+    if run is not None:
+        try:
+            poses, intrinsics, depth, run_masks = run_cameras(run, video, s)
+        except NoSweepDepth as exc:  # too little parallax after frame s: aligned row only
+            print(f"dwm_{cid} from frame {s}: {exc}: depth-path rows left out", flush=True)
+        else:
+            paths[f"dwm-depth:{cid}{at}"] = (masks, poses, intrinsics, depth)
+            paths[f"dwm-run:{cid}{at}"] = (run_masks, poses, intrinsics, depth)
     rows = []
     for case, (case_masks, poses, intrinsics, depth) in paths.items():
         for name, cfg in configs:
@@ -331,6 +387,13 @@ def main() -> int:
         action="store_true",
         help="synthetic depth fill on the depth_camera plane sweep's depth (sweep_depth)",
     )
+    parser.add_argument(
+        "--starts",
+        type=int,
+        default=1,
+        help="DWM sub-clips per clip: the first frame with a hand, then evenly spread later "
+        "starts (start_frames; their groups are printed apart)",
+    )
     parser.add_argument("--data", type=Path, default=DEFAULT_DATA, help="the shared data folder")
     parser.add_argument(
         "--runs",
@@ -364,15 +427,18 @@ def main() -> int:
     if not args.skip_real and (args.data / DWM).is_dir():
         for cid in ("00013", "00017"):
             runs = None if str(args.runs) == "none" else args.runs
-            for row in dwm_rows(cid, configs, args.data, args.out, runs):
+            for row in dwm_rows(cid, configs, args.data, args.out, runs, args.starts):
                 rows.append(row)
                 print(_line(row), flush=True)
     groups = {  # case -> in the group: default-world cases, alt cases, DWM clips
         "tuned": lambda case: not case.startswith(("alt:", "dwm")),
         "held": lambda case: case.startswith("alt:"),
-        "dwm": lambda case: case.startswith("dwm:"),
-        "dwm-depth": lambda case: case.startswith("dwm-depth:"),
-        "dwm-run": lambda case: case.startswith("dwm-run:"),
+        "dwm": lambda case: case.startswith("dwm:") and "@" not in case,
+        "dwm-depth": lambda case: case.startswith("dwm-depth:") and "@" not in case,
+        "dwm-run": lambda case: case.startswith("dwm-run:") and "@" not in case,
+        "dwm@": lambda case: case.startswith("dwm:") and "@" in case,  # later starts
+        "dwm-depth@": lambda case: case.startswith("dwm-depth:") and "@" in case,
+        "dwm-run@": lambda case: case.startswith("dwm-run:") and "@" in case,
     }
     for name, _ in configs:
         for group, member in groups.items():
