@@ -6,7 +6,13 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.inpaint_margin import drifted_poses, start_frames, sweep_depth, world_masks
+from bench.inpaint_margin import (
+    drifted_poses,
+    scene_level,
+    start_frames,
+    sweep_depth,
+    world_masks,
+)
 from egosim.pipeline.geometry import rotation_angle_deg, transform_points, unproject_depth
 from egosim.stages.hand_mask.stage import HandMaskStage
 from egosim.world import WorldConfig, render_clip
@@ -77,3 +83,19 @@ def test_start_frames_first_hand_then_spread_over_later_hands() -> None:
     assert start_frames(hands, 5) == [3, 4, 9, 23, 28]  # later[0, 5, 9, 14]: 14 / 3 apart
     assert start_frames(hands, 100) == [3, *later]
     assert start_frames(np.zeros((20, 4, 4), bool), 5) == [0]  # no hand: frame 0 only
+
+
+def test_scene_level_sees_a_moved_scene_round_the_hole_only() -> None:
+    """The band 15-45 px round the hand: a change there (an opened drawer) lowers the level,
+    a change under the hand or far from it does not."""
+    rng = np.random.default_rng(0)
+    static = rng.integers(0, 256, (120, 160, 3)).astype(np.uint8)
+    inside = np.ones((120, 160), bool)
+    hands = np.zeros((120, 160), np.uint8)
+    hands[50:70, 70:90] = 1
+    frame = static.copy()
+    frame[50:70, 70:90] = 0  # the hand itself
+    frame[:5, :5] = 0  # far away
+    assert scene_level(frame, static, inside, hands, hands) > 100  # equal: the cap (148)
+    frame[2:12, 60:100] = 0  # in the band: 28-38 px above the mask grown 10 px
+    assert scene_level(frame, static, inside, hands, hands) < 20
