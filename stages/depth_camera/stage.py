@@ -991,7 +991,9 @@ class DepthCameraStage(ClipStage):
     # proximal phalanges taken 1/0.70 longer; hand_lift.palm_pnp_pose's defaults)
     # 12: the metric scale leaves out per-detection estimates more than 5 scaled MADs above
     # their median before its contact quantile (a misfit MediaPipe track made tabletop 1 +46%)
-    version = 12
+    # 13: the palm lift's fingers are bent to fit their 2D (hand_lift.fit_finger_bends, hands
+    # v13); the joints the scale reads move, palm and wrist do not (scale within 1.1 points)
+    version = 13
     config_class = DepthCameraConfig
     inputs: ClassVar[Mapping[str, ShardSchema]] = {"clips": CLIPS}
     output = DEPTH_CAMERA
