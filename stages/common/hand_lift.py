@@ -433,11 +433,16 @@ def lift_with_rotation(
     intrinsics: np.ndarray,
     cam_from_landmarks: np.ndarray,
     median_depth: float,
+    matched: tuple[int, ...] | None = None,
 ) -> np.ndarray:
     """Camera joints ``(21, 3)`` of a hand whose palm PnP failed, posed like a neighbouring frame:
     the world landmarks turned by that frame's ``cam_from_landmarks (3, 3)`` give each joint its
-    depth offset, the whole hand sits at ``median_depth`` (metres, the neighbour's), and each
-    joint is put on its own pixel's ray (so the result reprojects onto ``uv (21, 2)``)."""
+    depth offset, the median depth of the ``matched`` joints (None: all 21) is ``median_depth``
+    (metres, the neighbour's median over the same joints), and each joint is put on its own
+    pixel's ray (so the result reprojects onto ``uv (21, 2)``). The hands stage matches the palm
+    (:data:`PALM_JOINTS`, hands v14): the palm is rigid, while the neighbour's finger depths follow
+    its own 2D (:func:`fit_finger_bends`), not this frame's."""
     turned = (world_landmarks - world_landmarks.mean(axis=0)) @ cam_from_landmarks.T  # (21, 3)
-    z = np.maximum(turned[:, 2] - np.median(turned[:, 2]) + median_depth, 1e-3)  # (21,)
+    pick = list(matched) if matched is not None else slice(None)
+    z = np.maximum(turned[:, 2] - np.median(turned[pick, 2]) + median_depth, 1e-3)  # (21,)
     return on_rays(uv, z, intrinsics)

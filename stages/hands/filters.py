@@ -283,3 +283,43 @@ def turn_outliers(
         turn = np.nan_to_num(rotation_angle_deg(rot[f, s], rot[near, s]), nan=0.0)  # (G,)
         out[f, s] = float(np.median(turn / np.abs(near - f))) * fps > max_turn_rate
     return out
+
+
+FINGER_JOINTS = (6, 7, 8, 10, 11, 12, 14, 15, 16, 18, 19, 20)  # index..pinky, past the knuckles
+
+
+def smooth_finger_depths(
+    joints_cam: np.ndarray,
+    ok: np.ndarray,
+    sigma: float = 1.0,
+    joints: tuple[int, ...] = FINGER_JOINTS,
+) -> np.ndarray:
+    """``joints_cam (T, 2, 21, 3)`` (camera metres, each joint on its landmark's ray) with the
+    depths of ``joints`` relative to the wrist smoothed over time by a Gaussian of ``sigma``
+    frames within runs of consecutive ``ok (T, 2)`` frames (edges renormalised), each joint kept
+    on its own ray (its 2D unchanged). Other joints and frames are unchanged; ``sigma <= 0``
+    changes nothing. Why: the finger bend fit (hands v13, :func:`~egosim.stages.common.
+    hand_lift.fit_finger_bends`) is per frame, and a finger's depth is its least sure
+    coordinate (figures in docs/design.md, "Hands v14")."""
+    if sigma <= 0:
+        return joints_cam
+    t = joints_cam.shape[0]
+    if ok.shape != (t, 2) or joints_cam.shape[1:] != (2, 21, 3):
+        raise HandFilterError(f"joints {joints_cam.shape} and ok {ok.shape} disagree")
+    radius = int(np.ceil(3 * sigma))
+    kernel = np.exp(-0.5 * (np.arange(-radius, radius + 1) / sigma) ** 2)  # (2r+1,)
+    picked = list(joints)
+    out = joints_cam.copy()
+    for s in range(2):
+        good = ok[:, s] & np.all(np.isfinite(joints_cam[:, s]), axis=(1, 2))  # (T,)
+        begins = good & ~np.concatenate([[False], good[:-1]])  # (T,) first frame of each run
+        label = np.cumsum(begins)  # (T,) run number
+        rel = joints_cam[:, s, picked, 2] - joints_cam[:, s, :1, 2]  # (T, J) depth from wrist
+        for f in np.flatnonzero(good):
+            window = np.arange(max(0, f - radius), min(t, f + radius + 1))
+            window = window[good[window] & (label[window] == label[f])]  # (n,) f's run
+            wts = kernel[window - f + radius]  # (n,)
+            depth = joints_cam[f, s, 0, 2] + wts @ rel[window] / wts.sum()  # (J,)
+            old = joints_cam[f, s, picked]  # (J, 3)
+            out[f, s, picked] = old * (np.maximum(depth, 1e-3) / old[:, 2])[:, None]
+    return out

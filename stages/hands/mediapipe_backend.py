@@ -89,6 +89,7 @@ from egosim.stages.common.hand_landmarks import (  # one detector for hands and 
 from egosim.stages.common.hand_landmarks import detect_hand_landmarks as detect_landmarks
 from egosim.stages.common.hand_lift import (  # one lift for the hands and the metric scale
     MIN_POSE_DEPTH,
+    PALM_JOINTS,
     lift_with_rotation,
     palm_pnp_pose,
     scale_to_depth,
@@ -442,9 +443,11 @@ def hands_from_raw(
         if (f, s) in poses:  # the palm-PnP lift, already computed by _palm_poses
             points_cam = scale_to_depth(poses[(f, s)][0], observed)
         elif (near := _nearest_pose(poses, f, s, params.max_gap)) is not None:
-            # palm PnP failed here: pose it like the neighbour
+            # palm PnP failed here: pose it like the neighbour, its palm at the neighbour's
+            # palm depth (the neighbour's fingers follow its own 2D since hands v13: hands v14)
+            palm_depth = float(np.median(near[0][list(PALM_JOINTS), 2]))
             points_cam = lift_with_rotation(
-                lm.uv[f, s], lm.world[f, s], intrinsics, near[1], float(np.median(near[0][:, 2]))
+                lm.uv[f, s], lm.world[f, s], intrinsics, near[1], palm_depth, PALM_JOINTS
             )
             points_cam = scale_to_depth(points_cam, observed)
         else:

@@ -217,7 +217,9 @@ class HandsStage(ClipStage):
     # pulled towards MediaPipe's own bends (hand_lift.fit_finger_bends); the 2D is unchanged.
     # Also (mediapipe) a track off the clip's skin colour and still against the background is
     # dropped before sides are chosen (scene_check; the EgoDex portrait variant's curtain hand).
-    version = 13
+    # 14: (mediapipe) a frame whose palm PnP fails, posed like its neighbour, puts its palm at the
+    # neighbour's palm depth (median of PALM_JOINTS on both sides), not all 21 joints' median.
+    version = 14
     description = "3D hand joints per frame from the clip's labels, de-duplicated and de-spiked"
     config_class = HandsConfig
     inputs: ClassVar[Mapping[str, ShardSchema]] = {"clips": CLIPS}
