@@ -7,7 +7,6 @@ design.md "Hands v13")."""
 from __future__ import annotations
 
 import itertools
-from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -187,9 +186,7 @@ def test_a_frame_without_palm_pose_takes_its_neighbours_palm_depth(
         return None if next(calls) == 1 else real_pose(*args, **kwargs)
 
     monkeypatch.setattr(backend, "palm_pnp_pose", failing_at_frame_1)
-    still = MediaPipeParams(smooth_sigma=0.0)  # frames not mixed: each is its own truth
-    if hasattr(still, "finger_depth_sigma"):
-        still = replace(still, finger_depth_sigma=0.0)
+    still = MediaPipeParams(smooth_sigma=0.0, finger_depth_sigma=0.0)  # each frame its own
     res = backend.hands_from_raw(_still_hand_raw(hands), 832, K, None, None, still, fps=16.0)
     assert res.valid[:, 1].all() and res.lifted[:, 1].all()
     palm = list(PALM_JOINTS)
@@ -209,9 +206,10 @@ def test_finger_depths_smoothed_over_time_come_back_towards_the_truth() -> None:
     """A right hand closing and opening slowly over 24 frames (curl 0.4 +- 0.2), its finger
     joints lifted on their true rays at depths off by 8 mm (rms, per joint and frame: the
     per-frame bend fit's noise), frame 12 not trusted: smoothed by a Gaussian of 1 frame within
-    the two runs, the finger joints' wrist-relative error drops from 6.8 to 4.2 mm (measured) and
-    the fingertips' frame-to-frame steps' error from 8.7 to 3.0 mm; the 2D, the palm, the thumb
-    and frame 12 are unchanged, and no frame is mixed with the other run."""
+    the two runs, the finger joints' wrist-relative error drops from 6.8 to 4.2 mm (measured)
+    and the fingertips' frame-to-frame steps' error from 8.7 to 3.0 mm; the 2D, the palm, the
+    thumb and frame 12 are unchanged, no frame is mixed with the other run, nor with another
+    hand said to begin at frame 6 (``starts``)."""
     t = 24
     truth = np.stack(
         [_seen_hand(0.4 + 0.2 * np.sin(2 * np.pi * f / 20), True, 40.0) for f in range(t)]
@@ -237,6 +235,11 @@ def test_finger_depths_smoothed_over_time_come_back_towards_the_truth() -> None:
     first = smooth_finger_depths(joints[:12], ok[:12], 1.0)  # the first run alone
     np.testing.assert_allclose(out[:12], first, atol=1e-15)
     np.testing.assert_array_equal(smooth_finger_depths(joints, ok, 0.0), joints)
+    starts = np.zeros((t, 2), dtype=bool)
+    starts[6, 1] = True  # another hand given this side from frame 6: a run of its own
+    split = smooth_finger_depths(joints, ok, 1.0, starts)
+    np.testing.assert_allclose(split[:6], smooth_finger_depths(joints[:6], ok[:6], 1.0), atol=1e-15)
+    np.testing.assert_allclose(split[12:], out[12:], atol=1e-15)  # the second run as before
 
     def errors(hands: np.ndarray) -> tuple[float, float]:
         shape = np.mean([_finger_error_mm(hands[f], truth[f]) for f in range(t)])
@@ -247,3 +250,26 @@ def test_finger_depths_smoothed_over_time_come_back_towards_the_truth() -> None:
 
     before, after = errors(noisy), errors(out[:, 1])
     assert after[0] < 0.7 * before[0] and after[1] < 0.5 * before[1], (before, after)
+
+
+def test_hands_from_raw_smooths_the_finger_depths_of_trusted_frames() -> None:
+    """The stage's smoothing is :func:`smooth_finger_depths` (sigma 1 frame) on the trusted
+    frames of each side: a right hand closing over 8 frames comes out of ``hands_from_raw`` as
+    its unsmoothed lift smoothed, its 2D unchanged, and the finger depths did move."""
+    from egosim.stages.hands.mediapipe_backend import hands_from_raw
+
+    hands = [_seen_hand(0.2 + 0.08 * f, True, 40.0) for f in range(8)]
+    raw = _still_hand_raw(hands)
+    plain = hands_from_raw(
+        raw, 832, K, None, None, MediaPipeParams(finger_depth_sigma=0.0), fps=16.0
+    )
+    res = hands_from_raw(raw, 832, K, None, None, MediaPipeParams(), fps=16.0)
+    assert res.lifted[:, 1].all()
+    expected = smooth_finger_depths(plain.joints, plain.lifted, 1.0, plain.landmarks.starts)
+    np.testing.assert_allclose(res.joints, expected, atol=1e-12)
+    assert np.abs(res.joints[:, 1, FINGERS] - plain.joints[:, 1, FINGERS]).max() > 1e-4  # metres
+    np.testing.assert_allclose(
+        project_points(res.joints[:, 1].reshape(-1, 3), K)[0],
+        project_points(plain.joints[:, 1].reshape(-1, 3), K)[0],
+        atol=1e-9,
+    )

@@ -292,12 +292,14 @@ def smooth_finger_depths(
     joints_cam: np.ndarray,
     ok: np.ndarray,
     sigma: float = 1.0,
+    starts: np.ndarray | None = None,
     joints: tuple[int, ...] = FINGER_JOINTS,
 ) -> np.ndarray:
     """``joints_cam (T, 2, 21, 3)`` (camera metres, each joint on its landmark's ray) with the
     depths of ``joints`` relative to the wrist smoothed over time by a Gaussian of ``sigma``
-    frames within runs of consecutive ``ok (T, 2)`` frames (edges renormalised), each joint kept
-    on its own ray (its 2D unchanged). Other joints and frames are unchanged; ``sigma <= 0``
+    frames within runs of consecutive ``ok (T, 2)`` frames (edges renormalised; a frame where
+    ``starts (T, 2)`` is True begins a new run: another hand given the same side), each joint
+    kept on its own ray (its 2D unchanged). Other joints and frames are unchanged; ``sigma <= 0``
     changes nothing. Why: the finger bend fit (hands v13, :func:`~egosim.stages.common.
     hand_lift.fit_finger_bends`) is per frame, and a finger's depth is its least sure
     coordinate (figures in docs/design.md, "Hands v14")."""
@@ -313,6 +315,8 @@ def smooth_finger_depths(
     for s in range(2):
         good = ok[:, s] & np.all(np.isfinite(joints_cam[:, s]), axis=(1, 2))  # (T,)
         begins = good & ~np.concatenate([[False], good[:-1]])  # (T,) first frame of each run
+        if starts is not None:
+            begins |= good & starts[:, s]
         label = np.cumsum(begins)  # (T,) run number
         rel = joints_cam[:, s, picked, 2] - joints_cam[:, s, :1, 2]  # (T, J) depth from wrist
         for f in np.flatnonzero(good):

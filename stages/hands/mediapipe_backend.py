@@ -94,7 +94,12 @@ from egosim.stages.common.hand_lift import (  # one lift for the hands and the m
     palm_pnp_pose,
     scale_to_depth,
 )
-from egosim.stages.hands.filters import Detections, palm_rotations, turn_outliers
+from egosim.stages.hands.filters import (
+    Detections,
+    palm_rotations,
+    smooth_finger_depths,
+    turn_outliers,
+)
 from egosim.stages.hands.scene_check import SceneCheckParams, scene_tracks, seed_candidates
 
 BRIDGED_CONFIDENCE_FACTOR = 0.5  # confidence of interpolated frames relative to detected ones
@@ -109,6 +114,10 @@ class MediaPipeParams(HandLandmarkParams):
 
     max_gap: int = 4  # frames of a track's gap filled by interpolation
     smooth_sigma: float = 1.0  # Gaussian smoothing of landmarks over time, in frames; 0 = none
+    # Gaussian smoothing over time of the four fingers' depths (wrist-relative, on their rays:
+    # the 2D kept) within runs of trusted frames, in frames (filters.smooth_finger_depths: the
+    # bend fit is per frame; hands v14); 0 = none
+    finger_depth_sigma: float = 1.0
     link_distance: float = 0.6  # max centroid jump between linked detections, in hand sizes
     # per frame of gap up to two (link_limit: tracks, and which gaps are bridged)
     position_weight: float = 0.5  # weight of the image-position side vote vs the labels
@@ -143,6 +152,9 @@ class SideLandmarks:
     confidence: np.ndarray  # (T, 2) float64 in [0, 1], 0 where absent
     present: np.ndarray  # (T, 2) bool detected or bridged
     detected: np.ndarray  # (T, 2) bool detected (not bridged)
+    # (T, 2) bool: a present frame that begins a new run after a present frame (two tracks given
+    # one side in adjacent frames: two hands, smoothed apart); None: runs are the present frames
+    starts: np.ndarray | None = None
 
 
 def link_limit(size_a: float, size_b: float, gap: int, params: MediaPipeParams) -> float:
@@ -271,6 +283,7 @@ def bridge_and_smooth(
     present = detected.copy()
     centre = hand_centres(uv)  # (T, 2, 2)
     size = hand_size(uv)  # (T, 2)
+    starts = np.zeros((t, 2), dtype=bool)  # (T, 2)
     for s in range(2):
         idx = np.flatnonzero(detected[:, s])
         for a, b in itertools.pairwise(idx):
@@ -289,14 +302,15 @@ def bridge_and_smooth(
         # Two tracks given this side in adjacent frames are two hands: not smoothed together
         centre_s = hand_centres(uv[:, s : s + 1])[:, 0]  # (T, 2) after bridging
         size_s = hand_size(uv[:, s])  # (T,)
-        starts = np.zeros(t, dtype=bool)  # (T,)
         for f in range(1, t):
             if present[f - 1, s] and present[f, s]:
                 jump = np.linalg.norm(centre_s[f] - centre_s[f - 1])
-                starts[f] = not jump <= link_limit(size_s[f - 1], size_s[f], 1, params)
-        uv[:, s] = _gaussian_smooth(uv[:, s], present[:, s], params.smooth_sigma, starts)
-        world[:, s] = _gaussian_smooth(world[:, s], present[:, s], params.smooth_sigma, starts)
-    return SideLandmarks(uv, world, conf, present, detected)
+                starts[f, s] = not jump <= link_limit(size_s[f - 1], size_s[f], 1, params)
+        uv[:, s] = _gaussian_smooth(uv[:, s], present[:, s], params.smooth_sigma, starts[:, s])
+        world[:, s] = _gaussian_smooth(
+            world[:, s], present[:, s], params.smooth_sigma, starts[:, s]
+        )
+    return SideLandmarks(uv, world, conf, present, detected, starts)
 
 
 def depth_under(depth: np.ndarray, uv: np.ndarray) -> float:
@@ -464,6 +478,7 @@ def hands_from_raw(
         joints[f, s] = points_cam
     valid = lm.present & np.all(np.isfinite(joints), axis=(2, 3))
     unsure = turn_outliers(joints, valid, fps, params.turn_window, params.max_turn_rate)
+    joints = smooth_finger_depths(joints, valid & ~unsure, params.finger_depth_sigma, lm.starts)
     joints, lifted = repair_unsure(joints, valid, unsure, params.max_gap)
     if world_from_cam is not None:
         for f in range(t):

@@ -219,6 +219,8 @@ class HandsStage(ClipStage):
     # dropped before sides are chosen (scene_check; the EgoDex portrait variant's curtain hand).
     # 14: (mediapipe) a frame whose palm PnP fails, posed like its neighbour, puts its palm at the
     # neighbour's palm depth (median of PALM_JOINTS on both sides), not all 21 joints' median.
+    # And the four fingers' depths (wrist-relative, each joint on its ray: the 2D kept) are
+    # smoothed over time within runs of trusted frames (filters.smooth_finger_depths, sigma 1).
     version = 14
     description = "3D hand joints per frame from the clip's labels, de-duplicated and de-spiked"
     config_class = HandsConfig
