@@ -194,7 +194,7 @@ def _run(frames: np.ndarray, fps: float, params: MediaPipeParams | None = None):
     params = params or MediaPipeParams()
     k = intrinsics_from_fov(frames.shape[2], frames.shape[1], 90.0)
     raw = detect_landmarks(frames, params)
-    return hands_from_raw(raw, frames.shape[2], k, None, None, params, fps=fps)
+    return hands_from_raw(raw, frames.shape[2], k, None, None, params, fps=fps, frames=frames)
 
 
 def ingest_windows(path: Path) -> list[Window]:
@@ -353,7 +353,9 @@ def synthetic_figures(
         )
         for lift in parts:
             p = replace(params, **lifts[lift])
-            res = hands_from_raw(raw, clip.width, clip.intrinsics, None, None, p, fps=clip.fps)
+            res = hands_from_raw(
+                raw, clip.width, clip.intrinsics, None, None, p, fps=clip.fps, frames=clip.frames
+            )
             if misses is not None and lift == "palm_pnp":
                 from egosim.stages.common.roi_landmarks import LandmarkModel
 
