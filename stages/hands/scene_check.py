@@ -36,8 +36,10 @@ import cv2
 import numpy as np
 
 from egosim.stages.common.hand_landmarks import RawLandmarks, hand_centres, hand_size
+from egosim.stages.common.klt import track_forward_backward
 
 IDENTITY_2X3 = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+MAX_FB_PX = 1.0  # a corner whose backward track lands further than this (pixels) is not used
 
 
 @dataclass(frozen=True)
@@ -136,19 +138,21 @@ def skin_distance(
 
 def background_motion(grey: list[np.ndarray], exclude: list[np.ndarray]) -> np.ndarray:
     """``(T - 1, 2, 3)``: the similarity taking frame f's background to frame f + 1's, fitted
-    (RANSAC) to corners tracked by Lucas-Kanade outside ``exclude[f]`` and ``exclude[f + 1]``
-    (``(H, W)`` bool, the hands); the identity where too few corners are tracked."""
+    (RANSAC) to corners tracked by Lucas-Kanade, forward-backward checked
+    (:func:`~egosim.stages.common.klt.track_forward_backward`), outside ``exclude[f]`` and
+    ``exclude[f + 1]`` (``(H, W)`` bool, the hands); the identity where too few are tracked."""
     out = np.tile(IDENTITY_2X3, (max(len(grey) - 1, 0), 1, 1))
     for f in range(len(grey) - 1):
         mask = (~(exclude[f] | exclude[f + 1])).astype(np.uint8)
         pts = cv2.goodFeaturesToTrack(grey[f], 400, 0.01, 7, mask=mask)
         if pts is None or len(pts) < 8:
             continue
-        nxt, status, _ = cv2.calcOpticalFlowPyrLK(grey[f], grey[f + 1], pts, None)
-        ok = status[:, 0] == 1
+        pts = pts.reshape(-1, 2)
+        track = track_forward_backward(grey[f], grey[f + 1], pts)
+        ok = track.converged & (track.fb_px <= MAX_FB_PX)
         if ok.sum() < 8:
             continue
-        m, _ = cv2.estimateAffinePartial2D(pts[ok], nxt[ok], ransacReprojThreshold=1.5)
+        m, _ = cv2.estimateAffinePartial2D(pts[ok], track.uv_b[ok], ransacReprojThreshold=1.5)
         if m is not None:
             out[f] = m
     return out
