@@ -222,7 +222,8 @@ class HandsStage(ClipStage):
     # And the four fingers' depths (wrist-relative, each joint on its ray: the 2D kept) are
     # smoothed over time within runs of trusted frames (filters.smooth_finger_depths, sigma 1).
     # Also (mediapipe) the scene check never drops a confident track (median presence >=
-    # seed_presence) or one under min_track_frames frames (review10a, 3033934).
+    # seed_presence) or one under min_track_frames frames (review10a, 3033934), and takes the
+    # background's motion from forward-backward checked corners (klt, df46f3e).
     version = 14
     description = "3D hand joints per frame from the clip's labels, de-duplicated and de-spiked"
     config_class = HandsConfig
