@@ -1061,6 +1061,7 @@ def test_track_starts_are_the_first_frames_of_each_hand(monkeypatch: pytest.Monk
     def recording(
         image: np.ndarray, keypoints: np.ndarray, valid: np.ndarray, capsule: CapsuleParams,
         arm: object, directions: np.ndarray | None = None, starts: np.ndarray | None = None,
+        no_region: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
         assert starts is not None
         seen[len(seen)] = [bool(v) for v in starts]
@@ -1075,3 +1076,147 @@ def test_track_starts_are_the_first_frames_of_each_hand(monkeypatch: pytest.Monk
     assert [seen[t] for t in range(5)] == [
         [True, False], [False, True], [False, False], [True, False], [False, False]
     ]  # fmt: skip
+
+
+def test_crosses_other_wrist_marks_arms_on_the_other_hands_side() -> None:
+    """A left arm whose ray meets the border right of the right wrist (or a right arm left of
+    the left wrist) is marked; arms going down on their own side, a frame with one hand and
+    hands in the other order are not."""
+    from egosim.stages.hand_mask.arm_region import crosses_other_wrist
+
+    def unit(deg: float) -> np.ndarray:
+        return np.array([np.cos(np.radians(deg)), np.sin(np.radians(deg))])
+
+    keypoints = np.full((6, 2, 21, 2), np.nan)
+    keypoints[:, 0, 0] = [60.0, 50.0]  # left wrist
+    keypoints[:, 1, 0] = [140.0, 50.0]  # right wrist
+    keypoints[5, 0, 0], keypoints[5, 1, 0] = [140.0, 50.0], [60.0, 50.0]  # swapped sides
+    valid = np.ones((6, 2), bool)
+    valid[4, 1] = False
+    left = [0.0, 90.0, 30.0, 60.0, 0.0, 0.0]  # degrees, image y down
+    right = [100.0, 180.0, 100.0, 150.0, 180.0, 180.0]
+    drawn = np.stack([np.stack([unit(a), unit(b)]) for a, b in zip(left, right, strict=True)])
+    got = crosses_other_wrist(keypoints, valid, drawn, 100, 200)  # (6, 2)
+    # 30 deg: meets the bottom at x = 60 + 50 / tan 30 = 146.6 > 140; 60 deg: x = 88.9;
+    # 150 deg: the right arm meets the bottom at x = 140 - 86.6 = 53.4 < 60
+    want = [[True, False], [False, True], [True, False], [False, True], [False, False],
+            [False, False]]  # fmt: skip
+    assert got.tolist() == want
+
+
+def test_steady_directions_replaces_a_run_through_an_off_side_frame() -> None:
+    """A run whose last frame turned back only 30-40 degrees (not a swing by angle) is still
+    drawn between its agreeing neighbours when that frame's arm is on the other hand's side
+    (HOT3D window 1, t=37-45); without the mark nothing is replaced."""
+    from egosim.stages.hand_mask.arm_region import steady_directions
+
+    rad = np.radians([90.0, 90.0, 20.0, 50.0, 80.0, 85.0])
+    drawn = np.stack([np.cos(rad), np.sin(rad)], axis=-1)[:, None]  # (T, 1, 2)
+    assert not np.isfinite(steady_directions(drawn, 10, 45.0, 30.0)).any()
+    off = np.zeros((6, 1), bool)
+    off[3] = True
+    out = steady_directions(drawn, 10, 45.0, 30.0, off)  # (T, 1, 2)
+    got = np.degrees(np.arctan2(out[:, 0, 1], out[:, 0, 0]))
+    assert np.isnan(got[[0, 1, 4, 5]]).all()
+    np.testing.assert_allclose(got[2:4], [86.7, 83.3], atol=0.1)  # 90 -> 80, by time
+    off[1] = True  # an off-side frame never brackets a run: it joins it
+    out = steady_directions(drawn, 10, 45.0, 30.0, off)
+    got = np.degrees(np.arctan2(out[:, 0, 1], out[:, 0, 0]))
+    np.testing.assert_allclose(got[1:4], [87.5, 85.0, 82.5], atol=0.1)  # between t=0 and t=4
+
+
+def test_off_side_runs_are_the_replaced_runs_holding_an_off_side_frame() -> None:
+    """Of each hand's replaced runs (consecutive frames with a steady direction), exactly those
+    holding an off-side frame are marked, all their frames; other runs, other hands and kept
+    frames are not."""
+    from egosim.stages.hand_mask.arm_region import off_side_runs
+
+    steady = np.full((9, 2, 2), np.nan)
+    steady[1:4, 0] = [0.0, 1.0]  # run A of hand 0: t=1-3, holds the off-side t=2
+    steady[5:7, 0] = [0.0, 1.0]  # run B of hand 0: t=5-6, no off-side frame
+    steady[5:8, 1] = [1.0, 0.0]  # run C of hand 1: t=5-7, holds the off-side t=7
+    off = np.zeros((9, 2), bool)
+    off[[2, 8], 0] = True  # t=8 is off-side but kept (not in a run)
+    off[7, 1] = True
+    got = off_side_runs(steady, off)
+    want = np.zeros((9, 2), bool)
+    want[1:4, 0] = True
+    want[5:8, 1] = True
+    assert got.tolist() == want.tolist()
+
+
+def test_guessed_direction_drawn_without_its_colour_region() -> None:
+    """A direction drawn as given (a steady run's interpolation) into a near-black floor next
+    to a white table: with the colour region probable, floor connected to that strip is
+    labelled arm more than 30 px from the drawn axis; with ``no_region`` (a run through an
+    off-side frame, hand_mask v20) only the band along the axis is."""
+    from egosim.stages.hand_mask.arm_region import ArmParams, hand_labels
+
+    image, kp, _, floor = _floor_edge_frame()
+    h, w = image.shape[:2]
+    d = np.array([[np.cos(np.radians(35.0)), np.sin(np.radians(35.0))]])  # (1, 2) onto the floor
+    yy, xx = np.mgrid[0:h, 0:w] + 0.5
+    axis_px = np.abs((xx - kp[0, 0]) * d[0, 1] - (yy - kp[0, 1]) * d[0, 0])  # (H, W)
+    far = floor & (axis_px > 30.0)  # floor well off the band
+    counts = []
+    for no_region in (None, np.array([True])):
+        own, drawn = hand_labels(
+            image, kp[None], np.array([True]), CapsuleParams(), ArmParams(), d, None, no_region
+        )
+        np.testing.assert_allclose(drawn, d)  # drawn as given either way
+        counts.append(int(np.isin(own[0][far], (cv2.GC_FGD, cv2.GC_PR_FGD)).sum()))
+    assert counts[0] > 1000 and counts[1] < 50, counts
+
+
+def test_only_runs_the_off_side_mark_adds_lose_their_colour_region(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """hand_mask v20 in the stage: the left arm at t=2 turns 40 degrees (not a swing by angle)
+    but its ray crosses past the right wrist, so t=2 is drawn between its neighbours and
+    without the probable colour region; the right arm's swing at t=2 (60 degrees, also
+    off-side) is a run v18 finds by angle alone and keeps its colour region (HOT3D window 3,
+    t=5-9). With ``steady_off_side`` off neither is marked and only the right arm's run is
+    redrawn."""
+    import egosim.stages.hand_mask.stage as stage
+
+    def unit(deg: float) -> list[float]:
+        return [float(np.cos(np.radians(deg))), float(np.sin(np.radians(deg)))]
+
+    left = [70.0, 70.0, 30.0, 70.0, 70.0]  # t=2 meets the bottom at x = 146.6 > 140
+    right = [100.0, 100.0, 160.0, 100.0, 100.0]  # t=2 meets the bottom at x = 2.6 < 60
+    seen: list[tuple[int, list[float], list[bool]]] = []
+    calls = {"n": 0}
+
+    def recording(
+        image: np.ndarray, keypoints: np.ndarray, valid: np.ndarray, capsule: CapsuleParams,
+        arm: object, directions: np.ndarray | None = None, starts: np.ndarray | None = None,
+        no_region: np.ndarray | None = None,
+    ) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+        h, w = image.shape[:2]
+        t = int(image[0, 0, 0])  # the frame's index, written into its first pixel
+        calls["n"] += 1
+        if directions is not None:
+            assert no_region is not None
+            got = np.degrees(np.arctan2(directions[:, 1], directions[:, 0]))
+            seen.append((t, [float(v) for v in got], [bool(v) for v in no_region]))
+        drawn = np.array([unit(left[t]), unit(right[t])])  # (2, 2)
+        return np.zeros((len(keypoints), h, w), np.uint8), drawn
+
+    monkeypatch.setattr(stage, "hand_labels", recording)
+    frames = np.zeros((5, 100, 200, 3), np.uint8)
+    frames[:, 0, 0, 0] = np.arange(5)
+    keypoints = np.full((5, 2, 21, 2), np.nan)
+    keypoints[:, 0, 0] = [60.0, 50.0]  # left wrist
+    keypoints[:, 1, 0] = [140.0, 50.0]  # right wrist
+    valid = np.ones((5, 2), bool)
+    config = HandMaskConfig(carry_frames=0)
+    stage.masks_from_keypoints(frames, keypoints, valid, config)
+    assert len(seen) == 1 and seen[0][0] == 2
+    np.testing.assert_allclose(seen[0][1], [70.0, 100.0], atol=1e-6)  # both drawn between
+    assert seen[0][2] == [True, False]  # only the left run is the mark's own
+    off = dataclasses.replace(stage.ArmParams(), steady_off_side=False)
+    monkeypatch.setattr(stage, "ArmParams", lambda **kw: dataclasses.replace(off, **kw))
+    seen.clear()
+    stage.masks_from_keypoints(frames, keypoints, valid, config)
+    assert len(seen) == 1 and seen[0][2] == [False, False]
+    assert np.isnan(seen[0][1][0]) and abs(seen[0][1][1] - 100.0) < 1e-6

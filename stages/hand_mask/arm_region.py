@@ -35,9 +35,12 @@ hand with 2D keypoints (MANO order, pixels, pixel centres at integer + 0.5):
 Over a clip (``stage.masks_from_keypoints``), a run of at most ``steady_frames`` frames whose
 arm directions all swing more than ``steady_jump_deg`` away from the frames either side, which
 agree within ``steady_agree_deg``, is drawn along the direction between those, with no search
-and no re-aim (:func:`steady_directions`). That cannot reach the first frame of a hand's track
-(no frame before it): there a strip that stands out from both of its sides, not only on
-average, is searched too, and drawn when it is another direction (``start_both_sides``).
+and no re-aim (:func:`steady_directions`); a frame whose arm ray crosses past the other hand's
+wrist (:func:`crosses_other_wrist`) counts as swung away whatever its angle, and the runs only
+that finds are drawn without the probable colour region (``steady_off_side``). That cannot
+reach the first frame of a hand's track (no frame before it): there a strip that stands out
+from both of its sides, not only on average, is searched too, and drawn when it is another
+direction (``start_both_sides``).
 
 GrabCut (OpenCV) learns the colour models from these labels and relabels the two "probably"
 regions; only the pixels connected to a certain seed are kept, so a patch of skin-coloured table
@@ -47,7 +50,7 @@ are what ``propagate`` carries into other frames with confidence.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import cv2
@@ -114,6 +117,12 @@ class ArmParams:
     # :func:`steady_directions`)
     steady_jump_deg: float = 45.0  # ... degrees a run's directions lie from both frames beside it
     steady_agree_deg: float = 30.0  # ... degrees within which those two frames must agree
+    steady_off_side: bool = True  # a frame whose arm runs past the other hand's wrist towards
+    # the other hand's side (:func:`crosses_other_wrist`) counts as swung away whatever its
+    # angle, and never brackets a run (see :func:`steady_directions`); the hand's frames of a
+    # run that holds such a frame, unless the angle alone finds it too, are drawn without
+    # the probable colour region (the interpolated direction is a guess there, and its colour
+    # region can be floor: :func:`off_side_runs`)
     start_both_sides: bool = True  # at the first frame of a hand's track, which no steady run
     # can reach (no frame before it), the arm is also searched for a strip that stands out from
     # both sides (contrast of the nearer side, not the mean: a strip of uniform floor along a
@@ -701,6 +710,7 @@ def hand_labels(
     arm: ArmParams,
     directions: np.ndarray | None = None,
     starts: np.ndarray | None = None,
+    no_region: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """``(labels (K, H, W) uint8, drawn (K, 2))``: each hand's GrabCut labels of ``image (H, W,
     3)`` (``cv2.GC_*``; see :func:`draw_arm_labels`) and the arm direction drawn (NaN: none).
@@ -708,7 +718,9 @@ def hand_labels(
     ``keypoints (K, 21, 2)`` pixels, ``valid (K,)`` selects the hands; ``directions (K, 2)``:
     per hand a direction to draw as it is (no search, no re-aim), NaN to search; ``starts
     (K,)`` bool: hands whose track starts in this frame, searched for a strip that stands out
-    from both sides (``nearer_side`` of :func:`arm_search`; ``ArmParams.start_both_sides``).
+    from both sides (``nearer_side`` of :func:`arm_search`; ``ArmParams.start_both_sides``);
+    ``no_region (K,)`` bool: hands drawn without the probable colour region (``region_probable``
+    off; :func:`off_side_runs`).
     """
     h, w = image.shape[:2]
     own = np.full((len(keypoints), h, w), cv2.GC_BGD, np.uint8)
@@ -726,16 +738,80 @@ def hand_labels(
         if directions is not None and np.all(np.isfinite(directions[k])):
             fixed = directions[k]
         nearer = bool(starts is not None and starts[k])
-        d = draw_arm_labels(
-            own[k], np.asarray(hand, dtype=np.float64), capsule, arm, lab, others[k], fixed, nearer
-        )
+        arm_k = arm
+        if no_region is not None and no_region[k]:
+            arm_k = replace(arm, region_probable=False)
+        points = np.asarray(hand, dtype=np.float64)  # (21, 2)
+        d = draw_arm_labels(own[k], points, capsule, arm_k, lab, others[k], fixed, nearer)
         if d is not None:
             drawn[k] = d
     return own, drawn
 
 
+def crosses_other_wrist(
+    keypoints: np.ndarray, valid: np.ndarray, drawn: np.ndarray, height: int, width: int
+) -> np.ndarray:
+    """``(T, K)`` bool: frames whose drawn arm runs past the other hand's wrist, to its side.
+
+    ``keypoints (T, 2, 21, 2)`` pixels, hand 0 the left and 1 the right; ``valid (T, 2)``;
+    ``drawn (T, 2, 2)`` each hand's arm direction (NaN: none). In a head-mounted view the
+    forearms come into the image from below, each on its own side: with both hands in the
+    frame and the left wrist left of the right one, a left arm whose ray from its wrist
+    meets the image border right of the right wrist (or a right arm left of the left wrist)
+    crosses to the other arm's side, which an arm does not do; a search that follows a floor
+    or table edge sideways does (HOT3D window 1, t=37-45: the left arm along the table top to
+    the right border). Hands in the other order (crossed, or sides swapped) are never marked.
+    """
+    t_count, k_count = drawn.shape[:2]
+    out = np.zeros((t_count, k_count), bool)
+    if k_count != 2:
+        return out
+    for t in range(t_count):
+        wrists = np.asarray(keypoints[t, :, 0], np.float64)  # (2, 2) MANO joint 0: the wrist
+        if not bool(np.all(valid[t])) or not np.all(np.isfinite(wrists)):
+            continue
+        if not wrists[0, 0] < wrists[1, 0]:
+            continue
+        for k in range(2):
+            d = drawn[t, k]
+            if not np.all(np.isfinite(d)):
+                continue
+            end = wrists[k] + _exit_distance(wrists[k], d, width, height) * d  # (2,)
+            out[t, k] = end[0] > wrists[1, 0] if k == 0 else end[0] < wrists[0, 0]
+    return out
+
+
+def off_side_runs(steady: np.ndarray, off_side: np.ndarray) -> np.ndarray:
+    """``(T, K)`` bool: the frames of each replaced run (consecutive frames with a direction in
+    ``steady (T, K, 2)``, NaN: kept) of a hand that hold an ``off_side (T, K)`` frame.
+
+    Such a run was found because a frame's arm crossed to the other hand's side, not because it
+    swung far by angle: the arm may have moved meanwhile, so the interpolated direction is a
+    guess and its colour region may be the floor beside the arm (HOT3D window 1, t=37-44).
+    """
+    replaced = np.all(np.isfinite(steady), axis=2)  # (T, K)
+    off = np.asarray(off_side, bool)  # (T, K)
+    out = np.zeros(replaced.shape, bool)
+    for k in range(replaced.shape[1]):
+        t = 0
+        while t < len(replaced):
+            if not replaced[t, k]:
+                t += 1
+                continue
+            q = t
+            while q < len(replaced) and replaced[q, k]:
+                q += 1
+            out[t:q, k] = off[t:q, k].any()
+            t = q
+    return out
+
+
 def steady_directions(
-    drawn: np.ndarray, max_frames: int, jump_deg: float, agree_deg: float
+    drawn: np.ndarray,
+    max_frames: int,
+    jump_deg: float,
+    agree_deg: float,
+    off_side: np.ndarray | None = None,
 ) -> np.ndarray:
     """Directions ``(T, K, 2)`` to draw instead (NaN: keep the frame's own) given the arm
     directions ``drawn (T, K, 2)`` of each frame's hands (NaN: none).
@@ -746,13 +822,16 @@ def steady_directions(
     within ``agree_deg``, takes the direction between the two (interpolated in time). The
     search's colour cue can lock on a smooth strip of floor beside a hand for several frames
     (HOT3D window 1, t=25-34: a right arm turned 90 degrees onto the floor to the left
-    border); the frames either side see the arm where it is.
+    border); the frames either side see the arm where it is. ``off_side (T, K)`` bool: frames
+    whose arm is implausible whatever its angle (:func:`crosses_other_wrist`): they count as
+    swung away from both brackets and are never a bracket themselves.
     """
     t_count, k_count = drawn.shape[:2]
     out = np.full(drawn.shape, np.nan)
     if max_frames <= 0:
         return out
     has = np.all(np.isfinite(drawn), axis=2)  # (T, K)
+    off = np.zeros(has.shape, bool) if off_side is None else np.asarray(off_side, bool)  # (T, K)
     drawn = drawn.copy()  # a run's replaced directions bracket the runs after it
 
     def angle(a: np.ndarray, b: np.ndarray) -> float:
@@ -763,19 +842,19 @@ def steady_directions(
         while t < t_count - 1:
             p = t - 1
             fixed = False
-            if has[p, k] and has[t, k]:
+            if has[p, k] and has[t, k] and not off[p, k]:
                 for n in range(1, max_frames + 1):
                     q = t + n
                     if q >= t_count or not has[q - 1, k]:
                         break
                     run = range(t, q)
                     if not all(
-                        angle(drawn[r, k], drawn[p, k]) > jump_deg for r in run
+                        off[r, k] or angle(drawn[r, k], drawn[p, k]) > jump_deg for r in run
                     ):  # a frame of the run agrees with the one before: no run from t
                         break
-                    if not has[q, k] or angle(drawn[p, k], drawn[q, k]) > agree_deg:
+                    if not has[q, k] or off[q, k] or angle(drawn[p, k], drawn[q, k]) > agree_deg:
                         continue
-                    if all(angle(drawn[r, k], drawn[q, k]) > jump_deg for r in run):
+                    if all(off[r, k] or angle(drawn[r, k], drawn[q, k]) > jump_deg for r in run):
                         for r in run:
                             w = (r - p) / (q - p)
                             v = (1.0 - w) * drawn[p, k] + w * drawn[q, k]

@@ -63,8 +63,10 @@ from egosim.schemas.hands import HANDS
 from egosim.stages.common.cameras import CAMERA_COLUMNS, CAMERA_ROLES, resolve_cameras
 from egosim.stages.hand_mask.arm_region import (
     ArmParams,
+    crosses_other_wrist,
     hand_labels,
     masks_from_labels,
+    off_side_runs,
     steady_directions,
 )
 from egosim.stages.hand_mask.capsules import CapsuleParams, draw_hands
@@ -168,19 +170,33 @@ def masks_from_keypoints(
     if not arm.start_both_sides:
         starts[:] = False
 
-    def labels(t: int, directions: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    def labels(
+        t: int, directions: np.ndarray | None = None, no_region: np.ndarray | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Frame ``t``'s GrabCut labels ``(K, H, W)`` and arm directions ``(K, 2)``."""
-        return hand_labels(frames[t], keypoints[t], valid[t], capsule, arm, directions, starts[t])
+        return hand_labels(
+            frames[t], keypoints[t], valid[t], capsule, arm, directions, starts[t], no_region
+        )
 
     # Labels first (arm searches), GrabCut once per frame after: an arm that swung away for a
     # few frames and back is drawn between its neighbours (steady_directions) before the cut.
     own, drawn = zip(*(labels(t) for t in range(len(frames))), strict=True)
     own = list(own)  # T of (K, H, W) uint8
+    drawn = np.stack(drawn)  # (T, K, 2)
+    off_side = None
+    if arm.steady_off_side:
+        off_side = crosses_other_wrist(keypoints, valid, drawn, *frames.shape[1:3])  # (T, K)
     steady = steady_directions(
-        np.stack(drawn), arm.steady_frames, arm.steady_jump_deg, arm.steady_agree_deg
+        drawn, arm.steady_frames, arm.steady_jump_deg, arm.steady_agree_deg, off_side
     )  # (T, K, 2)
+    guessed = np.zeros(valid.shape, bool)  # (T, K) frames redrawn only through the off-side mark
+    if off_side is not None:
+        plain = steady_directions(
+            drawn, arm.steady_frames, arm.steady_jump_deg, arm.steady_agree_deg
+        )  # (T, K, 2) the runs found by angle alone keep their colour region
+        guessed = off_side_runs(steady, off_side) & ~np.all(np.isfinite(plain), axis=2)
     for t in np.nonzero(np.any(np.isfinite(steady[..., 0]), axis=1))[0]:
-        own[t] = labels(int(t), steady[t])[0]
+        own[t] = labels(int(t), steady[t], guessed[t])[0]
     found = [
         masks_from_labels(
             frames[t], own[t], config.colour_refine, config.grabcut_iterations,
@@ -278,7 +294,7 @@ class HandMaskStage(ClipStage):
     # cleaned joints and a replacement camera (see the module docstring)
     optional_inputs: ClassVar[Mapping[str, ShardSchema]] = {**CAMERA_ROLES, "hands": HANDS}
     output = HAND_MASK
-    version = 19  # 2: image-space arm masks (no world axis). 3: arm found by a colour walk, masks
+    version = 20  # 2: image-space arm masks (no world axis). 3: arm found by a colour walk, masks
     # carried into frames whose hands were missed. 4: arm re-aimed along its colour region.
     # 5: that region is probably arm wherever it runs. 6: each hand carried into the frames that
     # missed it, and only its certain seeds (skeleton, arm strip) carried with confidence.
@@ -302,6 +318,9 @@ class HandMaskStage(ClipStage):
     # 19: in the first frame of a hand's track a strip that stands out from both sides (the
     # nearer side's contrast), not on average, is drawn when it is another direction
     # (more than steady_jump_deg from the plain search's; start_both_sides)
+    # 20: an arm whose ray crosses past the other hand's wrist counts as swung away in
+    # steady_directions and never brackets a run; the runs only that mark finds are drawn
+    # without the probable colour region (steady_off_side; HOT3D window 1, t=37-45)
     backends = ("keypoints", "sam")
     # What process reads (the executor decodes nothing else): the frames, joints and camera
     # of the clip, the robot arm's mask, the cleaned joints.
