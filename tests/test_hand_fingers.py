@@ -68,15 +68,15 @@ def test_bend_fingers_turns_bones_about_the_finger_hinge() -> None:
     lengths = np.linalg.norm(bones, axis=2)  # (4, 3)
     directions = bones / lengths[..., None]
     knuckles = truth[CHAINS[:, 0]]
-    same = bend_fingers(knuckles, directions, lengths, np.zeros((4, 4)), axes[2])
+    same = bend_fingers(knuckles, directions, lengths, np.zeros((4, 4)), axes)
     np.testing.assert_allclose(same, truth[CHAINS[:, 1:]], atol=1e-12)
     normal = axes[2]
     first = directions[:, 0]  # (4, 3) each finger's first bone
     bent = bend_fingers(
-        knuckles, directions, lengths, np.tile(np.radians([0, 30.0, 0, 0]), (4, 1)), normal
+        knuckles, directions, lengths, np.tile(np.radians([0, 30.0, 0, 0]), (4, 1)), axes
     )
     splayed = bend_fingers(
-        knuckles, directions, lengths, np.tile(np.radians([10.0, 0, 0, 0]), (4, 1)), normal
+        knuckles, directions, lengths, np.tile(np.radians([10.0, 0, 0, 0]), (4, 1)), axes
     )
     for moved in (bent, splayed):
         bones_after = np.diff(np.concatenate([knuckles[:, None], moved], axis=1), axis=1)
@@ -91,9 +91,30 @@ def test_bend_fingers_turns_bones_about_the_finger_hinge() -> None:
         cos = flat_before @ flat_after / np.linalg.norm(flat_before) / np.linalg.norm(flat_after)
         assert np.degrees(np.arccos(cos)) == pytest.approx(10.0, abs=1e-6)
     second = bend_fingers(
-        knuckles, directions, lengths, np.tile(np.radians([0, 0, 40.0, 0]), (4, 1)), axes[2]
+        knuckles, directions, lengths, np.tile(np.radians([0, 0, 40.0, 0]), (4, 1)), axes
     )
     np.testing.assert_allclose(second[:, 0], truth[CHAINS[:, 1]], atol=1e-12)
+
+
+def test_bend_fingers_keeps_bone_lengths_with_a_first_bone_along_the_normal() -> None:
+    """A first bone pointing along the palm normal (a fist bent 90 degrees at the knuckle) has no
+    direction in the palm plane to take a hinge from: the hinge is the palm's ``-t``, so a bend
+    of 30 degrees still turns the bone (30 degrees) and keeps every bone length (1e-12 m);
+    review10a measured lengths x0.866 with the zero hinge before."""
+    truth = _seen_hand(0.5, True, 30.0)
+    axes = palm_axes(truth)
+    bones = np.diff(truth[CHAINS], axis=1)  # (4, 3, 3)
+    lengths = np.linalg.norm(bones, axis=2)  # (4, 3)
+    directions = bones / lengths[..., None]
+    directions[0, 0] = axes[2]  # the index finger's first bone along the normal
+    knuckles = truth[CHAINS[:, 0]]
+    bent = bend_fingers(
+        knuckles, directions, lengths, np.tile(np.radians([0, 30.0, 0, 0]), (4, 1)), axes
+    )
+    bones_after = np.diff(np.concatenate([knuckles[:, None], bent], axis=1), axis=1)
+    np.testing.assert_allclose(np.linalg.norm(bones_after, axis=2), lengths, atol=1e-12)
+    after = bones_after[0, 0] / lengths[0, 0]
+    assert np.degrees(np.arccos(np.clip(after @ axes[2], -1, 1))) == pytest.approx(30.0, abs=1e-6)
 
 
 @pytest.mark.parametrize("right", [True, False])

@@ -53,6 +53,7 @@ MEDIAPIPE_PROXIMAL_RATIO = 0.70  # MediaPipe's proximal phalanx length / the han
 FINGER_PIXEL_SIGMA = 0.05  # a finger joint's 2D residual scale, of the hand's landmark box diagonal
 FINGER_ANGLE_SIGMA_DEG = 20.0  # the pull of each splay and bend change towards MediaPipe's shape
 FINGER_ITERATIONS = 20  # damped Gauss-Newton steps of the bend fit
+MIN_IN_PLANE = 0.3  # a first finger bone's in-plane length below this: hinge from the palm
 # An average adult right palm (metres; x from the wrist towards the fingers, y towards the thumb,
 # z = 0: the palm is taken as flat): wrist to middle knuckle 9 cm, index to pinky knuckle 6.4 cm.
 # Rows follow PALM_JOINTS; a left hand mirrors y.
@@ -317,19 +318,24 @@ def bend_fingers(
     directions: np.ndarray,
     lengths: np.ndarray,
     changes: np.ndarray,
-    normal: np.ndarray,
+    axes: np.ndarray,
 ) -> np.ndarray:
     """``(F, 3, 3)`` the three joints after each of ``knuckles (F, 3)`` of fingers whose bones
     point along unit ``directions (F, 3, 3)`` with ``lengths (F, 3)`` metres, changed by
-    ``changes (F, 4)`` radians: a splay of the whole finger about the palm's ``normal (3,)``, then
-    a bend of each bone and those after it about the finger's hinge axis (the first bone's
-    direction in the palm plane crossed with ``normal``: a positive bend turns the finger towards
-    ``normal``). Zero changes give the bones as they are."""
+    ``changes (F, 4)`` radians: a splay of the whole finger about the palm's normal ``n``, then a
+    bend of each bone and those after it about the finger's hinge axis (the first bone's
+    direction in the palm plane crossed with ``n``: a positive bend turns the finger towards
+    ``n``; ``-t`` where the first bone is within ``acos(MIN_IN_PLANE)`` of the normal and its
+    in-plane direction is noise). ``axes (3, 3)``: rows ``x, t, n`` (:func:`palm_axes`). Zero
+    changes give the bones as they are; any changes keep the bone lengths."""
     count = len(knuckles)
+    normal = axes[2]  # (3,)
     normals = np.broadcast_to(normal, (count, 3))  # (F, 3)
     along = directions[:, 0] - (directions[:, 0] @ normal)[:, None] * normal  # (F, 3) in plane
-    along /= np.maximum(np.linalg.norm(along, axis=1, keepdims=True), 1e-12)
-    hinge = _cross(along, normal)  # (F, 3)
+    flat = np.linalg.norm(along, axis=1, keepdims=True)  # (F, 1)
+    hinge = np.where(  # (F, 3); x cross n = -t
+        flat > MIN_IN_PLANE, _cross(along / np.maximum(flat, 1e-12), normal), -axes[1]
+    )
     dirs = _turn(normals, np.repeat(changes[:, :1], 3, axis=1), directions)  # (F, 3, 3) splayed
     hinge = _turn(normals, changes[:, :1], hinge[:, None, :])[:, 0]  # (F, 3)
     dirs = _turn(hinge, np.cumsum(changes[:, 1:], axis=1), dirs)  # (F, 3, 3) bent
@@ -386,7 +392,7 @@ def fit_finger_bends(
 
     def residuals(changes: np.ndarray) -> np.ndarray:  # (C, 4, 4) -> (C, 4, 10), C = 1 or 4
         c = len(changes)  # sets of changes, all fingers of all sets in one call
-        joints = bend_fingers(*tiled[c], changes.reshape(-1, 4), axes[2]).reshape(c, 4, 3, 3)
+        joints = bend_fingers(*tiled[c], changes.reshape(-1, 4), axes).reshape(c, 4, 3, 3)
         z = np.maximum(joints[..., 2], 1e-3)  # (C, 4, 3)
         pix = np.stack([fx * joints[..., 0] / z + cx, fy * joints[..., 1] / z + cy], axis=-1)
         return np.concatenate(
@@ -411,7 +417,7 @@ def fit_finger_bends(
         damping = np.where(better, damping * 0.3, damping * 10.0)
         if np.abs(step).max() < 1e-5:  # radians: converged (or stuck) on every finger
             break
-    joints = bend_fingers(knuckles, directions, bones, changes, axes[2])  # (4, 3, 3)
+    joints = bend_fingers(knuckles, directions, bones, changes, axes)  # (4, 3, 3)
     if not np.all(np.isfinite(joints)):
         return points
     out = np.array(points, dtype=np.float64)  # (21, 3)

@@ -24,15 +24,16 @@ Steps, for one clip:
 2. **Scene check** (:func:`drop_scene_tracks`, hands v13): a track whose hull colour is off the
    clip's confident hands' skin and that stays still against the background is part of the
    scene and dropped (:mod:`egosim.stages.hands.scene_check`: the EgoDex portrait variant's
-   curtain fold, found and followed on 20 of 33 frames).
-   **Sides** (:func:`assign_sides`): MediaPipe's labels assume a mirrored (selfie) image, so on
+   curtain fold, found and followed on 20 of 33 frames). A confident track (median presence at
+   least ``seed_presence``) and one of under three frames are never dropped.
+3. **Sides** (:func:`assign_sides`): MediaPipe's labels assume a mirrored (selfie) image, so on
    egocentric video its "Left" is the real right hand, and the labels flip now and then. Detections
    are linked into tracks (nearest centroid frame to frame); each track takes one side from its
    swapped labels' summed scores plus an image-position vote (left half = left hand); two tracks
    at the same time never share a side (the one further right becomes the right hand). A track
    shorter than ``min_track_frames`` whose vote wants a side a longer track holds at that time
    is dropped rather than given the other side (an isolated false hand would otherwise take it).
-3. **Bridge and smooth** (:func:`bridge_and_smooth`): gaps of up to ``max_gap`` frames inside a
+4. **Bridge and smooth** (:func:`bridge_and_smooth`): gaps of up to ``max_gap`` frames inside a
    track (ends no further apart than ``_tracks`` links) are filled by linear interpolation (lower
    confidence), then image and world landmarks
    are smoothed over time with a Gaussian of ``smooth_sigma`` frames (landmarks jitter by a few
@@ -40,7 +41,7 @@ Steps, for one clip:
    as ``_tracks`` links one frame apart: two tracks given one side in adjacent frames are not
    blended (HOT3D window 0: the right hand was pulled 20-110 px onto the forearm at frames
    24-28 by a false sleeve detection that took its side at frame 26).
-4. **Lift** (:func:`lift_to_camera`): MediaPipe's world landmarks give a hand *shape* but their
+5. **Lift** (:func:`lift_to_camera`): MediaPipe's world landmarks give a hand *shape* but their
    axes are not the camera's (on the synthetic world they were 74-82 degrees off), so the palm is
    placed by a planar PnP of an average palm template onto the 2D palm landmarks, refined on the
    reprojection error (of its two poses, the one with the fingers pointing away from a
@@ -48,20 +49,24 @@ Steps, for one clip:
    depth, and each joint is put on its pixel's ray; finger joints' depths are then pulled
    towards the bone lengths (:func:`~egosim.stages.common.hand_lift.refine_by_bone_lengths`;
    MediaPipe's proximal phalanges lengthened,
-   :func:`~egosim.stages.common.hand_lift.landmark_bone_lengths`). The points are then scaled
+   :func:`~egosim.stages.common.hand_lift.landmark_bone_lengths`), and the four fingers are
+   MediaPipe's fingers bent to fit their 2D (hands v13,
+   :func:`~egosim.stages.common.hand_lift.fit_finger_bends`). The points are then scaled
    about the camera centre (which keeps the projection) so that their median depth equals the
    median depth observed under the 2D landmarks; without depth the template's average-hand size
    sets the distance. A palm seen edge-on has no PnP pose in front of the camera: it takes the
    rotation and depth of the same hand's nearest frame with one (within ``max_gap`` frames;
    :func:`lift_with_rotation`) rather than MediaPipe's own axes, whose 74-82 degree turn the
    spike filter would drop.
-5. **Repair** (:func:`repair_unsure`, hands v10): a palm turning off its own track faster than
+6. **Repair** (:func:`repair_unsure`, hands v10): a palm turning off its own track faster than
    ``max_turn_rate`` (:func:`~egosim.stages.hands.filters.turn_outliers`, over ``turn_window``
    frames either side, in the camera frame) is interpolated between trusted frames of its track
    within ``max_gap`` (turn slerped, wrist lerped); where there are none its 3D is withheld: the
    hand stays valid with its joints on its landmarks' rays (its 2D), confidence times 0.1, and
    ``MediaPipeResult.lifted`` False, which the stage writes as ``hand_lifted`` (hands schema v3).
-   Then to world with ``world_from_cam``.
+   The fingers' wrist-relative depths are smoothed over time within runs of trusted frames
+   (``finger_depth_sigma``, :func:`~egosim.stages.hands.filters.smooth_finger_depths`, hands
+   v14; each joint kept on its ray). Then to world with ``world_from_cam``.
 
 :func:`mediapipe_hands` runs all of it; :func:`mediapipe_detections` wraps it for the stage.
 MediaPipe is imported lazily: install it as ``make setup`` does (``--no-deps mediapipe==0.10.21``).
@@ -493,7 +498,8 @@ def drop_scene_tracks(
 ) -> RawLandmarks:
     """``raw`` without the tracks (:func:`_tracks`) that are part of the scene: off the clip's
     skin colour and still against its background (:func:`~egosim.stages.hands.scene_check.
-    scene_tracks`; the EgoDex portrait variant's curtain fold). ``raw`` without overlaps."""
+    scene_tracks`; the EgoDex portrait variant's curtain fold). ``raw`` must already be without
+    overlaps (:func:`drop_overlapping`)."""
     tracks = _tracks(raw, params)
     if len(tracks) < 2 or params.scene_check is None:
         return raw  # one track has no other hand to seed the skin from
