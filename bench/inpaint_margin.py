@@ -286,15 +286,16 @@ def scene_level(
     return _psnr(frame, static, band)
 
 
-def start_frames(hands: np.ndarray, starts: int, min_left: int = 12) -> list[int]:
+def start_frames(hands: np.ndarray, starts: int, min_left: int = 12, min_gap: int = 4) -> list[int]:
     """The frames sub-clips start at: the first frame whose ``hands (T, H, W)`` truth shows a
     hand (``MIN_HAND_FRACTION``), then up to ``starts - 1`` more evenly spread over the later
-    frames with a hand that leave ``min_left`` frames to fill from (each scored as if a clip
-    started there: other holes, other frames after them)."""
+    frames with a hand at least ``min_gap`` frames after the first (a start one frame later is
+    nearly the same case) that leave ``min_left`` frames after them to fill from (each scored as
+    if a clip started there: other holes, other frames after them)."""
     shown = np.nonzero(hands.reshape(len(hands), -1).mean(axis=1) >= MIN_HAND_FRACTION)[0]
     if not len(shown):
         return [0]
-    later = shown[(shown > shown[0]) & (shown <= len(hands) - min_left)]
+    later = shown[(shown >= shown[0] + min_gap) & (shown <= len(hands) - 1 - min_left)]
     if starts <= 1 or not len(later):
         return [int(shown[0])]
     pick = np.unique(np.round(np.linspace(0, len(later) - 1, min(starts - 1, len(later)))))
@@ -478,7 +479,7 @@ def main() -> int:
                 if "true" in sel[0]:
                     gain = np.nanmean([r["true"] - r["telea"] for r in sel])
                     extra = f" true-mask margin {gain:+.2f}"
-                print(f"{name:>12} {group:>9}: pred margin {margin:+.2f} dB{extra}")
+                print(f"{name:>12} {group:>9}: pred margin {margin:+.2f} dB{extra} n={len(sel)}")
     (args.out / "inpaint_margin.json").write_text(json.dumps(rows, indent=1))
     return 0
 

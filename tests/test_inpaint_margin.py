@@ -72,15 +72,15 @@ def test_drifted_poses_random_walk_from_frame_0() -> None:
 
 def test_start_frames_first_hand_then_spread_over_later_hands() -> None:
     """Sub-clip starts of ``--starts``: the first frame with a hand, then later frames with a
-    hand, evenly spread, each leaving 12 frames after it."""
+    hand at least 4 frames after it, evenly spread, each leaving 12 frames after it."""
     hands = np.zeros((40, 10, 10), bool)  # (T, H, W) a hand in frames 3-9 and 20-35
     hands[3:10, :5, :5] = True
     hands[20:36, :5, :5] = True
     assert start_frames(hands, 1) == [3]
-    later = [4, 5, 6, 7, 8, 9, 20, 21, 22, 23, 24, 25, 26, 27, 28]  # hands, <= 40 - 12
-    assert start_frames(hands, 2) == [3, 4]
-    assert start_frames(hands, 3) == [3, 4, 28]
-    assert start_frames(hands, 5) == [3, 4, 9, 23, 28]  # later[0, 5, 9, 14]: 14 / 3 apart
+    later = [7, 8, 9, 20, 21, 22, 23, 24, 25, 26, 27]  # hands, >= 3 + 4, <= 39 - 12
+    assert start_frames(hands, 2) == [3, 7]
+    assert start_frames(hands, 3) == [3, 7, 27]
+    assert start_frames(hands, 5) == [3, 7, 20, 24, 27]  # later[0, 3, 7, 10]: 10 / 3 apart
     assert start_frames(hands, 100) == [3, *later]
     assert start_frames(np.zeros((20, 4, 4), bool), 5) == [0]  # no hand: frame 0 only
 

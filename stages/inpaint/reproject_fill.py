@@ -141,14 +141,15 @@ def local_residual_map(
 
 MIN_SHIFT_EVIDENCE = 20  # ring points a frame must show before a shift is looked for
 MAX_SHIFT_EVIDENCE = 4000  # ring points a shift is scored on (an even subsample of more): the
-# mean residual of 4,000 points is as sure as of 50,000, and each of the (2 radius + 1)^2
-# shifts samples them all (a large HOT3D hole's ring: 45k points, 6 s of 19 s a clip)
+# mean residual of 4,000 points is sure enough (the shift chosen was the same on every clip
+# measured, design.md "Inpaint v14"), and each of the (2 radius + 1)^2 shifts samples them all
+# (a large HOT3D hole's ring: 45k points, 6 s of 19 s a clip)
 
 
 def evidence(count: int) -> slice:
     """The even subsample (a slice) of ``count`` ring points that a shift is scored on: all of
     them up to ``MAX_SHIFT_EVIDENCE``, else every n-th."""
-    return slice(None, None, -(-count // MAX_SHIFT_EVIDENCE))
+    return slice(None, None, max(1, -(-count // MAX_SHIFT_EVIDENCE)))
 
 
 def ring_shift(
