@@ -1220,3 +1220,27 @@ def test_only_runs_the_off_side_mark_adds_lose_their_colour_region(
     stage.masks_from_keypoints(frames, keypoints, valid, config)
     assert len(seen) == 1 and seen[0][2] == [False, False]
     assert np.isnan(seen[0][1][0]) and abs(seen[0][1][1] - 100.0) < 1e-6
+
+
+def test_both_sides_search_wants_both_sides_in_the_image() -> None:
+    """``arm_search(nearer_side=True)``: a strip along the image's top border has only one side
+    in the image; it must not pass as standing out from both (review10b: it took a table strip
+    along the border, 180 deg, over the navy sleeve running straight down from the wrist)."""
+    from egosim.stages.hand_mask import arm_region as ar
+
+    h, w = 160, 240
+    rng = np.random.default_rng(0)
+    lab = np.zeros((h, w, 3), np.float32)
+    lab[..., 0] = 80  # white table
+    lab[..., 1:] = 128
+    yy, xx = np.mgrid[0:h, 0:w] + 0.5
+    lab[(xx < 100) & (yy >= 40), 0] = 36  # dark floor, left of the arm
+    lab[(xx >= 110) & (xx < 130) & (yy >= 40), 0] = 30  # navy sleeve, straight down
+    lab += rng.normal(0, 1.0, lab.shape).astype(np.float32)
+    wrist, hand_dir = np.array([120.0, 30.0]), np.array([0.0, 1.0])
+    exclude = np.zeros((h, w), np.uint8)
+    for nearer in (False, True):
+        d, _, _ = ar.arm_search(
+            lab, wrist, hand_dir, 60.0, exclude, 90.0, 3.0, 20.0, nearer_side=nearer
+        )
+        assert abs(np.degrees(np.arctan2(d[1], d[0])) - 90.0) <= 10.0, (nearer, d)  # the sleeve

@@ -127,7 +127,9 @@ class ArmParams:
     # can reach (no frame before it), the arm is also searched for a strip that stands out from
     # both sides (contrast of the nearer side, not the mean: a strip of uniform floor along a
     # table's edge stands out from the table only; see :func:`arm_search`), and that direction
-    # is drawn when it lies more than ``steady_jump_deg`` from the plain search's
+    # is drawn when it lies more than ``start_switch_deg`` from the plain search's
+    start_switch_deg: float = 45.0  # ... degrees the both-sides direction must lie from the
+    # plain search's to be drawn (another arm, not the same one a step off)
 
     def __post_init__(self) -> None:
         problems = []
@@ -157,7 +159,7 @@ class ArmParams:
             problems.append(f"other_arm_rare must be in [0, 1], got {self.other_arm_rare}")
         if not 0 <= self.steady_frames <= 1000:
             problems.append(f"steady_frames must be in [0, 1000], got {self.steady_frames}")
-        for name in ("steady_jump_deg", "steady_agree_deg"):
+        for name in ("steady_jump_deg", "steady_agree_deg", "start_switch_deg"):
             if not 0.0 <= getattr(self, name) <= 180.0:
                 problems.append(f"{name} must be in [0, 180], got {getattr(self, name)}")
         if not 0.0 < self.other_arm_floor <= 1.0:
@@ -276,7 +278,10 @@ def arm_search(
         if not contrast:
             away = 0.0
         else:
-            away = float(min(contrast)) if nearer_side else float(np.mean(contrast))
+            # nearer side: both sides must be in the image, or a strip along the border
+            # (one side off it) would pass as standing out from both
+            both = float(min(contrast)) if len(contrast) == 2 else 0.0
+            away = both if nearer_side else float(np.mean(contrast))
         # +1 Lab unit of noise floor, so that a perfectly uniform strip still prefers no turn
         score = (spread + 1.0) / (away + 1.0) * (1.0 + turn_cost * abs(np.radians(turn)))
         if other is not None and other_tolerance > 0:
@@ -429,7 +434,7 @@ def draw_arm_labels(
     given, is drawn as it is: no search and no re-aim (a direction the neighbouring frames
     agree on, see :func:`steady_directions`). With ``nearer_side`` the search is run again
     asking the strip to stand out from both sides (:func:`arm_search`), and that direction is
-    drawn when it lies more than ``steady_jump_deg`` from the first: another arm, not the
+    drawn when it lies more than ``start_switch_deg`` from the first: another arm, not the
     same one a step off (the first search's choice within one valley is kept).
 
     With ``lab (H, W, 3)``, the image in float32 Lab, the forearm's direction is searched round
@@ -470,7 +475,7 @@ def draw_arm_labels(
             d = arm_direction(*search_args, **search_kw)
             if nearer_side:
                 both = arm_direction(*search_args, nearer_side=True, **search_kw)
-                if _turn_deg(both, d) > arm.steady_jump_deg:
+                if _turn_deg(both, d) > arm.start_switch_deg:
                     d = both  # another arm, not the same one a step off: see the docstring
         fan, band, seed, region = _arm_regions(lab, mask, wrist, d, hand_len, scale, capsule, arm)
         if region is not None and arm.refine_direction:
@@ -527,7 +532,7 @@ def other_arm_colours(
             both, both_colour, both_score = arm_search(lab, wrist, d, hand_len, mask,
                                                        arm.max_turn_deg, arm.turn_cost, r_wrist,
                                                        nearer_side=True)  # fmt: skip
-            if _turn_deg(both, best) > arm.steady_jump_deg:
+            if _turn_deg(both, best) > arm.start_switch_deg:
                 colour, score = both_colour, both_score
         alone.append(None if colour is None else (colour, score))
     out: list[np.ndarray | None] = []

@@ -317,10 +317,11 @@ class HandMaskStage(ClipStage):
     # frames that agree, is drawn along the direction between those (steady_directions)
     # 19: in the first frame of a hand's track a strip that stands out from both sides (the
     # nearer side's contrast), not on average, is drawn when it is another direction
-    # (more than steady_jump_deg from the plain search's; start_both_sides)
+    # (more than start_switch_deg from the plain search's; start_both_sides)
     # 20: an arm whose ray crosses past the other hand's wrist counts as swung away in
     # steady_directions and never brackets a run; the runs only that mark finds are drawn
-    # without the probable colour region (steady_off_side; HOT3D window 1, t=37-45)
+    # without the probable colour region (steady_off_side; HOT3D window 1, t=37-45); and the
+    # both-sides search of v19 wants both sides in the image (a border strip passed on one)
     backends = ("keypoints", "sam")
     # What process reads (the executor decodes nothing else): the frames, joints and camera
     # of the clip, the robot arm's mask, the cleaned joints.
