@@ -19,7 +19,7 @@ from egosim.pipeline.execute import ShardTask, run_shard_task
 from egosim.pipeline.geometry import unproject_depth
 from egosim.pipeline.records import Clip
 from egosim.pipeline.shards import ShardReader, ShardWriter
-from egosim.pipeline.stage import ClipRejected
+from egosim.pipeline.stage import ClipRejected, ConfigError
 from egosim.schemas.depth_camera import DEPTH_CAMERA
 from egosim.schemas.hand_mask import HAND_MASK
 from egosim.schemas.inpaint import INPAINT
@@ -126,7 +126,9 @@ def test_static_camera_without_depth_fills_by_temporal_median() -> None:
         frames[t, 10:30, 5 + 8 * t : 20 + 8 * t] = (220, 170, 140)
         masks[t, 10:30, 5 + 8 * t : 20 + 8 * t] = 1
     frames[3, 35:40, 30:40] = (220, 170, 140)  # a hand part that frame 3's mask missed
-    plain = InpaintStage(InpaintConfig(occluder_ratio=0.0))  # the plain temporal median
+    # the plain temporal median (the carry leaves some pixels to one frame: aligned_confirm 1
+    # keeps that frame's colour instead of its mean with Telea, so the fill is exact)
+    plain = InpaintStage(InpaintConfig(occluder_ratio=0.0, aligned_confirm=1))
     result = plain.fill(frames, masks, None, np.zeros(4), None, static_camera=True)
     hole = masks[0] > 0
     np.testing.assert_array_equal(result.image[hole], scene[hole])  # exact: the median of truth
@@ -437,6 +439,43 @@ def test_a_hand_the_later_masks_dropped_leaves_no_ghost() -> None:
     err = np.abs(images[0][hole].astype(int) - scene[hole]).mean()
     assert err > 20, err  # the ghost the carry prevents
     np.testing.assert_array_equal(images[2][hole], scene[hole])
+
+
+def test_a_colour_one_frame_gave_is_meaned_with_telea() -> None:
+    """Still camera, a smooth table; the hand stays over the hole in frames 1-3 (masked), and in
+    frame 4 its upper half is a dark part the mask missed (a shadowed finger), the lower half the
+    table; frames 5-6 show the lower half again (the hand back on the upper half, masked). The
+    upper half is seen by frame 4 alone: v14 pasted the dark part (error 75 levels); v15 takes
+    the mean of that and Telea there, which halves the error. The lower half, seen by 3 frames,
+    is the table exactly. The carry and the colour test are off: only the new rule acts."""
+    yy, xx = np.mgrid[0:48, 0:64]
+    scene = np.stack([110 + xx, 95 + yy // 2, 80 + 0 * xx], axis=2).astype(np.uint8)  # (H, W, 3)
+    frames = np.repeat(scene[None], 7, axis=0)  # (T, H, W, 3)
+    masks = np.zeros((7, 48, 64), np.uint8)
+    frames[:4, 10:30, 20:40] = (200, 150, 130)  # the hand, frames 0-3, masked
+    masks[:4, 10:30, 20:40] = 1
+    frames[4, 10:20, 20:40] = (40, 30, 25)  # frame 4: a dark part of the hand, not masked
+    frames[5:, 10:20, 20:40] = (200, 150, 130)  # frames 5-6: the hand back on the upper half
+    masks[5:, 10:20, 20:40] = 1
+    base = {"dilate_px": 0, "dilate_fraction": 0.0, "occluder_ratio": 0.0, "carry_frames": 0}
+    upper = np.zeros((48, 64), bool)
+    upper[10:20, 20:40] = True
+    lower = np.zeros((48, 64), bool)
+    lower[20:30, 20:40] = True
+    err = {}
+    for confirm in (1, 2):
+        stage = InpaintStage(InpaintConfig(**base, aligned_confirm=confirm))
+        image = stage.fill(frames, masks, None, np.zeros(4), None, static_camera=True).image
+        np.testing.assert_array_equal(image[lower], scene[lower])  # 3 frames agree: kept
+        err[confirm] = np.abs(image[upper].astype(int) - scene[upper]).mean()
+    telea = opencv_fill(frames[0], masks[0])
+    err_telea = np.abs(telea[upper].astype(int) - scene[upper]).mean()
+    assert err[1] > 60, err  # the ghost v14 pasted (measured 75.5 levels)
+    assert err_telea < 10, err_telea  # Telea is close on the smooth table
+    assert err[2] <= (err[1] + err_telea) / 2 + 0.5, (err, err_telea)  # their mean (rounded)
+    assert err[2] < 0.6 * err[1], err  # the ghost halved (measured 37.8)
+    with pytest.raises(ConfigError, match="aligned_confirm"):
+        InpaintConfig(aligned_confirm=0)
 
 
 def test_clip_without_depth_is_filled_not_rejected() -> None:

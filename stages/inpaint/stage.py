@@ -12,9 +12,11 @@ inputs when a workflow connects them, else the clip's own. Backends:
   the image instead: the identity for a static camera (the
   ``cameras`` row's ``static_camera``, or poses that do not move), which makes the fill a plain
   temporal median, else homographies fitted to features and checked round the hole (see
-  ``aligned_fill``). With depth and poses, each hole pixel then takes the per-channel median
-  of the depth fill, the image-aligned fill and Telea (``vote``, see the ``vote`` module):
-  estimated cameras can put the depth fill far off, and the two others fail in other ways.
+  ``aligned_fill``); there a pixel that fewer than ``aligned_confirm`` frames filled takes the
+  mean of its fill and Telea (one frame's sample may be a hand that stays put). With depth
+  and poses, each hole pixel then takes the per-channel median of the depth fill, the
+  image-aligned fill and Telea (``vote``, see the ``vote`` module): estimated cameras can put
+  the depth fill far off, and the two others fail in other ways.
   Masks grow by ``dilate_px`` plus ``dilate_fraction`` of the image diagonal
   first (motion blur, shadows and mask edges), and a hand that a later frame's mask dropped
   (masked a frame or two before or after, nothing near it in this frame) is carried into that
@@ -113,6 +115,10 @@ class InpaintConfig(StageConfig):
     vote: bool = True  # depth fill: each hole pixel takes the per-channel median of the depth
     # fill, the image-aligned fill and Telea (the colour two of three agree on; false: the
     # depth fill alone; see the ``vote`` module)
+    aligned_confirm: int = 2  # without depth or poses (the image-aligned fill alone), a hole
+    # pixel that fewer than this many later frames filled takes the mean of its fill and Telea:
+    # one frame's sample is unconfirmed, and where a hand stays put it is the hand's missed part
+    # (DWM 00017's later starts) (1: off; not applied to the aligned fill the depth path votes on)
     model_path: str = ""  # local folder of a diffusers inpainting pipeline (backend diffusers)
     device: str = "cpu"  # torch device of the diffusers pipeline
     prompt: str = "empty table, no hands"  # text prompt of the diffusers pipeline
@@ -148,6 +154,8 @@ class InpaintConfig(StageConfig):
             )
         if not 0.0 <= self.occluder_ratio <= 1.0:
             problems.append(f"occluder_ratio must be in [0, 1], got {self.occluder_ratio}")
+        if not 1 <= self.aligned_confirm <= 32:
+            problems.append(f"aligned_confirm must be in [1, 32], got {self.aligned_confirm}")
         if not 1 <= self.candidates <= 32:
             problems.append(f"candidates must be in [1, 32], got {self.candidates}")
         if self.unseen_method not in UNSEEN_METHODS:
@@ -171,7 +179,7 @@ class InpaintStage(ClipStage):
     """Remove hands from the first frame: reprojected later frames, then OpenCV inpainting."""
 
     name = "inpaint"
-    version = 14  # 3: median of several frames; clips without depth aligned in the image. 4: more
+    version = 15  # 3: median of several frames; clips without depth aligned in the image. 4: more
     # frames in the median, dilation with the image size. 5: hand-coloured samples not used.
     # 6: large holes no longer rejected (chunked sampling). 7: the image-aligned fill checks
     # each homography near every hole pixel (local_residual). 8: a hand a later frame's mask
@@ -183,7 +191,8 @@ class InpaintStage(ClipStage):
     # 12: so is the image-aligned fill's homography warp. 13: the depth fill is voted on with
     # the image-aligned fill and Telea, per pixel (``vote``). 14: each ring shift is scored on
     # an even subsample of at most 4,000 ring points (``MAX_SHIFT_EVIDENCE``; identical fills on
-    # every clip measured, HOT3D windows 40% faster)
+    # every clip measured, HOT3D windows 40% faster). 15: without depth or poses, a hole pixel
+    # that fewer than aligned_confirm (2) frames filled takes the mean of its fill and Telea
 
     description = "remove hands from the first frame (reprojected frames + OpenCV inpainting)"
     config_class = InpaintConfig
@@ -255,7 +264,7 @@ class InpaintStage(ClipStage):
             measured = depth0_confidence >= cfg.min_depth_confidence
         still = static_camera or (world_from_cam is not None and _still(world_from_cam))
 
-        def image_aligned() -> FillResult:
+        def image_aligned(confirm: int = 1) -> FillResult:
             return aligned_fill(
                 frames,
                 hand_mask,
@@ -268,10 +277,11 @@ class InpaintStage(ClipStage):
                 local_residual=cfg.local_residual,
                 shift_px=cfg.ring_shift_px,
                 shift_gain=cfg.ring_shift_gain,
+                confirm=confirm,
             )
 
         if depth0 is None or world_from_cam is None:
-            return image_aligned()
+            return image_aligned(cfg.aligned_confirm)
         try:
             result = reproject_fill(
                 frames,
