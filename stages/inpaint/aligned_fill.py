@@ -14,10 +14,11 @@ The same check is also made near each hole pixel (``local_residual``, :func:`loc
 a homography that holds on one side of the hole and not on the other fills that side only.
 What no frame sees goes to :func:`unseen_fill`.
 
-A colour only one frame gave is unconfirmed (``confirm``): where a hand stays put, the later
-frames see its hole only where their masks miss part of the hand (or where the scene moved), and
-their single sample pastes that ghost. Such pixels take the mean of the fill and OpenCV Telea
-over the hole (the median of the two, as :mod:`.vote` takes it of three).
+Optionally (``confirm > 1``; off by default, see ``InpaintConfig.aligned_confirm``) a colour
+fewer than ``confirm`` frames gave is unconfirmed: where a hand stays put, the later frames see
+its hole only where their masks miss part of the hand (or where the scene moved), and their
+single sample pastes that ghost. Such pixels take the mean of the fill and OpenCV's fill of the
+whole hole (``unseen_method``); their ``fill_source`` stays reprojected.
 """
 
 from __future__ import annotations
@@ -34,7 +35,6 @@ from egosim.stages.inpaint.reproject_fill import (
     dilate,
     evidence,
     local_residual_map,
-    opencv_fill,
     slot_median,
     unseen_fill,
 )
@@ -126,9 +126,9 @@ def aligned_fill(
     ``shift_px > 0``: each fitted warp is moved by :func:`image_shift` (the whole-pixel shift,
     less than ``shift_px``, that aligns the ring, kept when it lowers its residual by
     ``shift_gain``) before the checks: a homography fitted over the whole frame can sit a few
-    pixels off round the hole. ``confirm > 1``: a hole pixel that fewer than ``confirm`` frames
-    filled (one sample, or none and so OpenCV's) takes the mean of its fill and a Telea fill of
-    the whole hole (see the module docstring; 1: off).
+    pixels off round the hole. ``confirm > 1``: a hole pixel that some but fewer than
+    ``confirm`` frames filled takes the mean of its fill and OpenCV's fill of the whole hole
+    (see the module docstring; 1: off).
     """
     t, h, w = frames.shape[:3]
     masks = dilate(hand_mask > 0, dilate_px)  # (T, H, W)
@@ -204,11 +204,11 @@ def aligned_fill(
     if unseen.any():
         image = unseen_fill(image, unseen, inpaint_radius, unseen_method)
         fill_source[unseen > 0] = FILL_OPENCV
-    weak = count < confirm  # (M,) unconfirmed: fewer than confirm frames gave the colour
+    weak = done & (count < confirm)  # (M,) unconfirmed: 1..confirm-1 frames gave the colour
     if confirm > 1 and weak.any():
-        telea = opencv_fill(frames[0], target.astype(np.uint8), inpaint_radius)  # (H, W, 3)
+        hole = unseen_fill(frames[0], target.astype(np.uint8), inpaint_radius, unseen_method)
         wy, wx = ys[weak], xs[weak]
-        both = (image[wy, wx].astype(np.float32) + telea[wy, wx]) / 2  # (W', 3)
+        both = (image[wy, wx].astype(np.float32) + hole[wy, wx]) / 2  # (W', 3)
         image[wy, wx] = np.round(both).astype(np.uint8)
     fill_source[~target] = FILL_ORIGINAL
     return FillResult(image, fill_source, source_frame, target)

@@ -12,8 +12,8 @@ inputs when a workflow connects them, else the clip's own. Backends:
   the image instead: the identity for a static camera (the
   ``cameras`` row's ``static_camera``, or poses that do not move), which makes the fill a plain
   temporal median, else homographies fitted to features and checked round the hole (see
-  ``aligned_fill``); there a pixel that fewer than ``aligned_confirm`` frames filled takes the
-  mean of its fill and Telea (one frame's sample may be a hand that stays put). With depth
+  ``aligned_fill``; ``aligned_confirm``, off by default, means a colour only one frame gave
+  with OpenCV's). With depth
   and poses, each hole pixel then takes the per-channel median of the depth fill, the
   image-aligned fill and Telea (``vote``, see the ``vote`` module): estimated cameras can put
   the depth fill far off, and the two others fail in other ways.
@@ -115,10 +115,12 @@ class InpaintConfig(StageConfig):
     vote: bool = True  # depth fill: each hole pixel takes the per-channel median of the depth
     # fill, the image-aligned fill and Telea (the colour two of three agree on; false: the
     # depth fill alone; see the ``vote`` module)
-    aligned_confirm: int = 2  # without depth or poses (the image-aligned fill alone), a hole
-    # pixel that fewer than this many later frames filled takes the mean of its fill and Telea:
-    # one frame's sample is unconfirmed, and where a hand stays put it is the hand's missed part
-    # (DWM 00017's later starts) (1: off; not applied to the aligned fill the depth path votes on)
+    aligned_confirm: int = 1  # without depth or poses (the image-aligned fill alone), a hole
+    # pixel that some but fewer than this many later frames filled takes the mean of its fill
+    # and OpenCV's: one frame's sample may be a hand that stays put, its missed part pasted.
+    # 1: off (the default: 2 gained only on DWM 00017, where it was chosen, and was flat or
+    # worse on held-out alt and DWM 00013, and on a static camera whose one clean frame is
+    # right; design.md "Inpaint v15"); not applied to the aligned fill the depth path votes on
     model_path: str = ""  # local folder of a diffusers inpainting pipeline (backend diffusers)
     device: str = "cpu"  # torch device of the diffusers pipeline
     prompt: str = "empty table, no hands"  # text prompt of the diffusers pipeline
@@ -179,7 +181,7 @@ class InpaintStage(ClipStage):
     """Remove hands from the first frame: reprojected later frames, then OpenCV inpainting."""
 
     name = "inpaint"
-    version = 15  # 3: median of several frames; clips without depth aligned in the image. 4: more
+    version = 16  # 3: median of several frames; clips without depth aligned in the image. 4: more
     # frames in the median, dilation with the image size. 5: hand-coloured samples not used.
     # 6: large holes no longer rejected (chunked sampling). 7: the image-aligned fill checks
     # each homography near every hole pixel (local_residual). 8: a hand a later frame's mask
@@ -192,7 +194,9 @@ class InpaintStage(ClipStage):
     # the image-aligned fill and Telea, per pixel (``vote``). 14: each ring shift is scored on
     # an even subsample of at most 4,000 ring points (``MAX_SHIFT_EVIDENCE``; identical fills on
     # every clip measured, HOT3D windows 40% faster). 15: without depth or poses, a hole pixel
-    # that fewer than aligned_confirm (2) frames filled takes the mean of its fill and Telea
+    # that fewer than aligned_confirm (2) frames filled takes the mean of its fill and Telea.
+    # 16: aligned_confirm off by default (15's fills on held-out data were flat or worse), and
+    # when on it acts only where some frame filled, with unseen_method's fill (review10c)
 
     description = "remove hands from the first frame (reprojected frames + OpenCV inpainting)"
     config_class = InpaintConfig
