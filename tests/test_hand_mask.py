@@ -1104,6 +1104,25 @@ def test_crosses_other_wrist_marks_arms_on_the_other_hands_side() -> None:
     assert got.tolist() == want
 
 
+def test_crosses_other_wrist_spares_nearly_vertical_arms_of_hands_close_together() -> None:
+    """Two hands close together on one object (wrists 5 px apart), each arm 8 degrees off
+    straight down towards the other: the rays meet the bottom border past the other wrist (by
+    2 px), but an arm that steep is not following a table edge sideways; not marked (review10c:
+    both were). Tilted 50 degrees (past ``off_side_min_tilt_deg``, 45) they are."""
+    from egosim.stages.hand_mask.arm_region import crosses_other_wrist
+
+    keypoints = np.full((2, 2, 21, 2), np.nan)
+    keypoints[:, 0, 0] = [95.0, 50.0]  # left wrist
+    keypoints[:, 1, 0] = [100.0, 50.0]  # right wrist
+    valid = np.ones((2, 2), bool)
+    drawn = np.zeros((2, 2, 2))
+    for t, tilt in enumerate((8.0, 50.0)):  # degrees from straight down, towards the other
+        s, c = np.sin(np.radians(tilt)), np.cos(np.radians(tilt))
+        drawn[t] = [[s, c], [-s, c]]
+    got = crosses_other_wrist(keypoints, valid, drawn, 100, 200)  # (2, 2)
+    assert got.tolist() == [[False, False], [True, True]]
+
+
 def test_steady_directions_replaces_a_run_through_an_off_side_frame() -> None:
     """A run whose last frame turned back only 30-40 degrees (not a swing by angle) is still
     drawn between its agreeing neighbours when that frame's arm is on the other hand's side

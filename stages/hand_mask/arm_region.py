@@ -128,6 +128,8 @@ class ArmParams:
     # both sides (contrast of the nearer side, not the mean: a strip of uniform floor along a
     # table's edge stands out from the table only; see :func:`arm_search`), and that direction
     # is drawn when it lies more than ``start_switch_deg`` from the plain search's
+    off_side_min_tilt_deg: float = 45.0  # an arm is marked by ``steady_off_side`` only when
+    # it also points at least this far from straight down towards the other hand's side
     start_switch_deg: float = 45.0  # ... degrees the both-sides direction must lie from the
     # plain search's to be drawn (another arm, not the same one a step off)
 
@@ -162,6 +164,10 @@ class ArmParams:
         for name in ("steady_jump_deg", "steady_agree_deg", "start_switch_deg"):
             if not 0.0 <= getattr(self, name) <= 180.0:
                 problems.append(f"{name} must be in [0, 180], got {getattr(self, name)}")
+        if not 0.0 <= self.off_side_min_tilt_deg <= 90.0:
+            problems.append(
+                f"off_side_min_tilt_deg must be in [0, 90], got {self.off_side_min_tilt_deg}"
+            )
         if not 0.0 < self.other_arm_floor <= 1.0:
             problems.append(f"other_arm_floor must be in (0, 1], got {self.other_arm_floor}")
         for name in ("turn_cost", "out_of_view", "hand_ring", "other_arm", "other_arm_unsure"):
@@ -754,7 +760,12 @@ def hand_labels(
 
 
 def crosses_other_wrist(
-    keypoints: np.ndarray, valid: np.ndarray, drawn: np.ndarray, height: int, width: int
+    keypoints: np.ndarray,
+    valid: np.ndarray,
+    drawn: np.ndarray,
+    height: int,
+    width: int,
+    min_tilt_deg: float = 45.0,
 ) -> np.ndarray:
     """``(T, K)`` bool: frames whose drawn arm runs past the other hand's wrist, to its side.
 
@@ -765,8 +776,12 @@ def crosses_other_wrist(
     meets the image border right of the right wrist (or a right arm left of the left wrist)
     crosses to the other arm's side, which an arm does not do; a search that follows a floor
     or table edge sideways does (HOT3D window 1, t=37-45: the left arm along the table top to
-    the right border). Hands in the other order (crossed, or sides swapped) are never marked.
+    the right border). Hands in the other order (crossed, or sides swapped) are never marked,
+    nor an arm tilted less than ``min_tilt_deg`` from straight down towards the other hand's
+    side (two hands close together on one object, arms nearly vertical: review10c; every real
+    mark measured was 59 deg or more).
     """
+    tilt = np.sin(np.radians(min_tilt_deg))  # x component of a unit direction that far over
     t_count, k_count = drawn.shape[:2]
     out = np.zeros((t_count, k_count), bool)
     if k_count != 2:
@@ -782,7 +797,10 @@ def crosses_other_wrist(
             if not np.all(np.isfinite(d)):
                 continue
             end = wrists[k] + _exit_distance(wrists[k], d, width, height) * d  # (2,)
-            out[t, k] = end[0] > wrists[1, 0] if k == 0 else end[0] < wrists[0, 0]
+            if k == 0:
+                out[t, k] = bool(d[0] > tilt and end[0] > wrists[1, 0])
+            else:
+                out[t, k] = bool(d[0] < -tilt and end[0] < wrists[0, 0])
     return out
 
 

@@ -185,7 +185,9 @@ def masks_from_keypoints(
     drawn = np.stack(drawn)  # (T, K, 2)
     off_side = None
     if arm.steady_off_side:
-        off_side = crosses_other_wrist(keypoints, valid, drawn, *frames.shape[1:3])  # (T, K)
+        off_side = crosses_other_wrist(
+            keypoints, valid, drawn, *frames.shape[1:3], arm.off_side_min_tilt_deg
+        )  # (T, K)
     steady = steady_directions(
         drawn, arm.steady_frames, arm.steady_jump_deg, arm.steady_agree_deg, off_side
     )  # (T, K, 2)
@@ -294,7 +296,7 @@ class HandMaskStage(ClipStage):
     # cleaned joints and a replacement camera (see the module docstring)
     optional_inputs: ClassVar[Mapping[str, ShardSchema]] = {**CAMERA_ROLES, "hands": HANDS}
     output = HAND_MASK
-    version = 20  # 2: image-space arm masks (no world axis). 3: arm found by a colour walk, masks
+    version = 21  # 2: image-space arm masks (no world axis). 3: arm found by a colour walk, masks
     # carried into frames whose hands were missed. 4: arm re-aimed along its colour region.
     # 5: that region is probably arm wherever it runs. 6: each hand carried into the frames that
     # missed it, and only its certain seeds (skeleton, arm strip) carried with confidence.
@@ -322,6 +324,8 @@ class HandMaskStage(ClipStage):
     # steady_directions and never brackets a run; the runs only that mark finds are drawn
     # without the probable colour region (steady_off_side; HOT3D window 1, t=37-45); and the
     # both-sides search of v19 wants both sides in the image (a border strip passed on one)
+    # 21: the off-side mark also wants the arm tilted at least off_side_min_tilt_deg (45) from
+    # straight down towards the other hand (two hands close together, steep arms: review10c)
     backends = ("keypoints", "sam")
     # What process reads (the executor decodes nothing else): the frames, joints and camera
     # of the clip, the robot arm's mask, the cleaned joints.
