@@ -308,22 +308,40 @@ def smooth_finger_depths(
     t = joints_cam.shape[0]
     if ok.shape != (t, 2) or joints_cam.shape[1:] != (2, 21, 3):
         raise HandFilterError(f"joints {joints_cam.shape} and ok {ok.shape} disagree")
-    radius = int(np.ceil(3 * sigma))
-    kernel = np.exp(-0.5 * (np.arange(-radius, radius + 1) / sigma) ** 2)  # (2r+1,)
     picked = list(joints)
     out = joints_cam.copy()
     for s in range(2):
         good = ok[:, s] & np.all(np.isfinite(joints_cam[:, s]), axis=(1, 2))  # (T,)
-        begins = good & ~np.concatenate([[False], good[:-1]])  # (T,) first frame of each run
-        if starts is not None:
-            begins |= good & starts[:, s]
-        label = np.cumsum(begins)  # (T,) run number
         rel = joints_cam[:, s, picked, 2] - joints_cam[:, s, :1, 2]  # (T, J) depth from wrist
+        smooth = gaussian_smooth_runs(rel, good, sigma, None if starts is None else starts[:, s])
         for f in np.flatnonzero(good):
-            window = np.arange(max(0, f - radius), min(t, f + radius + 1))
-            window = window[good[window] & (label[window] == label[f])]  # (n,) f's run
-            wts = kernel[window - f + radius]  # (n,)
-            depth = joints_cam[f, s, 0, 2] + wts @ rel[window] / wts.sum()  # (J,)
+            depth = joints_cam[f, s, 0, 2] + smooth[f]  # (J,)
             old = joints_cam[f, s, picked]  # (J, 3)
             out[f, s, picked] = old * (np.maximum(depth, 1e-3) / old[:, 2])[:, None]
+    return out
+
+
+def gaussian_smooth_runs(
+    values: np.ndarray, ok: np.ndarray, sigma: float, starts: np.ndarray | None = None
+) -> np.ndarray:
+    """Smooth ``values (T, ...)`` over time by a Gaussian of ``sigma`` frames within runs of
+    ``ok (T,)`` frames, edges renormalised; a frame where ``starts (T,)`` is True begins a new
+    run even after an ``ok`` frame. Frames not ``ok`` are unchanged; ``sigma <= 0`` changes
+    nothing."""
+    if sigma <= 0:
+        return values
+    radius = int(np.ceil(3 * sigma))
+    kernel = np.exp(-0.5 * (np.arange(-radius, radius + 1) / sigma) ** 2)  # (2r+1,)
+    out = values.copy()
+    t = len(values)
+    begins = ok & ~np.concatenate([[False], ok[:-1]])  # (T,) first frame of each ok run
+    if starts is not None:
+        begins |= ok & starts
+    label = np.cumsum(begins)  # (T,) run number of each ok frame
+    for f in np.flatnonzero(ok):
+        window = np.arange(max(0, f - radius), min(t, f + radius + 1))
+        run = ok[window] & (label[window] == label[f])  # the same run as f only
+        wts = kernel[window[run] - f + radius]  # (n,)
+        picked = np.nan_to_num(values[window[run]])
+        out[f] = np.tensordot(wts / wts.sum(), picked, axes=1)
     return out

@@ -101,6 +101,7 @@ from egosim.stages.common.hand_lift import (  # one lift for the hands and the m
 )
 from egosim.stages.hands.filters import (
     Detections,
+    gaussian_smooth_runs,
     palm_rotations,
     smooth_finger_depths,
     turn_outliers,
@@ -246,30 +247,6 @@ def assign_sides(
     return side
 
 
-def _gaussian_smooth(
-    values: np.ndarray, ok: np.ndarray, sigma: float, starts: np.ndarray | None = None
-) -> np.ndarray:
-    """Smooth ``values (T, ...)`` over time within runs of ``ok (T,)``, edges renormalised; a
-    frame where ``starts (T,)`` is True begins a new run even after an ``ok`` frame."""
-    if sigma <= 0:
-        return values
-    radius = int(np.ceil(3 * sigma))
-    kernel = np.exp(-0.5 * (np.arange(-radius, radius + 1) / sigma) ** 2)  # (2r+1,)
-    out = values.copy()
-    t = len(values)
-    begins = ok & ~np.concatenate([[False], ok[:-1]])  # (T,) first frame of each ok run
-    if starts is not None:
-        begins |= ok & starts
-    label = np.cumsum(begins)  # (T,) run number of each ok frame
-    for f in np.flatnonzero(ok):
-        window = np.arange(max(0, f - radius), min(t, f + radius + 1))
-        run = ok[window] & (label[window] == label[f])  # the same run as f only
-        wts = kernel[window[run] - f + radius]  # (n,)
-        picked = np.nan_to_num(values[window[run]])
-        out[f] = np.tensordot(wts / wts.sum(), picked, axes=1)
-    return out
-
-
 def bridge_and_smooth(
     raw: RawLandmarks, side: np.ndarray, params: MediaPipeParams | None = None
 ) -> SideLandmarks:
@@ -311,8 +288,8 @@ def bridge_and_smooth(
             if present[f - 1, s] and present[f, s]:
                 jump = np.linalg.norm(centre_s[f] - centre_s[f - 1])
                 starts[f, s] = not jump <= link_limit(size_s[f - 1], size_s[f], 1, params)
-        uv[:, s] = _gaussian_smooth(uv[:, s], present[:, s], params.smooth_sigma, starts[:, s])
-        world[:, s] = _gaussian_smooth(
+        uv[:, s] = gaussian_smooth_runs(uv[:, s], present[:, s], params.smooth_sigma, starts[:, s])
+        world[:, s] = gaussian_smooth_runs(
             world[:, s], present[:, s], params.smooth_sigma, starts[:, s]
         )
     return SideLandmarks(uv, world, conf, present, detected, starts)
