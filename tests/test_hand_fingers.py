@@ -208,7 +208,9 @@ def test_a_frame_without_palm_pose_takes_its_neighbours_palm_depth(
 
     monkeypatch.setattr(backend, "palm_pnp_pose", failing_at_frame_1)
     still = MediaPipeParams(smooth_sigma=0.0, finger_depth_sigma=0.0)  # each frame its own
-    res = backend.hands_from_raw(_still_hand_raw(hands), 832, K, None, None, still, fps=16.0)
+    res = backend.hands_from_raw(
+        _still_hand_raw(hands), 832, K, None, None, still, fps=16.0, frames=None
+    )
     assert res.valid[:, 1].all() and res.lifted[:, 1].all()
     palm = list(PALM_JOINTS)
     placed = res.joints[:, 1, palm]  # (3, 5, 3) the palm placed in each frame
@@ -282,9 +284,9 @@ def test_hands_from_raw_smooths_the_finger_depths_of_trusted_frames() -> None:
     hands = [_seen_hand(0.2 + 0.08 * f, True, 40.0) for f in range(8)]
     raw = _still_hand_raw(hands)
     plain = hands_from_raw(
-        raw, 832, K, None, None, MediaPipeParams(finger_depth_sigma=0.0), fps=16.0
+        raw, 832, K, None, None, MediaPipeParams(finger_depth_sigma=0.0), fps=16.0, frames=None
     )
-    res = hands_from_raw(raw, 832, K, None, None, MediaPipeParams(), fps=16.0)
+    res = hands_from_raw(raw, 832, K, None, None, MediaPipeParams(), fps=16.0, frames=None)
     assert res.lifted[:, 1].all()
     expected = smooth_finger_depths(plain.joints, plain.lifted, 1.0, plain.landmarks.starts)
     np.testing.assert_allclose(res.joints, expected, atol=1e-12)

@@ -265,7 +265,9 @@ def test_hands_from_raw_lifts_with_refined_palm_poses_when_asked() -> None:
     )
     lifted = {}
     for refine in (False, True):
-        res = hands_from_raw(raw, 832, k, None, None, MediaPipeParams(refine_palm=refine), fps=16.0)
+        res = hands_from_raw(
+            raw, 832, k, None, None, MediaPipeParams(refine_palm=refine), fps=16.0, frames=None
+        )
         assert res.valid[:, 1].all() and not res.valid[:, 0].any()
         expected = palm_pnp_pose(res.landmarks.uv[2, 1], res.landmarks.world[2, 1], k, True,
                                  True, refine)[0]  # fmt: skip
@@ -703,7 +705,9 @@ def test_synthetic_world_3d_against_true_joints(mediapipe: object) -> None:
     figures = {}
     for lift in ("palm_pnp", "translation"):
         p = MediaPipeParams(lift=lift)
-        res = hands_from_raw(raw, clip.width, clip.intrinsics, None, None, p, fps=clip.fps)
+        res = hands_from_raw(
+            raw, clip.width, clip.intrinsics, None, None, p, fps=clip.fps, frames=clip.frames
+        )
         acc = hand_accuracy(
             res.joints,
             res.landmarks.uv,
@@ -852,9 +856,9 @@ def test_a_palm_turned_off_its_track_is_interpolated_or_its_3d_withheld() -> Non
         present=np.tile([False, True], (t, 1)),
     )
     params = MediaPipeParams(smooth_sigma=0.0, finger_depth_sigma=0.0)
-    new = hands_from_raw(raw, 832, k, None, None, params, fps=16.0)
+    new = hands_from_raw(raw, 832, k, None, None, params, fps=16.0, frames=None)
     untested = MediaPipeParams(smooth_sigma=0.0, finger_depth_sigma=0.0, max_turn_rate=np.inf)
-    old = hands_from_raw(raw, 832, k, None, None, untested, fps=16.0)
+    old = hands_from_raw(raw, 832, k, None, None, untested, fps=16.0, frames=None)
     assert new.valid[:, 1].all() and old.valid[:, 1].all()
     for f in (3, 8):
         assert orientation_error_deg(old.joints[f, 1], truth[f]) > 60.0  # what the rule removes

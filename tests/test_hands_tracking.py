@@ -638,7 +638,9 @@ def test_curtain_fold_of_the_egodex_portrait_cut_is_not_a_hand() -> None:
         near = np.linalg.norm(centres - np.array([190.0, 210.0]), axis=-1)  # (T, 2)
         return int((res.valid & (near < hand_size(res.landmarks.uv))).sum())
 
-    kept = hands_from_raw(raw, 832, k, params=replace(params, scene_check=None), fps=16.0)
+    kept = hands_from_raw(
+        raw, 832, k, params=replace(params, scene_check=None), fps=16.0, frames=None
+    )
     assert on_fold(kept) >= 15
     res = hands_from_raw(raw, 832, k, params=params, fps=16.0, frames=frames)
     assert on_fold(res) == 0

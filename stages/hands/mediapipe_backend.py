@@ -419,13 +419,15 @@ def hands_from_raw(
     params: MediaPipeParams | None = None,
     *,
     fps: float,
-    frames: np.ndarray | None = None,
+    frames: np.ndarray | None,
 ) -> MediaPipeResult:
     """Everything after detection: sides, bridging, smoothing, lifting and the repair of palms
     turned off their track (:func:`~egosim.stages.hands.filters.turn_outliers`,
     :func:`repair_unsure`) of ``raw`` landmarks found in frames ``width`` pixels wide (arguments
     otherwise as :func:`mediapipe_hands`). With the ``frames (T, H, W, 3)`` they were found in,
-    tracks that are part of the scene are dropped first (:func:`drop_scene_tracks`)."""
+    tracks that are part of the scene are dropped first (:func:`drop_scene_tracks`); ``frames``
+    has no default, so a caller without them (landmarks made up in a test) says None on purpose
+    and a bench cannot skip the check unnoticed."""
     params = params or MediaPipeParams()
     raw = drop_overlapping(raw, params.duplicate_distance)
     if frames is not None and params.scene_check is not None:
