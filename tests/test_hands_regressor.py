@@ -16,6 +16,7 @@ from safetensors.torch import load_file  # noqa: E402
 from egosim.model.checkpoint import UnsafeCheckpointError  # noqa: E402
 from egosim.pipeline.clip_io import clip_from_row, write_clips  # noqa: E402
 from egosim.pipeline.geometry import invert_se3, project_points, transform_points  # noqa: E402
+from egosim.pipeline.records import RIGHT, Clip  # noqa: E402
 from egosim.pipeline.shards import open_shard  # noqa: E402
 from egosim.pipeline.stage import ConfigError  # noqa: E402
 from egosim.stages.hands.convert_checkpoint import (  # noqa: E402
@@ -41,6 +42,7 @@ from egosim.stages.hands.regressor_backend import (  # noqa: E402
 from egosim.stages.hands.stage import HandsConfig  # noqa: E402
 from egosim.world.clip import render_clip  # noqa: E402
 from egosim.world.config import WorldConfig  # noqa: E402
+from tests.conftest import shared_data  # noqa: E402
 from tests.test_hands import hands_row  # noqa: E402
 from tests.test_mano import tiny_mano  # noqa: E402
 
@@ -224,6 +226,84 @@ def test_default_boxes_come_from_mediapipe(weights: Path, clip) -> None:
     det.check(clip.num_frames)
     assert det.present.any()  # MediaPipe finds the left hand of this clip in every frame
     assert np.isfinite(det.joints[det.present]).all()
+
+
+def egodex_portrait_clip() -> Clip:
+    """The EgoDex portrait variant's frames (docs/design.md, "Hands: the curtain hand, scene
+    cues"), rebuilt without either lossy encode as test_hands_tracking's curtain test builds
+    them: the sample's centre 9:16 cut, 1080x1920, ingest's 480x832 band at 0.625, 33 frames at
+    16 fps; a 90-degree camera, no poses."""
+    import cv2
+
+    from egosim.pipeline.geometry import intrinsics_from_fov
+    from egosim.pipeline.media import read_video_file
+    from egosim.stages.common.frame_plan import plan_resize
+
+    video, stamps = read_video_file(shared_data("egodex_sample", "sample.mp4"))
+    stamps = np.asarray(stamps) - stamps[0]
+    pick = [int(np.abs(stamps - t).argmin()) for t in np.arange(33) / 16.0]
+    h, w = video.shape[1:3]
+    cut = round(h * 9 / 16)
+    plan = plan_resize(1080, 1920, 832, 480, (0.5, 0.625))
+    frames = np.stack(
+        [
+            plan.apply(
+                cv2.resize(
+                    video[i][:, (w - cut) // 2 : (w - cut) // 2 + cut],
+                    (1080, 1920),
+                    interpolation=cv2.INTER_AREA,
+                )
+            )
+            for i in pick
+        ]
+    )  # (33, 480, 832, 3)
+    return Clip(
+        clip_id="egodex_portrait",
+        source="video",
+        source_uri="",
+        fps=16.0,
+        timestamps=np.arange(33) / 16.0,
+        intrinsics=intrinsics_from_fov(832, 480, 90.0),
+        frames=frames,
+    )
+
+
+def test_mediapipe_boxes_leave_out_the_scene_checks_false_hand(weights: Path, monkeypatch) -> None:
+    """The regressor's boxes (``boxes="mediapipe"``) come from the default backend's tracks after
+    its scene check: the EgoDex portrait variant's curtain fold, a "left hand" near (190, 210)
+    on 22 frames without the check (measured), is not boxed nor regressed; the real right hand
+    still is (24 frames measured with the check, as the default backend keeps it)."""
+    pytest.importorskip("mediapipe")
+    from egosim.stages.hands import regressor_backend
+    from egosim.stages.hands.mediapipe_backend import MediaPipeParams, hand_centres, hand_size
+
+    clip = egodex_portrait_clip()
+    found = {}  # detection is the slow part: once for both runs
+    detect = regressor_backend.detect_landmarks
+
+    def detect_once(frames: np.ndarray, params: MediaPipeParams):
+        if "raw" not in found:
+            found["raw"] = detect(frames, params)
+        return found["raw"]
+
+    monkeypatch.setattr(regressor_backend, "detect_landmarks", detect_once)
+
+    def on_fold(uv: np.ndarray, present: np.ndarray) -> np.ndarray:  # (T, 2) bool
+        near = np.linalg.norm(hand_centres(uv) - np.array([190.0, 210.0]), axis=-1)  # (T, 2)
+        return present & (near < hand_size(uv))
+
+    unchecked = MediaPipeParams(scene_check=None)
+    uv, present, _ = regressor_backend.hand_boxes(clip, "mediapipe", unchecked)
+    assert on_fold(uv, present).sum() >= 15  # the false hand, boxed without the check
+    det = regressor_detections(clip, RegressorParams(str(weights), mediapipe=unchecked))
+    assert (det.present & on_fold(uv, present)).sum() >= 15  # and regressed
+
+    uv, present, _ = regressor_backend.hand_boxes(clip, "mediapipe", MediaPipeParams())
+    assert on_fold(uv, present).sum() == 0
+    assert present[:, RIGHT].sum() >= 20
+    det = regressor_detections(clip, RegressorParams(str(weights)))  # the default: checked
+    det.check(clip.num_frames)
+    np.testing.assert_array_equal(det.present, present)  # every box regressed, nothing else
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")

@@ -3,7 +3,8 @@
 For one clip:
 
 1. **Detect**: square boxes around each hand, with its side, from the default ``mediapipe``
-   backend's tracked and side-assigned 2D landmarks (``boxes="mediapipe"``), or from the clip's
+   backend's tracked and side-assigned 2D landmarks (``boxes="mediapipe"``; its scene check
+   drops the same false hands first: the EgoDex portrait variant's curtain fold), or from the clip's
    own joint labels projected with its camera (``boxes="given"``: the regressor alone, evaluated
    on true boxes). A box is centred on the landmarks' bounding box, its side ``box_scale`` times
    the larger of its width (over the seen aspect, below) and height (HaMeR's rescale of
@@ -82,6 +83,7 @@ from egosim.stages.hands.mediapipe_backend import (
     MediaPipeParams,
     detect_landmarks,
     drop_overlapping,
+    drop_scene_tracks,
     side_landmarks,
 )
 
@@ -569,12 +571,18 @@ def hand_boxes(
     clip: Clip, boxes: str, mediapipe: MediaPipeParams
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """2D landmarks per side ``(T, 2, 21, 2)`` pixels, ``present (T, 2)`` and detector
-    ``confidence (T, 2)`` from the default backend or the clip's labels."""
+    ``confidence (T, 2)`` from the default backend or the clip's labels. The default backend's
+    are its 2D as :func:`~egosim.stages.hands.mediapipe_backend.hands_from_raw` has it: overlaps
+    dropped, then the tracks that are part of the scene
+    (:func:`~egosim.stages.hands.mediapipe_backend.drop_scene_tracks`, unless
+    ``mediapipe.scene_check`` is None), then sides, bridging and smoothing."""
     t = clip.num_frames
     if boxes == "mediapipe":  # the 2D landmarks only: the backend's 3D lift is not needed here
         raw = drop_overlapping(
             detect_landmarks(clip.frames, mediapipe), mediapipe.duplicate_distance
         )
+        # the default backend's scene check on the same tracks: its false hands are not boxed
+        raw = drop_scene_tracks(raw, clip.frames, mediapipe)
         lm = side_landmarks(raw, clip.width, mediapipe)
         return lm.uv, lm.present.copy(), lm.confidence
     if clip.hand_joints is None:
