@@ -15,6 +15,17 @@ radius ``min(max_splat_radius, ceil((footprint - 0.9) / 2))``, and pixels that t
 left empty take the nearest of those: the cracks that appear when the camera moves towards the
 surface close, while pixels with a direct hit keep it.
 
+A cloud unprojected from one frame's depth grid (a ``scene_cloud`` row: one point per pixel of
+its source frame) is also a surface: with ``mesh_max_step > 0`` and that frame's pose
+(``mesh_from_cam``), :func:`grid_quads` recovers the grid (each point's pixel in the source
+frame) and links every 2x2 block of neighbouring points into a quad unless its inverse depths
+differ by more than ``mesh_max_step`` (relative: a tear, an occlusion edge). Each frame, the
+quads' two triangles are rasterised (:func:`_fill_from_mesh`) and pixels that every splat left
+empty take the nearest triangle's depth and the colour of its nearest corner. Points split
+apart by the camera's motion (a surface seen closer or less obliquely than from the source
+frame, or two neighbouring pixels of the source frame whose estimated depths differ by a few
+per cent) no longer leave holes; torn quads still do (disocclusions).
+
 Cracks that remain (the camera much closer than frame 0, beyond the widest splat, or a surface
 seen more obliquely than from frame 0) are closed in image space by :func:`close_cracks`: every
 hole of at most ``max_crack_px`` pixels that does not touch the image border, and every gap of at
@@ -36,7 +47,12 @@ import torch
 from egosim.pipeline.export.pack_rows import (
     inpaint_mask_from_visible as inpaint_mask_from_visible,
 )
-from egosim.pipeline.geometry import invert_se3, project_world_points_torch, se3_problems
+from egosim.pipeline.geometry import (
+    invert_se3,
+    project_world_points_torch,
+    se3_problems,
+    transform_points,
+)
 
 INDEX_BITS = 24  # low bits of the z-buffer key that hold the point index
 MAX_POINTS = 1 << INDEX_BITS  # largest cloud the key can address
@@ -99,6 +115,7 @@ class DeviceCloud:
     colours: torch.Tensor  # (N,) int32: RGBA bytes packed, A = 0, one gather per pixel
     index: torch.Tensor  # (N,) int64 0..N-1, the low bits of every z-buffer key
     size: torch.Tensor | None  # (N,) float32 world size of each point in metres, or None
+    quads: torch.Tensor | None = None  # (Q, 4) int64 corner points of surface quads, or None
 
 
 def to_device_cloud(
@@ -106,8 +123,10 @@ def to_device_cloud(
     colours: np.ndarray,
     point_size: np.ndarray | None = None,
     device: str = "cpu",
+    quads: np.ndarray | None = None,
 ) -> DeviceCloud:
-    """Move a cloud ``(N, 3)`` + colours ``(N, 3)`` uint8 (+ sizes ``(N,)``) to ``device``."""
+    """Move a cloud ``(N, 3)`` + colours ``(N, 3)`` uint8 (+ sizes ``(N,)``, + surface quads
+    ``(Q, 4)`` from :func:`grid_quads`) to ``device``."""
     dev = torch.device(device)
     n = len(points_world)
     rgba = np.zeros((n, 4), dtype=np.uint8)  # (N, 4)
@@ -117,10 +136,13 @@ def to_device_cloud(
         colours=torch.as_tensor(rgba.view(np.int32).reshape(n)).to(dev),  # (N,)
         index=torch.arange(n, dtype=torch.int64, device=dev),
         size=None if point_size is None else torch.tensor(point_size, dtype=torch.float32).to(dev),
+        quads=None if quads is None else torch.as_tensor(quads, dtype=torch.int64).to(dev),
     )
 
 
 SEE_THROUGH_MARGIN = 0.05  # relative depth gap beyond which a wide splat hides a direct hit
+GRID_TOLERANCE_PX = 0.02  # a point lies on its source pixel's centre when within this (float32)
+MESH_MAX_QUAD_PX = 32  # default: a quad wider or taller than this in a frame is not drawn
 
 
 def splat_frame(
@@ -131,14 +153,18 @@ def splat_frame(
     width: int,
     max_splat_radius: int = 0,
     near: float = 1e-3,
+    mesh_max_px: float = MESH_MAX_QUAD_PX,
 ) -> torch.Tensor:
     """Z-buffer one frame; returns the winning keys ``(H*W,)`` int64 (``EMPTY_KEY`` where none).
 
     ``cam_from_world (4, 4)`` float32 on the cloud's device. Decode with :func:`decode_keys`.
+    The cloud's quads (if any) fill what the splats left empty, those at most ``mesh_max_px``
+    across in this frame.
     """
     u, v, z = project_world_points_torch(cloud.points, cam_from_world, intrinsics)  # (N,) each
     # NaN (behind the camera) fails every comparison, so it is never inside.
     inside = (z > near) & (u >= 0) & (u < width) & (v >= 0) & (v < height)  # (N,)
+    u_exact, v_exact = u, v  # (N,) projections before flooring (the mesh pass needs them)
     u, v = u.floor(), v.floor()  # (N,) pixel column and row, float
     dump = height * width  # one extra slot collects every point that lands nowhere
     # float32 holds every pixel index exactly (H*W < 2**24 is checked by the caller).
@@ -150,6 +176,10 @@ def splat_frame(
     if max_splat_radius > 0 and cloud.size is not None:
         _splat_wide(
             buffer, cloud.size, u, v, z, keys, intrinsics, width, height, max_splat_radius, near
+        )
+    if cloud.quads is not None and cloud.quads.numel() > 0:
+        _fill_from_mesh(
+            buffer, cloud.quads, u_exact, v_exact, z, cloud.index, width, height, near, mesh_max_px
         )
     return buffer[:dump]
 
@@ -211,6 +241,125 @@ def _splat_wide(
     wide_hit, _, wide_depth = decode_keys(wide)  # (H*W+1,)
     see_through = ~empty & wide_hit & (wide_depth < hit_depth * (1.0 - SEE_THROUGH_MARGIN))
     buffer.copy_(torch.where(empty | see_through, wide, buffer))
+
+
+def grid_quads(
+    points_world: np.ndarray,
+    world_from_cam: np.ndarray,
+    intrinsics: np.ndarray,
+    height: int,
+    width: int,
+    max_step: float,
+) -> np.ndarray:
+    """Surface quads ``(Q, 4)`` int64 of a cloud unprojected from one frame's depth grid.
+
+    ``points_world (N, 3)``, the source frame's ``world_from_cam (4, 4)`` and ``intrinsics
+    (fx, fy, cx, cy)``, its size ``height x width``. A point is on the grid when its projection
+    into the source frame lies within ``GRID_TOLERANCE_PX`` of a pixel centre (unprojected pixels
+    do; points from elsewhere, e.g. a fused state, almost never). Every 2x2 block of grid pixels
+    whose four points exist gives a quad ``(top-left, top-right, bottom-left, bottom-right)``
+    unless ``max(1/z) / min(1/z) - 1`` over its corners (source-frame depth ``z``) exceeds
+    ``max_step``: the surface is torn there. Returns ``(0, 4)`` when nothing qualifies.
+    """
+    fx, fy, cx, cy = np.asarray(intrinsics, dtype=np.float64)
+    cam = transform_points(invert_se3(world_from_cam), np.asarray(points_world, np.float64))
+    z = cam[:, 2]  # (N,)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u = np.where(z > 0, fx * cam[:, 0] / z + cx, -1.0)  # (N,)
+        v = np.where(z > 0, fy * cam[:, 1] / z + cy, -1.0)  # (N,)
+    col, row = np.floor(u), np.floor(v)  # (N,) each
+    on = (z > 0) & (col >= 0) & (col < width) & (row >= 0) & (row < height)
+    on &= (np.abs(u - col - 0.5) <= GRID_TOLERANCE_PX) & (
+        np.abs(v - row - 0.5) <= GRID_TOLERANCE_PX
+    )
+    grid = np.full((height, width), -1, np.int64)  # (H, W) point index per source pixel
+    grid[row[on].astype(np.int64), col[on].astype(np.int64)] = np.flatnonzero(on)
+    corners = np.stack([grid[:-1, :-1], grid[:-1, 1:], grid[1:, :-1], grid[1:, 1:]], -1)
+    corners = corners[(corners >= 0).all(-1)]  # (Q, 4)
+    inv = 1.0 / np.where(z > 0, z, 1.0)  # (N,)
+    corner_inv = inv[corners]  # (Q, 4)
+    step = corner_inv.max(1) / corner_inv.min(1) - 1.0  # (Q,)
+    return np.ascontiguousarray(corners[step <= max_step])
+
+
+def _fill_from_mesh(
+    buffer: torch.Tensor,
+    quads: torch.Tensor,
+    u: torch.Tensor,
+    v: torch.Tensor,
+    z: torch.Tensor,
+    index: torch.Tensor,
+    width: int,
+    height: int,
+    near: float,
+    max_px: float = MESH_MAX_QUAD_PX,
+) -> None:
+    """Fill pixels no splat reached with the nearest surface quad (see :func:`grid_quads`).
+
+    ``u, v (N,)`` exact projections of the points, ``z (N,)`` their camera depth. Each quad is
+    two triangles (top-left, bottom-left, top-right) and (top-right, bottom-left, bottom-right);
+    a pixel whose centre lies in one takes the depth of the triangle there (``1/z`` is linear in
+    the image for a planar triangle) and the index of its corner of largest barycentric weight,
+    and the z-test picks the nearest triangle. Quads with a corner at or behind ``near``, or
+    over ``max_px`` pixels across (a sheet stretched over a disocclusion), are skipped. Only
+    empty pixels of ``buffer`` change.
+    """
+    zq = z[quads]  # (Q, 4)
+    front = torch.nonzero((zq > near).all(1)).squeeze(1)
+    if front.numel() == 0:
+        return
+    q = quads[front]  # (M, 4)
+    uq, vq, zq = u[q], v[q], zq[front]  # (M, 4) each
+    lo_u, hi_u = uq.min(1).values, uq.max(1).values  # (M,)
+    lo_v, hi_v = vq.min(1).values, vq.max(1).values  # (M,)
+    x0 = (lo_u - 0.5).ceil().clamp(min=0)  # first pixel column whose centre may be inside
+    x1 = (hi_u - 0.5).floor().clamp(max=width - 1)
+    y0 = (lo_v - 0.5).ceil().clamp(min=0)
+    y1 = (hi_v - 0.5).floor().clamp(max=height - 1)
+    keep = (x1 >= x0) & (y1 >= y0)
+    keep &= (hi_u - lo_u <= max_px) & (hi_v - lo_v <= max_px)
+    sel = torch.nonzero(keep).squeeze(1)
+    if sel.numel() == 0:
+        return
+    q, uq, vq, zq = q[sel], uq[sel], vq[sel], zq[sel]  # (M', 4) each
+    x0, y0 = x0[sel].to(torch.int64), y0[sel].to(torch.int64)  # (M',)
+    x1, y1 = x1[sel].to(torch.int64), y1[sel].to(torch.int64)  # (M',)
+    # Only quads whose box holds an empty pixel can change anything (summed-area table).
+    empty = (buffer[: height * width] == EMPTY_KEY).view(height, width).to(torch.int32)
+    table = torch.nn.functional.pad(empty.cumsum(0).cumsum(1), (1, 0, 1, 0))  # (H+1, W+1)
+    holes = table[y1 + 1, x1 + 1] - table[y0, x1 + 1] - table[y1 + 1, x0] + table[y0, x0]
+    sel = torch.nonzero(holes > 0).squeeze(1)
+    if sel.numel() == 0:
+        return
+    q, uq, vq, zq = q[sel], uq[sel], vq[sel], zq[sel]  # (M'', 4) each
+    x0, y0, x1, y1 = x0[sel], y0[sel], x1[sel], y1[sel]  # (M'',) each
+    nx, ny = x1 - x0 + 1, y1 - y0 + 1  # (M'',) box size in pixels
+    counts = nx * ny  # (M',) candidate pixel centres per quad
+    owner = torch.repeat_interleave(torch.arange(len(sel), device=q.device), counts)  # (C,)
+    local = torch.arange(len(owner), device=q.device) - (counts.cumsum(0) - counts)[owner]
+    px = x0[owner] + local % nx[owner]  # (C,) pixel column
+    py = y0[owner] + local // nx[owner]  # (C,) pixel row
+    pu, pv = px.to(u.dtype) + 0.5, py.to(u.dtype) + 0.5  # (C,) pixel centres
+    dump = height * width
+    mesh = torch.full_like(buffer, EMPTY_KEY)  # (H*W+1,)
+    for a, b, c in ((0, 2, 1), (1, 2, 3)):
+        ua, ub, uc = uq[owner, a], uq[owner, b], uq[owner, c]  # (C,) each
+        va, vb, vc = vq[owner, a], vq[owner, b], vq[owner, c]
+        den = (vb - vc) * (ua - uc) + (uc - ub) * (va - vc)  # (C,) twice the signed area
+        safe = torch.where(den.abs() > 1e-12, den, 1.0)
+        wa = ((vb - vc) * (pu - uc) + (uc - ub) * (pv - vc)) / safe  # (C,) barycentric weights
+        wb = ((vc - va) * (pu - uc) + (ua - uc) * (pv - vc)) / safe
+        wc = 1.0 - wa - wb
+        inside = (den.abs() > 1e-12) & (wa >= -1e-6) & (wb >= -1e-6) & (wc >= -1e-6)
+        inv = wa / zq[owner, a] + wb / zq[owner, b] + wc / zq[owner, c]  # (C,) 1/z
+        depth = 1.0 / torch.where(inside & (inv > 0), inv, 1.0)  # (C,)
+        weights = torch.stack([wa, wb, wc], 1)  # (C, 3)
+        corner = torch.tensor([a, b, c], device=q.device)[weights.argmax(1)]  # (C,)
+        point = index[q[owner, corner]]  # (C,) point of the nearest corner
+        keys = (depth.to(torch.float32).view(torch.int32).to(torch.int64) << INDEX_BITS) | point
+        pix = torch.where(inside & (inv > 0), py * width + px, dump)  # (C,)
+        mesh.scatter_reduce_(0, pix, keys, reduce="amin")
+    buffer.copy_(torch.where(buffer == EMPTY_KEY, mesh, buffer))
 
 
 def decode_keys(keys: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -299,6 +448,9 @@ def render_point_cloud(
     device: str = "cpu",
     max_crack_px: int = 0,
     max_crack_width: int = 0,
+    mesh_from_cam: np.ndarray | None = None,
+    mesh_max_step: float = 0.0,
+    mesh_max_px: float = MESH_MAX_QUAD_PX,
 ) -> SplatResult:
     """Render a coloured cloud along a trajectory by z-buffered splatting.
 
@@ -307,8 +459,12 @@ def render_point_cloud(
     than one pixel), ``device`` any torch device string ("cpu", "cuda", "cuda:1"). Points at or
     behind ``near`` metres of camera z are skipped; holes of at most ``max_crack_px`` pixels
     inside the render and gaps up to ``max_crack_width`` pixels wide are closed by
-    :func:`close_cracks` (0 = off). Raises :class:`SplatError`
-    for an empty cloud, non-finite points, non-rigid or NaN poses and shapes that disagree.
+    :func:`close_cracks` (0 = off). With ``mesh_max_step > 0`` and the pose ``mesh_from_cam
+    (4, 4)`` of the frame the cloud was unprojected from, pixels no splat reached are filled
+    from the cloud's surface quads (:func:`grid_quads`, :func:`_fill_from_mesh`; quads over
+    ``mesh_max_px`` across in a frame are not drawn) before the cracks are closed. Raises
+    :class:`SplatError` for an empty cloud, non-finite points, non-rigid or NaN poses and shapes
+    that disagree.
     """
     points_world = np.asarray(points_world)
     colours = np.asarray(colours)
@@ -318,7 +474,18 @@ def render_point_cloud(
     _check_inputs(points_world, colours, world_from_cam, intrinsics, height, width, point_size)
     if max_splat_radius < 0:
         raise SplatError(f"max_splat_radius must be >= 0, got {max_splat_radius}")
-    cloud = to_device_cloud(points_world, colours, point_size, device)
+    if not (np.isfinite(mesh_max_step) and mesh_max_step >= 0):
+        raise SplatError(f"mesh_max_step must be finite and >= 0, got {mesh_max_step}")
+    quads = None
+    if mesh_max_step > 0 and mesh_from_cam is not None:
+        mesh_from_cam = np.asarray(mesh_from_cam, dtype=np.float64)
+        problems = se3_problems(mesh_from_cam)
+        if mesh_from_cam.shape != (4, 4):
+            problems = [f"expected (4, 4), got shape {mesh_from_cam.shape}"]
+        if problems:
+            raise SplatError(f"mesh_from_cam: {'; '.join(problems)}")
+        quads = grid_quads(points_world, mesh_from_cam, intrinsics, height, width, mesh_max_step)
+    cloud = to_device_cloud(points_world, colours, point_size, device, quads)
     dev = cloud.points.device
     cam_from_world = torch.as_tensor(invert_se3(world_from_cam), dtype=torch.float32, device=dev)
     t = len(world_from_cam)
@@ -327,7 +494,7 @@ def render_point_cloud(
     out_depth = torch.zeros((t, height * width), dtype=torch.float32, device=dev)
     for i in range(t):
         keys = splat_frame(
-            cloud, cam_from_world[i], intrinsics, height, width, max_splat_radius, near
+            cloud, cam_from_world[i], intrinsics, height, width, max_splat_radius, near, mesh_max_px
         )
         out_rgb[i], out_vis[i], out_depth[i] = shade(cloud, keys)  # (H*W, 3), (H*W,), (H*W,)
     rgb = out_rgb.reshape(t, height, width, 3).cpu().numpy()

@@ -4,8 +4,10 @@ Reads the ``clips`` row (size, fps) and the points to render: the clip's ``state
 role is connected (a world state keyed by the clip, e.g. the state a simulated clip starts from;
 converted by :func:`egosim.schemas.state.scene_cloud_row_from_state`), else its ``scene_cloud``
 row; a clip with neither is rejected. One renderer for both. Writes a scene video and
-a visibility mask video (1 = a scene point landed, or a small crack between landed points was
-closed: ``max_crack_px``, ``max_crack_width``) made by
+a visibility mask video (1 = a scene point landed, a surface quad of a ``scene_cloud`` row's
+depth grid covers the pixel (``mesh_max_step``, ``mesh_max_px``; not for a state, which is no
+frame's grid), or a small crack between landed points was closed: ``max_crack_px``,
+``max_crack_width``) made by
 :func:`egosim.stages.scene_render.splat.render_point_cloud`, the same torch code on CPU and GPU.
 Intrinsics and poses come from :func:`egosim.stages.common.cameras.resolve_cameras` (the optional
 ``poses`` or ``cameras`` inputs when connected, else the clip's own), the same rule as
@@ -39,6 +41,9 @@ class SceneRenderConfig(StageConfig):
     near: float = 0.01  # points closer than this camera z (metres) are skipped
     max_crack_px: int = 64  # holes inside the render up to this many pixels are closed; 0 = off
     max_crack_width: int = 4  # gaps between rendered pixels up to this wide are closed; 0 = off
+    mesh_max_step: float = 0.3  # scene_cloud rows: neighbouring points are one surface unless
+    # their inverse depths differ by more than this (relative); it fills what splats miss; 0 = off
+    mesh_max_px: int = 32  # surface quads wider or taller than this in a frame are not drawn
     crf: int = 18  # H.264 quality of the scene video (lower = better, bigger)
 
     def __post_init__(self) -> None:
@@ -51,6 +56,10 @@ class SceneRenderConfig(StageConfig):
             problems.append(f"max_crack_width must be in [0, 16], got {self.max_crack_width}")
         if not 0 <= self.max_crack_px <= 10_000:
             problems.append(f"max_crack_px must be in [0, 10000], got {self.max_crack_px}")
+        if not (np.isfinite(self.mesh_max_step) and self.mesh_max_step >= 0):
+            problems.append(f"mesh_max_step must be finite and >= 0, got {self.mesh_max_step}")
+        if not 1 <= self.mesh_max_px <= 4096:
+            problems.append(f"mesh_max_px must be in [1, 4096], got {self.mesh_max_px}")
         if not (np.isfinite(self.near) and self.near > 0):
             problems.append(f"near must be > 0 metres, got {self.near}")
         if not 0 <= self.crf <= 51:
@@ -92,7 +101,9 @@ class SceneRenderStage(ClipStage):
     columns: ClassVar[Mapping[str, tuple[str, ...]]] = join_columns(
         {"clips": ("num_frames", "height", "width", "fps")}, CAMERA_COLUMNS
     )
-    version = 3  # 3: renders a state row (optional role) as well as a scene_cloud row
+    # 3: renders a state row (optional role) as well as a scene_cloud row
+    # 4: a scene_cloud row's surface quads fill the pixels splats miss (mesh_max_step)
+    version = 4
     config: SceneRenderConfig
 
     def process(self, rows: Mapping[str, Mapping[str, Any]]) -> dict[str, Any]:
@@ -104,6 +115,8 @@ class SceneRenderStage(ClipStage):
         cams = resolve_cameras(rows)
         world_from_cam = require_camera_poses(cams.world_from_cam, cid)
         cloud = cloud_from_row(cloud_row)
+        source = int(cloud_row.get("source_frame") or 0)  # the frame the cloud was unprojected from
+        mesh_pose = world_from_cam[source] if 0 <= source < len(world_from_cam) else None
         cfg = self.config
         try:
             result = render_point_cloud(
@@ -119,6 +132,10 @@ class SceneRenderStage(ClipStage):
                 device=cfg.device,
                 max_crack_px=cfg.max_crack_px,
                 max_crack_width=cfg.max_crack_width,
+                # a state row is no frame's depth grid: no surface quads
+                mesh_from_cam=None if rows.get("state") is not None else mesh_pose,
+                mesh_max_step=cfg.mesh_max_step,
+                mesh_max_px=cfg.mesh_max_px,
             )
         except SplatError as exc:
             raise ClipRejected(f"clip {cid!r}: {exc}") from exc
