@@ -64,6 +64,10 @@ Steps, for one clip:
    within ``max_gap`` (turn slerped, wrist lerped); where there are none its 3D is withheld: the
    hand stays valid with its joints on its landmarks' rays (its 2D), confidence times 0.1, and
    ``MediaPipeResult.lifted`` False, which the stage writes as ``hand_lifted`` (hands schema v3).
+   A small hand (under ``spread_max_size`` px from wrist to middle knuckle) whose landmarks the
+   model reads differently when its ROI is turned, scaled or mirrored (:func:`spread_outliers`,
+   over ``max_spread`` of its size; hands v15) is treated the same way: on the synthetic world
+   these are small and half-hidden hands whose lifted palm is 60-180 degrees off.
    The fingers' wrist-relative depths are smoothed over time within runs of trusted frames
    (``finger_depth_sigma``, :func:`~egosim.stages.hands.filters.smooth_finger_depths`, hands
    v14; each joint kept on its ray). Then to world with ``world_from_cam``.
@@ -99,6 +103,7 @@ from egosim.stages.common.hand_lift import (  # one lift for the hands and the m
     palm_pnp_pose,
     scale_to_depth,
 )
+from egosim.stages.common.roi_landmarks import LandmarkModel, landmark_spread
 from egosim.stages.hands.filters import (
     Detections,
     gaussian_smooth_runs,
@@ -135,6 +140,12 @@ class MediaPipeParams(HandLandmarkParams):
     max_turn_rate: float = 320.0  # deg/s: a palm turning faster than this from its track's
     # neighbours (filters.turn_outliers) is interpolated between them or withheld; inf = no test
     turn_window: int = 3  # frames either side the turn test compares with
+    # a hand smaller than spread_max_size px (wrist to middle knuckle) whose landmarks move by
+    # more than max_spread of that size when the landmark model is run again on its ROI turned,
+    # scaled and mirrored (roi_landmarks.landmark_spread) has its 3D withheld (hands v15); the
+    # test needs the frames (hands_from_raw's frames=None skips it); inf = no test
+    max_spread: float = 0.06
+    spread_max_size: float = 40.0
     scene_check: SceneCheckParams | None = SceneCheckParams()  # noqa: RUF009 (frozen) a track
     # off the clip's skin and still against the scene is dropped (scene_check); None = keep all
 
@@ -145,6 +156,10 @@ class MediaPipeParams(HandLandmarkParams):
             problems.append(f"max_turn_rate must be > 0 deg/s, got {self.max_turn_rate!r}")
         if self.turn_window < 1:
             problems.append(f"turn_window must be >= 1, got {self.turn_window!r}")
+        if not self.max_spread > 0:
+            problems.append(f"max_spread must be > 0, got {self.max_spread!r}")
+        if not self.spread_max_size >= 0:
+            problems.append(f"spread_max_size must be >= 0 px, got {self.spread_max_size!r}")
         if problems:
             raise ValueError("invalid MediaPipeParams: " + "; ".join(problems))
 
@@ -461,7 +476,11 @@ def hands_from_raw(
             )
         joints[f, s] = points_cam
     valid = lm.present & np.all(np.isfinite(joints), axis=(2, 3))
-    unsure = turn_outliers(joints, valid, fps, params.turn_window, params.max_turn_rate)
+    shaky = np.zeros_like(valid)  # (T, 2) hands whose landmarks the model reads unsteadily
+    if frames is not None:
+        shaky = spread_outliers(frames, lm, params) & valid
+    unsure = turn_outliers(joints, valid & ~shaky, fps, params.turn_window, params.max_turn_rate)
+    unsure |= shaky
     joints = smooth_finger_depths(joints, valid & ~unsure, params.finger_depth_sigma, lm.starts)
     joints, lifted = repair_unsure(joints, valid, unsure, params.max_gap)
     if world_from_cam is not None:
@@ -470,6 +489,30 @@ def hands_from_raw(
     factor = np.where(lifted, 1.0, WITHHELD_CONFIDENCE_FACTOR)  # (T, 2)
     conf = np.repeat(np.where(valid, lm.confidence * factor, 0.0)[..., None], NUM_HAND_JOINTS, 2)
     return MediaPipeResult(joints, valid, conf, lm, raw, lifted)
+
+
+def spread_outliers(frames: np.ndarray, lm: SideLandmarks, params: MediaPipeParams) -> np.ndarray:
+    """``(T, 2)`` bool: present hand-frames smaller than ``spread_max_size`` pixels (wrist to
+    middle knuckle) whose landmarks the model does not read steadily: their
+    :func:`~egosim.stages.common.roi_landmarks.landmark_spread` on ``frames (T, H, W, 3)`` is
+    over ``max_spread``. Their 2D is kept, their 3D withheld (or interpolated between trusted
+    neighbours by :func:`repair_unsure`). On the synthetic world these are small hands and
+    hands half behind an object, whose palm the lift turns 60-180 degrees off (docs/design.md,
+    "Hands v15: small hands")."""
+    out = np.zeros(lm.present.shape, dtype=bool)  # (T, 2)
+    if not np.isfinite(params.max_spread):
+        return out
+    size = np.linalg.norm(lm.uv[:, :, MIDDLE_MCP] - lm.uv[:, :, 0], axis=-1)  # (T, 2) NaN: absent
+    small = lm.present & (np.nan_to_num(size, nan=np.inf) < params.spread_max_size)
+    if not small.any():
+        return out
+    model = LandmarkModel(params.model_complexity)
+    for f, s in zip(*np.nonzero(small), strict=True):
+        spread = landmark_spread(
+            model, np.ascontiguousarray(frames[f]), lm.uv[f, s], max_gain=params.track.max_gain
+        )
+        out[f, s] = spread > params.max_spread
+    return out
 
 
 def drop_scene_tracks(

@@ -1,0 +1,124 @@
+"""Hands v15: the landmark model's spread over turned, scaled and mirrored ROIs of a small hand,
+and the 3D withheld where it is large (``roi_landmarks.landmark_spread``,
+``mediapipe_backend.spread_outliers``; docs/design.md "Hands v15: small hands")."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import replace
+
+import cv2
+import numpy as np
+import pytest
+
+from egosim.stages.common.roi_landmarks import INPUT_SIZE, Roi, roi_from_landmarks
+from egosim.stages.hands.mediapipe_backend import MediaPipeParams
+from tests.conftest import shared_data
+
+
+def test_a_turned_roi_keeps_its_centre_and_turns_its_crop() -> None:
+    """A quarter turn takes an upright ROI's up direction to the image's +u (clockwise as seen,
+    v pointing down); the crop's centre stays on the ROI's centre and its corners on a square of
+    the scaled side."""
+    roi = Roi(centre=np.array([300.0, 200.0]), side=100.0, up=np.array([0.0, -1.0]))
+    turned = roi.turned(90.0, 1.25)
+    np.testing.assert_allclose(turned.up, [1.0, 0.0], atol=1e-12)
+    assert turned.side == pytest.approx(125.0)
+    m = turned.frame_from_crop()  # (2, 3)
+    centre = m[:, :2] @ np.array([INPUT_SIZE / 2, INPUT_SIZE / 2]) + m[:, 2]
+    np.testing.assert_allclose(centre, roi.centre, atol=1e-9)
+    top_left = m[:, 2]  # crop (0, 0): up is +u, so the crop's top-left lies right and above
+    np.testing.assert_allclose(top_left, roi.centre + np.array([62.5, -62.5]), atol=1e-9)
+    # turning back undoes it
+    np.testing.assert_allclose(turned.turned(-90.0).up, roi.up, atol=1e-12)
+
+
+def test_spread_settings_are_checked() -> None:
+    with pytest.raises(ValueError, match="max_spread must be > 0, got 0"):
+        MediaPipeParams(max_spread=0.0)
+    with pytest.raises(ValueError, match="spread_max_size must be >= 0 px, got -1"):
+        MediaPipeParams(spread_max_size=-1.0)
+
+
+@pytest.fixture
+def model() -> object:
+    """The landmark model on a TFLite runtime, or a skip without one."""
+    pytest.importorskip("mediapipe")
+    pytest.importorskip("ai_edge_litert")
+    from egosim.stages.common.roi_landmarks import LandmarkModel
+
+    return LandmarkModel(1)
+
+
+def _freihand_hand() -> tuple[np.ndarray, np.ndarray]:
+    """The first FreiHAND fixture image ``(224, 224, 3)`` RGB and its true 2D joints (21, 2)."""
+    folder = shared_data("freihand_fixture")
+    data = json.loads((folder / "test_freihand.json").read_text())
+    image = data["images"][0]
+    ann = next(a for a in data["annotations"] if a["image_id"] == image["id"])
+    rgb = np.ascontiguousarray(cv2.imread(str(folder / image["file_name"]))[:, :, ::-1])
+    return rgb, np.array(ann["keypoints"], dtype=np.float64).reshape(21, 3)[:, :2]
+
+
+def test_a_mirrored_crop_is_mirrored_back(model) -> None:
+    """The model on the mirrored crop of a clear real hand gives, mirrored back, the landmarks and
+    the side it gives on the crop as it is (a mirror left unmapped would put the thumb where the
+    pinky is: 0.68 of the hand's size off)."""
+    rgb, truth = _freihand_hand()
+    roi = roi_from_landmarks(truth)
+    plain = model.run(rgb, roi)
+    mirrored = model.run(rgb, roi, mirror=True)
+    size = float(np.linalg.norm(plain.uv[9] - plain.uv[0]))
+    assert plain.presence > 0.9 and mirrored.presence > 0.9
+    off = np.linalg.norm(mirrored.uv - plain.uv, axis=1) / size  # (21,)
+    assert np.median(off) < 0.1, off
+    assert (plain.right > 0.5) == (mirrored.right > 0.5), (plain.right, mirrored.right)
+    # the world landmarks come back in the same axes too (x flipped back)
+    turn = np.linalg.norm(mirrored.world - plain.world, axis=1).mean()
+    assert turn < 0.015, turn  # metres, hand about 0.18 m long
+
+
+def test_a_clear_hand_reads_steadily(model) -> None:
+    """A clear, large real hand: the answers over the turned, scaled and mirrored crops agree
+    (spread 0.023 measured; the 3D is withheld above 0.06)."""
+    from egosim.stages.common.roi_landmarks import landmark_spread
+
+    rgb, truth = _freihand_hand()
+    assert landmark_spread(model, rgb, truth) < 0.5 * MediaPipeParams().max_spread
+
+
+@pytest.mark.slow
+def test_unsteady_small_hands_lose_their_3d_against_truth(model) -> None:
+    """The tuned synthetic world's seed 1 (tabletop): its right hand behind a cylinder (frames
+    32-47, 2D 39-57 px off) is lifted with its palm flipped, 104-125 degrees off. With the spread
+    test (hands v15) the palm-PnP hands that keep their 3D are measured against the true joints:
+    v14 28.3 degrees / 43.0 mm at 3D coverage 0.746, v15 17.5 / 32.2 at 0.664."""
+    from egosim.stages.hands.mediapipe_backend import detect_landmarks, hands_from_raw
+    from egosim.stages.hands.metrics import hand_accuracy
+    from egosim.world.clip import render_clip
+    from egosim.world.config import WorldConfig
+
+    clip = render_clip(WorldConfig(seed=1, mode="tabletop"))
+    params = MediaPipeParams()
+    raw = detect_landmarks(clip.frames, params)
+    figures = {}
+    for name, p in (("v15", params), ("v14", replace(params, max_spread=np.inf))):
+        res = hands_from_raw(
+            raw, clip.width, clip.intrinsics, None, None, p, fps=clip.fps, frames=clip.frames
+        )
+        figures[name] = hand_accuracy(
+            res.joints,
+            res.landmarks.uv,
+            res.valid,
+            clip.hand_joints,
+            clip.hand_valid,
+            clip.world_from_cam,
+            clip.intrinsics,
+            (clip.width, clip.height),
+            lifted=res.lifted,
+        ).summary()
+    new, old = figures["v15"], figures["v14"]
+    assert new["recall"] == old["recall"]  # the 2D stays: only the 3D is withheld
+    assert new["orientation_deg"] <= 20.0 and new["mpjpe_mm"] <= 36.0, new
+    assert new["coverage_3d"] >= 0.6, new  # a coverage loss, bounded
+    assert old["orientation_deg"] > 25.0 and old["mpjpe_mm"] > 40.0, old  # what v14 gave
