@@ -1263,3 +1263,81 @@ def test_both_sides_search_wants_both_sides_in_the_image() -> None:
             lab, wrist, hand_dir, 60.0, exclude, 90.0, 3.0, 20.0, nearer_side=nearer
         )
         assert abs(np.degrees(np.arctan2(d[1], d[0])) - 90.0) <= 10.0, (nearer, d)  # the sleeve
+
+
+def test_leaves_through_top_against_hand_computed_exits() -> None:
+    """Rays from (100, 50) in a 200 x 100 image (y down): straight up meets the top; up-left
+    at 45 degrees meets the top at x = 50; 20 degrees above the horizontal to the right meets
+    the right border at y = 50 - 100 tan 20 = 13.6 (a side, not the top); down never does."""
+    from egosim.stages.hand_mask.arm_region import leaves_through_top
+
+    def unit(deg: float) -> np.ndarray:
+        return np.array([np.cos(np.radians(deg)), np.sin(np.radians(deg))])
+
+    p = np.array([100.0, 50.0])
+    got = [leaves_through_top(p, unit(a), 200, 100) for a in (-90.0, -135.0, -20.0, 90.0, 0.0)]
+    assert got == [True, True, False, False, False]
+    # from (20, 50), 30 degrees up to the left meets the left border at y = 50 - 20 tan 30
+    assert not leaves_through_top(np.array([20.0, 50.0]), unit(-150.0), 200, 100)
+    # from (20, 5), the same ray meets the top at x = 20 - 5 / tan 30 = 11.3
+    assert leaves_through_top(np.array([20.0, 5.0]), unit(-150.0), 200, 100)
+
+
+def test_no_arm_drawn_up_to_the_top_border() -> None:
+    """HOT3D window 1, t=56-60 (hand_mask v22): the hands stage put a hand on its own forearm,
+    fingers down towards the bottom border, so the hand's direction (wrist minus knuckles)
+    points up and the search found a uniform bar (the house's roof) running from the wrist up
+    to the top border: it was masked as arm. A forearm does not enter a head-worn view from
+    the top: nothing of the bar more than 10 px from the hand is masked; without the rule
+    (``no_arm_from_top`` False) most of it is."""
+    from egosim.stages.hand_mask.arm_region import ArmParams, hand_arm_mask
+
+    h, w = 160, 240
+    wrist = np.array([150.5, 100.5])
+    up_left = np.array([np.cos(np.radians(-133.0)), np.sin(np.radians(-133.0))])
+    image = _sleeve_frame(h, w, wrist, up_left, 6)
+    kp = _hand_keypoints(wrist, -up_left, 30.0, 20.0)  # (21, 2) fingers down-right
+    hand, _ = draw_hand(kp, 0, h, w, CapsuleParams(forearm=False))
+    near = cv2.dilate(hand, np.ones((3, 3), np.uint8), iterations=10) > 0  # the hand and 10 px
+    bar = _sleeve_pixels(h, w, wrist, up_left) & ~near  # (H, W) the bar off the hand
+    assert bar.sum() > 500
+    found = hand_arm_mask(image, kp[None], np.array([True]), CapsuleParams(), ArmParams()) > 0
+    assert found[bar].mean() < 0.02, f"bar covered {found[bar].mean():.2f}"
+    assert found[~near].mean() < 0.005, f"masked off the hand {found[~near].mean():.4f}"
+    assert found[hand > 0].mean() > 0.8, "the hand itself is still masked"
+    old = ArmParams(no_arm_from_top=False)
+    before = hand_arm_mask(image, kp[None], np.array([True]), CapsuleParams(), old) > 0
+    assert before[bar].mean() > 0.5, f"without the rule the bar is arm: {before[bar].mean():.2f}"
+
+
+def test_steady_directions_holds_off_side_frames_at_a_track_end() -> None:
+    """HOT3D window 1, t=1 (hand_mask v22): the left hand's last frame has its arm on the
+    other hand's side (along the floor to the right border); no frame after it can bracket a
+    run, so it kept that arm. An off-side run that ends (or starts) a track takes the direction
+    of the track's frame next to it, held, when it swung more than ``jump_deg`` from it; a run
+    longer than ``max_frames``, one inside a track whose neighbours disagree, one within
+    ``jump_deg`` of its neighbour and frames that are not off-side are kept."""
+    from egosim.stages.hand_mask.arm_region import steady_directions
+
+    def rows(degrees: list[float]) -> np.ndarray:
+        rad = np.radians(np.asarray(degrees, float))
+        return np.stack([np.cos(rad), np.sin(rad)], axis=-1)  # (T, 2)
+
+    nan = float("nan")
+    drawn = np.full((8, 4, 2), np.nan)  # (T, K, 2)
+    drawn[:, 0] = rows([110, 110, 0, nan, nan, nan, nan, nan])  # ends at t=2, off-side there
+    drawn[:, 1] = rows([nan, nan, nan, nan, 0, -10, 95, 100])  # starts at t=4, off at t=4-5
+    drawn[:, 2] = rows([90, 90, 20, 20, 20, nan, nan, nan])  # three off frames, max_frames 2
+    drawn[:, 3] = rows([90, 0, 170, 170, nan, 60, 30, nan])  # t=1 off inside the track; t=6
+    # off at the track's end but only 30 degrees from t=5: the same arm a step off, kept
+    off = np.zeros((8, 4), bool)
+    off[2, 0] = off[4, 1] = off[5, 1] = off[1, 3] = off[6, 3] = True
+    off[2:5, 2] = True
+    assert not np.isfinite(steady_directions(drawn, 2, 45.0, 30.0)).any()
+    out = steady_directions(drawn, 2, 45.0, 30.0, off)  # (T, K, 2)
+    got = np.degrees(np.arctan2(out[..., 1], out[..., 0]))  # (T, K)
+    np.testing.assert_allclose(got[2, 0], 110.0, atol=1e-6)  # held from t=1
+    np.testing.assert_allclose(got[4:6, 1], [95.0, 95.0], atol=1e-6)  # held from t=6
+    assert np.isnan(got[:2, 0]).all() and np.isnan(got[6:, 1]).all()
+    assert np.isnan(got[:, 2]).all(), "a run longer than max_frames is kept"
+    assert np.isnan(got[:, 3]).all(), "inside a track or within jump_deg nothing is held"

@@ -27,6 +27,9 @@ hand with 2D keypoints (MANO order, pixels, pixel centres at integer + 0.5):
   region is probably arm wherever it runs (``region_probable``: an arm that turns more than the
   band allows is not ruled out);
 - a tapered band along ``d`` from the wrist to the image border is probably arm;
+- an arm whose ray from the wrist leaves through the top border is not drawn at all
+  (``no_arm_from_top``, :func:`leaves_through_top`): in a head-worn view forearms come in from
+  the bottom or the sides, and an arm drawn up is a hand the keypoints turned over;
 - a fan of ``fan_half_angle_deg`` either side of ``d``, ending ``fan_width`` half-widths from the
   axis, is probably background (the forearm may bend at the wrist; the colour model moves those
   pixels to the arm when they look like it);
@@ -37,10 +40,12 @@ arm directions all swing more than ``steady_jump_deg`` away from the frames eith
 agree within ``steady_agree_deg``, is drawn along the direction between those, with no search
 and no re-aim (:func:`steady_directions`); a frame whose arm ray crosses past the other hand's
 wrist (:func:`crosses_other_wrist`) counts as swung away whatever its angle, and the runs only
-that finds are drawn without the probable colour region (``steady_off_side``). That cannot
-reach the first frame of a hand's track (no frame before it): there a strip that stands out
-from both of its sides, not only on average, is searched too, and drawn when it is another
-direction (``start_both_sides``).
+that finds are drawn without the probable colour region (``steady_off_side``); an off-side
+run that starts or ends a track, which no pair of frames can bracket, holds the direction of
+the track's frame next to it when it swung more than ``steady_jump_deg`` from it. The angle
+rule cannot reach the first frame of a hand's track (no frame before it): there a strip that
+stands out from both of its sides, not only on average, is searched too, and drawn when it is
+another direction (``start_both_sides``).
 
 GrabCut (OpenCV) learns the colour models from these labels and relabels the two "probably"
 regions; only the pixels connected to a certain seed are kept, so a patch of skin-coloured table
@@ -132,6 +137,9 @@ class ArmParams:
     # it also points at least this far from straight down towards the other hand's side
     start_switch_deg: float = 45.0  # ... degrees the both-sides direction must lie from the
     # plain search's to be drawn (another arm, not the same one a step off)
+    no_arm_from_top: bool = True  # an arm whose ray from the wrist leaves the image through
+    # its top border is not drawn (hand only): in a head-worn view the body is below the
+    # camera and forearms come in from the bottom or the sides (:func:`leaves_through_top`)
 
     def __post_init__(self) -> None:
         problems = []
@@ -387,6 +395,23 @@ def _exit_distance(point: np.ndarray, d: np.ndarray, width: int, height: int) ->
     return float(min(ts)) if ts else float("inf")
 
 
+def leaves_through_top(point: np.ndarray, d: np.ndarray, width: int, height: int) -> bool:
+    """Whether the ray from ``point (2,)`` along the unit ``d (2,)`` meets the image border
+    on its top edge (y = 0), not a side or the bottom.
+
+    An arm drawn that way runs up from the wrist: in a head-worn view the body lies below the
+    camera, and a forearm enters from the bottom or a side. HOT3D window 1, t=56-60: the hands
+    stage put the right hand on its own forearm, fingers down towards the bottom-right corner,
+    so the hand's direction (and the arm searched round it) pointed up-left, and a band ran from
+    the forearm over the house to the top border. Every other drawn arm of the real clips
+    (HOT3D, EgoDex, DWM) leaves through a side or the bottom.
+    """
+    if d[1] >= -1e-9:
+        return False
+    end = point + _exit_distance(point, d, width, height) * d  # (2,)
+    return bool(end[1] <= 1e-6)
+
+
 def _turn_deg(a: np.ndarray, b: np.ndarray) -> float:
     """Degrees between unit vectors ``a (2,)`` and ``b (2,)``."""
     return float(np.degrees(np.arccos(np.clip(float(a @ b), -1.0, 1.0))))
@@ -498,6 +523,13 @@ def draw_arm_labels(
         if region is not None and arm.region_probable:
             band = band | region  # the arm's colour wherever it runs: GrabCut decides
         drawn = d
+    if (
+        start is not None
+        and drawn is not None
+        and arm.no_arm_from_top
+        and leaves_through_top(start[1], drawn, w, h)
+    ):
+        fan, band, seed = np.zeros_like(fan), np.zeros_like(band), np.zeros_like(seed)
     # A probably-background ring round the hand lets the colour model trim fat capsules.
     grow = max(1, round(arm.hand_ring * scale)) if arm.hand_ring > 0 else 0
     ring = cv2.dilate(mask, np.ones((3, 3), np.uint8), iterations=grow) if grow > 0 else mask
@@ -885,7 +917,44 @@ def steady_directions(
                         t, fixed = q, True
                         break
             t = t if fixed else t + 1
+        if off_side is not None:
+            _hold_track_ends(drawn[:, k], has[:, k], off[:, k], out[:, k], max_frames, jump_deg)
     return out
+
+
+def _hold_track_ends(
+    drawn: np.ndarray,
+    has: np.ndarray,
+    off: np.ndarray,
+    out: np.ndarray,
+    max_frames: int,
+    jump_deg: float,
+) -> None:
+    """Fill ``out (T, 2)`` in place (one hand; NaN: kept) at the off-side frames that end a
+    track: a run of at most ``max_frames`` off-side frames (``off (T,)``) with directions
+    (``drawn (T, 2)``, ``has (T,)``), not replaced yet, with a frame of the track on one side
+    only (the track starts or ends there, so no run can be bracketed), every one more than
+    ``jump_deg`` from that frame's direction (a swing, not the same arm a step off), takes that
+    frame's direction, held (HOT3D window 1, t=1: the left hand's last frame, its arm drawn
+    along the floor to the right border, 125 degrees from the frame before). A run with track
+    frames on both sides is left to the runs bracketed by agreeing frames.
+    """
+    t_count = len(drawn)
+    t = 0
+    while t < t_count:
+        if not (off[t] and has[t] and not np.isfinite(out[t, 0])):
+            t += 1
+            continue
+        q = t
+        while q < t_count and off[q] and has[q] and not np.isfinite(out[q, 0]):
+            q += 1
+        before = t > 0 and bool(has[t - 1])
+        after = q < t_count and bool(has[q])
+        if q - t <= max_frames and before != after:
+            src = drawn[t - 1 if before else q]  # (2,) not off-side, or already replaced
+            if all(_turn_deg(drawn[r], src) > jump_deg for r in range(t, q)):
+                out[t:q] = src
+        t = q
 
 
 def masks_from_labels(

@@ -17,7 +17,10 @@ Backends:
   region; an arm whose direction swings away for a few frames and back, between frames that
   agree, is drawn along theirs: see ``arm_region.steady_directions``; in the first frame of a
   hand's track, which that cannot reach, a strip that stands out from both of its sides, not
-  only on average, is preferred when it is another direction); a hand the keypoints miss
+  only on average, is preferred when it is another direction; an arm on the other hand's side
+  at a track's end holds the direction of the track's frame next to it; an arm that would run
+  up to the top border is not drawn: forearms enter a head-worn view from the bottom or the
+  sides); a hand the keypoints miss
   in a frame is first carried there from the nearest frame
   that found it (at most ``carry_frames`` away) by tracking its pixels (see ``carry``); then
   each hand's mask is carried by optical flow up to ``propagate_frames`` frames backwards and
@@ -296,7 +299,7 @@ class HandMaskStage(ClipStage):
     # cleaned joints and a replacement camera (see the module docstring)
     optional_inputs: ClassVar[Mapping[str, ShardSchema]] = {**CAMERA_ROLES, "hands": HANDS}
     output = HAND_MASK
-    version = 21  # 2: image-space arm masks (no world axis). 3: arm found by a colour walk, masks
+    version = 22  # 2: image-space arm masks (no world axis). 3: arm found by a colour walk, masks
     # carried into frames whose hands were missed. 4: arm re-aimed along its colour region.
     # 5: that region is probably arm wherever it runs. 6: each hand carried into the frames that
     # missed it, and only its certain seeds (skeleton, arm strip) carried with confidence.
@@ -326,6 +329,10 @@ class HandMaskStage(ClipStage):
     # both-sides search of v19 wants both sides in the image (a border strip passed on one)
     # 21: the off-side mark also wants the arm tilted at least off_side_min_tilt_deg (45) from
     # straight down towards the other hand (two hands close together, steep arms: review10c)
+    # 22: an arm whose ray leaves through the top border is not drawn (no_arm_from_top: a hand
+    # the hands stage put on its own forearm, fingers down); an off-side run that starts or
+    # ends a hand's track, swung more than steady_jump_deg from the track's frame next to it,
+    # holds that frame's direction (HOT3D window 1, t=1 and t=55-60)
     backends = ("keypoints", "sam")
     # What process reads (the executor decodes nothing else): the frames, joints and camera
     # of the clip, the robot arm's mask, the cleaned joints.
