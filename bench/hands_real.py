@@ -1,13 +1,15 @@
 """How well the ``hands`` backend ``mediapipe`` finds hands in real and synthetic development video.
 
 ``python -m bench.hands_real [--data ../shared/data] [--seeds 11 13] [--variants default alt]
-[--skip-synthetic] [--skip-real] [--per-joint] [--misses]`` prints,
+[--skip-synthetic] [--skip-real] [--per-joint] [--misses] [--perturb [NAME ...]]`` prints,
 with the default :class:`~egosim.stages.hands.mediapipe_backend.MediaPipeParams`:
 
 - **DWM dynamic clips** (``dwm_realworld/realworld_dynamic/videos/*.mp4``, whose
   ``videos_hands`` renders paint the true left hand green and the right hand red): per side, the
   frames where the render shows that hand (at least ``MIN_RENDER_PIXELS`` pixels of its colour)
-  and the fraction of them with a detection of that side (recall) and with a trusted 3D hand
+  and the fraction of them with a detection of that side (recall; anywhere in the image), with
+  one of that side within ``FAR_PX`` of that hand's render (``recall_on_hand``: a hand found
+  and given its own side) and with a trusted 3D hand
   (``coverage_3d``: the backend withholds the 3D of a palm turned off its track, keeping its 2D,
   :attr:`~egosim.stages.hands.mediapipe_backend.MediaPipeResult.lifted`); false positives:
   detections whose keypoint centroid is further than ``FAR_PX`` from every rendered hand pixel of
@@ -54,6 +56,12 @@ with the default :class:`~egosim.stages.hands.mediapipe_backend.MediaPipeParams`
   (:func:`~egosim.stages.common.hand_landmarks.landmark_presence`) and how many of its
   detections were not found by the ROI tracker. None of them separated the false curtain hand of
   the EgoDex portrait clip from every real hand (docs/design.md, "Hands v12").
+- With ``--perturb [NAME ...]``, only the DWM dynamic clips, unperturbed and made to look like
+  footage we do not have (:data:`PERTURBATIONS`: darker x0.5, gamma 1.8, a 15 px horizontal
+  motion blur, 360p scaled back up, 4 fps, JPEG quality 10; :func:`perturb_clip` keeps the
+  renders and render gaps aligned with the frames), each as the file holds it and as ingested:
+  recall and false-positive frames per side, side agreement and centroid distance against the
+  same renders.
 - Seconds per clip of the whole backend (detection, tracking, sides, smoothing, lift): wall clock
   and this process's CPU time (``cpu_s``; the wall clock counts other work on a shared machine).
 """
@@ -110,20 +118,29 @@ def render_masks(render: np.ndarray) -> np.ndarray:
 
 
 def dwm_figures(
-    video: Path, render_path: Path, ingested: bool = False, tracks: list | None = None
+    video: Path,
+    render_path: Path,
+    ingested: bool = False,
+    tracks: list | None = None,
+    perturb: str | None = None,
 ) -> dict[str, float]:
     """Recall, false positives, side agreement and centroid distance on one DWM clip; with
     ``ingested``, on the frames the ``hands`` stage gets (:func:`as_ingested`); given a
-    ``tracks`` list, the clip's :func:`track_rows` are added to it."""
+    ``tracks`` list, the clip's :func:`track_rows` are added to it; given a ``perturb`` name
+    (:data:`PERTURBATIONS`), on the clip so perturbed (:func:`perturb_clip`, before ingest)."""
     frames, _ = read_video_file(video)
-    if ingested:
-        frames = as_ingested(frames)
     render, _ = read_video_file(render_path)
     t = min(len(frames), len(render))
     frames, render = frames[:t], render[:t]
+    gaps, fps = RENDER_GAPS.get(video.stem, ()), DWM.fps  # the files and ingest's dwm preset
+    if perturb is not None:
+        frames, render, gaps, fps = perturb_clip(frames, render, gaps, perturb)
+        t = len(frames)
+    if ingested:
+        frames = as_ingested(frames)
     w = frames.shape[2]
     start, cpu = time.perf_counter(), time.process_time()
-    res = _run(frames, DWM.fps)  # the files and ingest's dwm preset: 8 fps
+    res = _run(frames, fps)
     seconds, cpu = time.perf_counter() - start, time.process_time() - cpu
     if tracks is not None:
         tracks += track_rows(frames, res)
@@ -137,19 +154,19 @@ def dwm_figures(
         found = shown[:, s] & res.valid[:, s]
         out[f"{SIDES[s]}_shown"] = float(shown[:, s].sum())
         out[f"{SIDES[s]}_recall"] = float(found.sum() / max(shown[:, s].sum(), 1))
-        fp = unrendered = 0
+        fp = unrendered = on_hand = 0
         for f in np.flatnonzero(res.valid[:, s]):
             c = np.nanmean(res.landmarks.uv[f, s], axis=0)  # (2,) keypoint centroid
             rows, cols = np.nonzero(any_hand[f])
             if rows.size == 0:
-                if f in RENDER_GAPS.get(video.stem, ()):
+                if f in gaps:
                     unrendered += 1
                 else:
                     fp += 1
                 continue
             near = np.min(np.hypot(cols + 0.5 - c[0], rows + 0.5 - c[1]))
             if near > FAR_PX:
-                if f in RENDER_GAPS.get(video.stem, ()):
+                if f in gaps:
                     unrendered += 1
                 else:
                     fp += 1
@@ -162,6 +179,8 @@ def dwm_figures(
             if shown[f, s]:
                 rr, cc = np.nonzero(masks[f, s])
                 dists.append(float(np.hypot(cc.mean() + 0.5 - c[0], rr.mean() + 0.5 - c[1])))
+                on_hand += int(_dist_to_mask(masks[f, s], c) <= FAR_PX)
+        out[f"{SIDES[s]}_recall_on_hand"] = float(on_hand / max(shown[:, s].sum(), 1))
         out[f"{SIDES[s]}_false_pos_frames"] = float(fp)
         out[f"{SIDES[s]}_on_unrendered"] = float(unrendered)
         out[f"{SIDES[s]}_coverage_3d"] = float(
@@ -171,6 +190,57 @@ def dwm_figures(
     out["centroid_px"] = float(np.mean(dists)) if dists else float("nan")
     out["size"] = float(w)
     return out
+
+
+PERTURBATIONS = {  # name -> what perturb_clip does to a DWM clip (720x480, 8 fps)
+    "dark": "every pixel x0.5 (an underexposed clip)",
+    "gamma": "gamma 1.8: 255 (x / 255) ** 1.8 (shadows darker, highlights kept)",
+    "blur": "horizontal motion blur: a 15 px line kernel (2% of the width)",
+    "360p": "down to 540x360 (area), back to 720x480 (bilinear: ingest scales up to the preset)",
+    "4fps": "every other frame, at 4 fps (truth and render gaps the same frames)",
+    "jpeg": "each frame through JPEG at quality 10",
+}
+
+
+def perturb_clip(
+    frames: np.ndarray, render: np.ndarray, gaps: tuple[int, ...], name: str
+) -> tuple[np.ndarray, np.ndarray, tuple[int, ...], float]:
+    """``(frames, render, gaps, fps)``: DWM ``frames (T, H, W, 3)`` made to look like footage
+    we do not have (:data:`PERTURBATIONS`), with the truth ``render`` and the render-gap frames
+    ``gaps`` still aligned with them, and the clip's frame rate."""
+    import cv2
+
+    fps = DWM.fps
+    if name == "dark":
+        frames = np.round(frames * 0.5).astype(np.uint8)
+    elif name == "gamma":
+        lut = np.round(255.0 * (np.arange(256) / 255.0) ** 1.8).astype(np.uint8)  # (256,)
+        frames = lut[frames]
+    elif name == "blur":
+        kernel = np.full((1, 15), 1.0 / 15.0)  # (1, 15) horizontal line
+        frames = np.stack(
+            [cv2.filter2D(f, -1, kernel, borderType=cv2.BORDER_REFLECT) for f in frames]
+        )
+    elif name == "360p":
+        h, w = frames.shape[1:3]
+        small = (round(w * 360 / h), 360)
+        frames = np.stack(
+            [cv2.resize(cv2.resize(f, small, interpolation=cv2.INTER_AREA), (w, h)) for f in frames]
+        )
+    elif name == "4fps":
+        frames, render, fps = frames[::2], render[::2], DWM.fps / 2
+        gaps = tuple(f // 2 for f in gaps if f % 2 == 0)
+    elif name == "jpeg":
+        code = [int(cv2.IMWRITE_JPEG_QUALITY), 10]
+
+        def coded(rgb: np.ndarray) -> np.ndarray:  # (H, W, 3) RGB through JPEG and back
+            data = cv2.imencode(".jpg", rgb[..., ::-1], code)[1]
+            return cv2.imdecode(data, cv2.IMREAD_COLOR)[..., ::-1]
+
+        frames = np.stack([coded(f) for f in frames])
+    else:
+        raise ValueError(f"unknown perturbation {name!r}; known: {sorted(PERTURBATIONS)}")
+    return np.ascontiguousarray(frames), render, gaps, fps
 
 
 def as_ingested(frames: np.ndarray) -> np.ndarray:
@@ -489,7 +559,16 @@ def main(argv: list[str] | None = None) -> None:
         action="store_true",
         help="synthetic: the landmark model's presence on the true ROI of each missed hand",
     )
+    ap.add_argument(
+        "--perturb",
+        nargs="*",
+        choices=sorted(PERTURBATIONS),
+        help="only the DWM clips, each perturbed (all perturbations when none is named)",
+    )
     args = ap.parse_args(argv)
+    if args.perturb is not None:
+        perturbed(args.data, args.perturb or list(PERTURBATIONS))
+        return
     if not args.skip_real:
         real(args.data, args.tracks)
         print("InterHand real hands, lifted depth / true depth (landmarks on the true hand's ROI)")
@@ -522,6 +601,36 @@ def main(argv: list[str] | None = None) -> None:
                 print("  joint     wrist-relative mm   2D px  (palm_pnp, found hand-frames in 3D)")
                 for name, (mm, px) in zip(JOINT_NAMES, tables["palm_pnp"], strict=True):
                     print(f"  {name:8s} {mm:12.1f} {px:13.1f}")
+
+
+PERTURB_KEYS = (
+    "left_shown",
+    "right_shown",
+    "left_recall",
+    "right_recall",
+    "left_recall_on_hand",
+    "right_recall_on_hand",
+    "left_false_pos_frames",
+    "right_false_pos_frames",
+    "side_agreement",
+    "centroid_px",
+)  # the figures of dwm_figures the perturbation table shows
+
+
+def perturbed(data: Path, names: list[str]) -> None:
+    """Print the DWM dynamic clips' figures (:func:`dwm_figures`) unperturbed and under each
+    perturbation of ``names`` (:data:`PERTURBATIONS`), as the file holds them and as ingested."""
+    dyn = data / "dwm_realworld" / "realworld_dynamic"
+    print("DWM dynamic clips perturbed (against the same hand renders):")
+    for name in names:
+        print(f"  {name}: {PERTURBATIONS[name]}")
+    for video in sorted((dyn / "videos").glob("*.mp4")):
+        render = dyn / "videos_hands" / video.name
+        for name in (None, *names):
+            for ingested in (False, True):
+                fig = dwm_figures(video, render, ingested, perturb=name)
+                label = f"{video.stem} {name or 'none'}{' ingested' if ingested else ''}"
+                print(_line(label, {k: fig[k] for k in PERTURB_KEYS}), flush=True)
 
 
 def real(data: Path, tracks: bool = False) -> None:
