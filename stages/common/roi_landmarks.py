@@ -231,7 +231,8 @@ def landmark_spread(
     A truth-free cue of a hand-frame whose 2D cannot be trusted: a small or half-hidden hand the
     model reads differently at every turn of its crop. On the synthetic tuned world the hand-frames
     whose palm is more than 45 degrees off have a median spread of 0.088 against 0.042 for the
-    others (AUC 0.95; held-out alt 0.111 against 0.022, AUC 0.99; docs/design.md "Hands v15")."""
+    others (AUC 0.95; held-out alt 0.111 against 0.022, AUC 0.99; docs/design.md "Hands v15:
+    small hands")."""
     roi = roi_from_landmarks(uv)
     answers = np.stack(
         [
