@@ -228,6 +228,7 @@ class HandsStage(ClipStage):
     # landmarks move by more than max_spread (0.06) of that size when the landmark model reads
     # its ROI turned +-20 degrees, scaled 0.8 / 1.25 and mirrored (roi_landmarks.landmark_spread)
     # has its 3D withheld or interpolated like a palm turned off its track; the 2D is kept.
+    # Also the regressor backend (boxes="mediapipe") runs the same scene check (hands15, ac4ffba).
     version = 15
     description = "3D hand joints per frame from the clip's labels, de-duplicated and de-spiked"
     config_class = HandsConfig
