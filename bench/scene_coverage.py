@@ -29,6 +29,13 @@ both names carry them.
   the world's static video. ``alt`` rows use ``WorldConfig(variant="alt")`` when it exists (a
   differently made world nothing here was tuned on).
 
+``--holes`` adds, per real clip, what each hole pixel of the render is (:func:`hole_causes`):
+its ray cast through frame 0's depth grid as a surface (open3d ``RaycastingScene``) meets no
+quad (``h_view``: out of frame 0's view, or through pixels the cloud left out), a quad whose
+corners' inverse depths differ by more than 5% (``h_step``: a depth step of frame 0, true
+or estimated, that tore the points apart), or a smooth quad (``h_mag``: points spread too thin
+for the splats); shares of non-hand pixels, averaged over the clip.
+
 Columns: ``measured`` share of frame-0 pixels whose depth was measured (the rest filled);
 ``cloud`` points / pixels; ``cov0``, ``cov`` and ``covN``: share of non-hand pixels the render
 marks visible at t=0, on average over the clip, and at the last frame; ``dB``: PSNR of the render
@@ -64,6 +71,9 @@ from bench.real_video import (
     truth_shift,
 )
 from egosim.pipeline import media
+from egosim.pipeline.geometry import invert_se3, transform_points
+from egosim.schemas.scene import cloud_from_row
+from egosim.stages.common.cameras import resolve_cameras
 from egosim.stages.inpaint.reproject_fill import dilate
 
 SYNTHETIC = (  # (label, mode, seed, variant) at SYN_H x SYN_W, SYN_T frames
@@ -105,6 +115,55 @@ def coverage_figures(
         "dB0": psnrs[0],
         "dB": float(np.nanmean(psnrs)) if np.isfinite(psnrs).any() else float("nan"),
     }
+
+
+HOLE_STEP = 0.05  # hole_causes: a quad whose corners' 1/z differ by more than this is a step
+
+
+def hole_causes(
+    cloud: Any,
+    world_from_cam: np.ndarray,
+    intrinsics: np.ndarray,
+    holes: np.ndarray,
+    counted: np.ndarray,
+) -> dict[str, float]:
+    """Why the render has holes: ``holes (T, H, W)`` bool of a render of ``cloud`` (a
+    :class:`~egosim.schemas.scene.SceneCloud` unprojected from frame 0) along ``world_from_cam
+    (T, 4, 4)``; returns ``h_view``, ``h_step``, ``h_mag`` (see the module docstring) as shares
+    of the ``counted (T, H, W)`` bool pixels (the non-hand ones), averaged over frames."""
+    import open3d as o3d
+
+    from egosim.stages.scene_render.splat import grid_quads
+
+    t, h, w = holes.shape
+    quads = grid_quads(cloud.points, world_from_cam[0], intrinsics, h, w, np.inf)  # (Q, 4)
+    cam0 = transform_points(invert_se3(world_from_cam[0]), cloud.points.astype(np.float64))
+    inv = 1.0 / cam0[:, 2]  # (N,) frame-0 inverse depth
+    step = inv[quads].max(1) / inv[quads].min(1) - 1.0  # (Q,)
+    tris = np.concatenate([quads[:, [0, 2, 1]], quads[:, [1, 2, 3]]])  # (2Q, 3)
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(
+        o3d.core.Tensor(cloud.points.astype(np.float32)), o3d.core.Tensor(tris.astype(np.uint32))
+    )
+    fx, fy, cx, cy = np.asarray(intrinsics, dtype=np.float64)
+    uu, vv = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)  # (H, W) pixel centres
+    rays_cam = np.stack([(uu - cx) / fx, (vv - cy) / fy, np.ones_like(uu)], -1)  # (H, W, 3)
+    shares = {"h_view": 0.0, "h_step": 0.0, "h_mag": 0.0}
+    for i in range(t):
+        sel = holes[i] & counted[i]  # (H, W)
+        if not sel.any():
+            continue
+        dirs = rays_cam[sel] @ world_from_cam[i, :3, :3].T  # (M, 3)
+        origin = np.broadcast_to(world_from_cam[i, :3, 3], dirs.shape)
+        rays = o3d.core.Tensor(np.concatenate([origin, dirs], 1).astype(np.float32))
+        prim = scene.cast_rays(rays)["primitive_ids"].numpy().astype(np.int64)  # (M,)
+        miss = prim == o3d.t.geometry.RaycastingScene.INVALID_ID
+        torn = step[np.where(miss, 0, prim) % len(quads)] > HOLE_STEP
+        n = max(int(counted[i].sum()), 1)
+        shares["h_view"] += float(miss.sum()) / n / t
+        shares["h_step"] += float((~miss & torn).sum()) / n / t
+        shares["h_mag"] += float((~miss & ~torn).sum()) / n / t
+    return shares
 
 
 def _rows(path: Path) -> dict[str, dict]:
@@ -189,14 +248,15 @@ def rerender(
 
 
 def real_case(
-    case: RealCase, data: Path, run: Path, scene: Path | None = None
+    case: RealCase, data: Path, run: Path, scene: Path | None = None, holes: bool = False
 ) -> list[tuple[dict[str, Any], np.ndarray | None]]:
     """Figures of every clip of one real video, each with its contact-sheet row (None: none).
 
     The render is the run's own ``scene_render`` step, or ``scene/scene_render.parquet`` when
     ``scene`` is given (see :func:`rerender`). Hand pixels: the case's ``videos_hands`` (DWM
     dynamic clips, whose ``videos_static`` also gives ``dB``), else the run's own ``hand_mask``
-    (no truth: ``dB`` is NaN), both dilated by ``HAND_DILATE_PX``.
+    (no truth: ``dB`` is NaN), both dilated by ``HAND_DILATE_PX``. ``holes``: add
+    :func:`hole_causes` (with the run's cameras and poses, as the scene steps read them).
     """
     clips = read_step(run, "ingest")
     if scene is None:
@@ -233,6 +293,23 @@ def real_case(
         hand = dilate(hand, HAND_DILATE_PX) > 0  # (T, H, W)
         row = {"case": case.name, "clip": cid, **_cloud_figures(cloud_rows.get(cid), (h, w))}
         row.update(coverage_figures(video, visible, truth, hand, inside))
+        if holes and cid in cloud_rows:
+            cams = resolve_cameras(
+                {
+                    "clips": clip,
+                    **{k: r[cid] for k in ("cameras", "poses") if cid in (r := read_step(run, k))},
+                }
+            )
+            free = ~hand if inside is None else ~hand & inside[None]  # (T, H, W)
+            row.update(
+                hole_causes(
+                    cloud_from_row(cloud_rows[cid]),
+                    cams.world_from_cam,
+                    cams.intrinsics,
+                    ~visible,
+                    free,
+                )
+            )
         out.append((row, sheet_row(real[0], video[0], visible[0], hand[0], video[-1])))
     if not out:
         return [({"case": case.name, "error": "no scene_render output"}, None)]
@@ -327,6 +404,9 @@ def main() -> int:
         help="real clips: measure the run's own scene_render instead of re-rendering its inputs",
     )
     parser.add_argument(
+        "--holes", action="store_true", help="real clips: what the render's holes are"
+    )
+    parser.add_argument(
         "--cloud", action="append", default=[], help="scene_cloud param k=v (repeatable)"
     )
     parser.add_argument(
@@ -359,7 +439,7 @@ def main() -> int:
         except FileNotFoundError as exc:  # the workflow stopped before inpaint
             rows.append({"case": case.name, "error": str(exc)})
             continue
-        for row, strip in real_case(case, args.data, run, scene):
+        for row, strip in real_case(case, args.data, run, scene, args.holes):
             row["seconds"] = time.perf_counter() - start
             rows.append(row)
             if strip is not None:
@@ -392,6 +472,13 @@ def main() -> int:
         cv2.imwrite(str(path), cv2.cvtColor(np.concatenate(sheet, axis=0), cv2.COLOR_RGB2BGR))
         print(f"contact sheet: {path}")
     print_table(rows)
+    for r in rows:
+        if "h_view" in r:
+            print(
+                f"{r['case']:<16} holes over the clip: out of frame 0's view "
+                f"{100 * r['h_view']:.2f}%, at a depth step {100 * r['h_step']:.2f}%, "
+                f"on a smooth surface {100 * r['h_mag']:.2f}% (of non-hand pixels)"
+            )
     return 0 if rows and all("error" not in r for r in rows) else 1
 
 

@@ -130,3 +130,27 @@ def test_mesh_settings_are_checked(split_plane) -> None:
         SceneRenderConfig(mesh_max_step=float("nan"))
     with pytest.raises(ConfigError, match="mesh_max_px"):
         SceneRenderConfig(mesh_max_px=0)
+
+
+def test_hole_causes_names_steps_and_the_unseen(split_plane) -> None:
+    """bench.scene_coverage.hole_causes on the split plane without quads: the gap between the
+    halves is a depth step of frame 0, the strip the camera turned towards is out of its view,
+    nothing is a smooth surface spread thin."""
+    from bench.scene_coverage import hole_causes
+    from egosim.schemas.scene import SceneCloud
+
+    points, colours, size, pose = split_plane
+    poses = np.stack([np.eye(4), pose])  # (2, 4, 4): frame 0 is the cloud's source
+    kw = dict(point_size=size, max_splat_radius=2, max_crack_px=64, max_crack_width=4)
+    render = render_point_cloud(points, colours, poses, K, H, W, **kw)
+    holes = render.visible == 0  # (2, H, W)
+    right = transform_points(np.linalg.inv(pose), points.reshape(H, W, 3)[:, -1])
+    u_right = K[0] * right[:, 0] / right[:, 2] + K[2]  # (H,) the plane's right edge at t=1
+    beyond = np.arange(W)[None, :] >= np.ceil(u_right.max())  # (1, W) no point of it there
+    unseen = holes[1] & beyond  # (H, W)
+    assert unseen.sum() > 0 and not holes[0].any()
+    cloud = SceneCloud(points, colours, size, 0, 1.0, np.full(len(points), 255, np.uint8))
+    shares = hole_causes(cloud, poses, K, holes, np.ones_like(holes))
+    assert shares["h_view"] == pytest.approx(unseen.sum() / holes.size)
+    assert shares["h_step"] == pytest.approx((holes[1] & ~beyond).sum() / holes.size)
+    assert shares["h_step"] > 0 and shares["h_mag"] == 0
