@@ -339,6 +339,8 @@ def _fill_from_mesh(
     local = torch.arange(len(owner), device=q.device) - (counts.cumsum(0) - counts)[owner]
     px = x0[owner] + local % nx[owner]  # (C,) pixel column
     py = y0[owner] + local // nx[owner]  # (C,) pixel row
+    todo = torch.nonzero(buffer[py * width + px] == EMPTY_KEY).squeeze(1)  # only empty pixels
+    owner, px, py = owner[todo], px[todo], py[todo]  # (C',) each
     pu, pv = px.to(u.dtype) + 0.5, py.to(u.dtype) + 0.5  # (C,) pixel centres
     dump = height * width
     mesh = torch.full_like(buffer, EMPTY_KEY)  # (H*W+1,)
