@@ -62,15 +62,19 @@ def split_plane():
     return points, colours, size, pose
 
 
-def test_mesh_fills_the_gap_of_a_false_step(split_plane) -> None:
+@pytest.mark.parametrize("mode", ["fill", "surface"])
+def test_mesh_fills_the_gap_of_a_false_step(split_plane, mode: str) -> None:
     """Without quads the gap between the halves stays empty (wider than crack closing's 4 px);
-    with them every pixel of it is covered, its depth lies between the two sides' (the sheet
-    between them) and its colour is one of the two edge columns' ramp values."""
+    with them every pixel of it is covered and its depth lies between the two sides' (the sheet
+    between them); its colour is one of the two edge columns' ramp values ("fill") or lies
+    between them ("surface")."""
     points, colours, size, pose = split_plane
     args = (points, colours, pose[None], K, H, W)
     kw = dict(point_size=size, max_splat_radius=2, max_crack_px=64, max_crack_width=4)
     old = render_point_cloud(*args, **kw)
-    new = render_point_cloud(*args, **kw, mesh_from_cam=np.eye(4), mesh_max_step=0.3)
+    new = render_point_cloud(
+        *args, **kw, mesh_from_cam=np.eye(4), mesh_max_step=0.3, mesh_mode=mode
+    )
     # The gap: columns between the left half's right edge and the right half's left edge.
     left_edge = transform_points(np.linalg.inv(pose), points.reshape(H, W, 3)[:, STEP_COL - 1])
     right_edge = transform_points(np.linalg.inv(pose), points.reshape(H, W, 3)[:, STEP_COL])
@@ -85,14 +89,59 @@ def test_mesh_fills_the_gap_of_a_false_step(split_plane) -> None:
     gap_depth = new.depth[0, rows, c0 : c1 + 1]
     assert gap_depth.min() >= 2.0 - 1e-3 and gap_depth.max() <= 2.5 + 1e-3
     edge_values = {int(colours.reshape(H, W, 3)[0, c, 0]) for c in (STEP_COL - 1, STEP_COL)}
-    assert set(np.unique(new.rgb[0, rows, c0 : c1 + 1, 0]).tolist()) <= edge_values
-    # Pixels the splats reached are untouched.
-    hit = old.visible[0] > 0
-    assert np.array_equal(new.rgb[0][hit], old.rgb[0][hit])
-    assert np.array_equal(new.depth[0][hit], old.depth[0][hit])
+    gap_values = set(np.unique(new.rgb[0, rows, c0 : c1 + 1, 0]).tolist())
+    if mode == "fill":
+        assert gap_values <= edge_values
+        # Pixels the splats reached are untouched.
+        hit = old.visible[0] > 0
+        assert np.array_equal(new.rgb[0][hit], old.rgb[0][hit])
+        assert np.array_equal(new.depth[0][hit], old.depth[0][hit])
+    else:
+        assert min(edge_values) <= min(gap_values) and max(gap_values) <= max(edge_values)
+        assert len(gap_values) > 2  # a blend across the gap, not two edge colours
 
 
-def test_mesh_leaves_a_true_disocclusion_empty() -> None:
+@pytest.mark.parametrize("mode", ["fill", "surface"])
+def test_magnified_surface_matches_the_true_ramp(mode: str) -> None:
+    """A plane 2 m away whose colour ramps by 3 levels per source pixel, seen from 0.6 m away
+    (3.3x magnified): the true colour at a pixel is the ramp at the point of the plane under
+    it. The surface blends the corners' colours and is within a fraction of a level; nearest
+    points ("fill" mode and the plain splats) draw 3-pixel blocks, off by 0.75 levels on
+    average. Depth is exact in both."""
+    depth = np.full((H, W), 2.0)
+    x = np.arange(W, dtype=np.float64)
+    ramp = np.broadcast_to((10 + 3 * x)[None, :, None], (H, W, 3)).astype(np.uint8)
+    points, colours, size = _cloud(depth, ramp)
+    pose = _pose(0.0, 0.0, 1.4)
+    r = render_point_cloud(
+        points,
+        colours,
+        pose[None],
+        K,
+        H,
+        W,
+        point_size=size,
+        max_splat_radius=2,
+        max_crack_px=64,
+        max_crack_width=4,
+        mesh_from_cam=np.eye(4),
+        mesh_max_step=0.3,
+        mesh_mode=mode,
+    )
+    u = np.arange(W) + 0.5
+    u_source = (u - K[2]) * (0.6 / 2.0) + K[2]  # (W,) source image column under each pixel
+    truth = 10 + 3 * (u_source - 0.5)  # (W,) the ramp between source pixel centres
+    err = np.abs(r.rgb[0, :, :, 0].astype(np.float64) - truth[None, :])  # (H, W)
+    assert r.visible[0].all()
+    np.testing.assert_allclose(r.depth[0], 0.6, rtol=1e-4)
+    if mode == "surface":
+        assert err.mean() < 0.35
+    else:
+        assert err.mean() > 0.6
+
+
+@pytest.mark.parametrize("mode", ["fill", "surface"])
+def test_mesh_leaves_a_true_disocclusion_empty(mode: str) -> None:
     """A card 1 m away in front of a wall 3 m away (1/z steps by 200%): moving sideways opens a
     region of the wall frame 0 never saw; the quads do not span the step, so it stays a hole
     (for the model to synthesise) with the mesh on as without it."""
@@ -105,7 +154,11 @@ def test_mesh_leaves_a_true_disocclusion_empty() -> None:
     kw = dict(point_size=size, max_splat_radius=2, max_crack_px=64, max_crack_width=4)
     old = render_point_cloud(points, colours_n, pose[None], K, H, W, **kw)
     new = render_point_cloud(
-        points, colours_n, pose[None], K, H, W, **kw, mesh_from_cam=np.eye(4), mesh_max_step=0.3
+        *(points, colours_n, pose[None], K, H, W),
+        **kw,
+        mesh_from_cam=np.eye(4),
+        mesh_max_step=0.3,
+        mesh_mode=mode,
     )
     hole = old.visible[0] == 0
     hole[:, W - 8 :] = False  # the wall's strip that left the image on the right: out of view
@@ -113,7 +166,11 @@ def test_mesh_leaves_a_true_disocclusion_empty() -> None:
     assert np.array_equal(new.visible[0], old.visible[0])
     # A mesh with no limit would stretch the card's edge over it.
     sheet = render_point_cloud(
-        points, colours_n, pose[None], K, H, W, **kw, mesh_from_cam=np.eye(4), mesh_max_step=5.0
+        *(points, colours_n, pose[None], K, H, W),
+        **kw,
+        mesh_from_cam=np.eye(4),
+        mesh_max_step=5.0,
+        mesh_mode=mode,
     )
     assert sheet.visible[0][hole].mean() > 0.9
 
@@ -130,6 +187,10 @@ def test_mesh_settings_are_checked(split_plane) -> None:
         SceneRenderConfig(mesh_max_step=float("nan"))
     with pytest.raises(ConfigError, match="mesh_max_px"):
         SceneRenderConfig(mesh_max_px=0)
+    with pytest.raises(ConfigError, match="mesh_mode"):
+        SceneRenderConfig(mesh_mode="mesh")
+    with pytest.raises(SplatError, match="mesh_mode"):
+        render_point_cloud(points, colours, pose[None], K, H, W, mesh_mode="mesh")
 
 
 def test_hole_causes_names_steps_and_the_unseen(split_plane) -> None:

@@ -20,11 +20,15 @@ its source frame) is also a surface: with ``mesh_max_step > 0`` and that frame's
 (``mesh_from_cam``), :func:`grid_quads` recovers the grid (each point's pixel in the source
 frame) and links every 2x2 block of neighbouring points into a quad unless its inverse depths
 differ by more than ``mesh_max_step`` (relative: a tear, an occlusion edge). Each frame, the
-quads' two triangles are rasterised (:func:`_fill_from_mesh`) and pixels that every splat left
-empty take the nearest triangle's depth and the colour of its nearest corner. Points split
-apart by the camera's motion (a surface seen closer or less obliquely than from the source
-frame, or two neighbouring pixels of the source frame whose estimated depths differ by a few
-per cent) no longer leave holes; torn quads still do (disocclusions).
+quads' two triangles are rasterised. ``mesh_mode`` "surface" (:func:`surface_frame`): the
+nearest triangle covers the pixel with the perspective-correct blend of its three corners'
+colours, and the splats count only where no quad lands or a point is clearly nearer (a point
+no quad holds); "fill" (:func:`_fill_from_mesh`): only pixels that every splat left empty take
+the nearest triangle's depth and its nearest corner's colour. Points split apart by the
+camera's motion (a surface seen closer or less obliquely than from the source frame, or two
+neighbouring pixels of the source frame whose estimated depths differ by a few per cent) no
+longer leave holes, and a magnified surface is drawn smooth instead of in blocks of one
+point's colour; torn quads still leave holes (disocclusions).
 
 Cracks that remain (the camera much closer than frame 0, beyond the widest splat, or a surface
 seen more obliquely than from frame 0) are closed in image space by :func:`close_cracks`: every
@@ -36,6 +40,7 @@ Telea inpainting) and the farther depth around it, and counts as visible. Larger
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import cv2
@@ -143,6 +148,7 @@ def to_device_cloud(
 SEE_THROUGH_MARGIN = 0.05  # relative depth gap beyond which a wide splat hides a direct hit
 GRID_TOLERANCE_PX = 0.02  # a point lies on its source pixel's centre when within this (float32)
 MESH_MAX_QUAD_PX = 32  # default: a quad wider or taller than this in a frame is not drawn
+MESH_MODES = ("fill", "surface")  # quads fill only what splats miss / are the surface itself
 
 
 def splat_frame(
@@ -282,6 +288,95 @@ def grid_quads(
     return np.ascontiguousarray(corners[step <= max_step])
 
 
+def _quad_candidates(
+    quads: torch.Tensor,
+    u: torch.Tensor,
+    v: torch.Tensor,
+    z: torch.Tensor,
+    width: int,
+    height: int,
+    near: float,
+    max_px: float,
+    buffer: torch.Tensor | None = None,
+) -> tuple[torch.Tensor, ...] | None:
+    """Pixel centres each quad may cover: ``(q (M, 4), uq, vq, zq (M, 4), owner, px, py (C,))``.
+
+    Quads with a corner at or behind ``near`` or over ``max_px`` pixels across are skipped; with
+    ``buffer`` (z-buffer keys) only pixels still empty there are returned. None: no candidate.
+    """
+    zq = z[quads]  # (Q, 4)
+    front = torch.nonzero((zq > near).all(1)).squeeze(1)
+    if front.numel() == 0:
+        return None
+    q = quads[front]  # (M, 4)
+    uq, vq, zq = u[q], v[q], zq[front]  # (M, 4) each
+    lo_u, hi_u = uq.min(1).values, uq.max(1).values  # (M,)
+    lo_v, hi_v = vq.min(1).values, vq.max(1).values  # (M,)
+    x0 = (lo_u - 0.5).ceil().clamp(min=0)  # first pixel column whose centre may be inside
+    x1 = (hi_u - 0.5).floor().clamp(max=width - 1)
+    y0 = (lo_v - 0.5).ceil().clamp(min=0)
+    y1 = (hi_v - 0.5).floor().clamp(max=height - 1)
+    keep = (x1 >= x0) & (y1 >= y0)
+    keep &= (hi_u - lo_u <= max_px) & (hi_v - lo_v <= max_px)
+    sel = torch.nonzero(keep).squeeze(1)
+    if sel.numel() == 0:
+        return None
+    q, uq, vq, zq = q[sel], uq[sel], vq[sel], zq[sel]  # (M', 4) each
+    x0, y0 = x0[sel].to(torch.int64), y0[sel].to(torch.int64)  # (M',)
+    x1, y1 = x1[sel].to(torch.int64), y1[sel].to(torch.int64)  # (M',)
+    if buffer is not None:
+        # Only quads whose box holds an empty pixel can change anything (summed-area table).
+        empty = (buffer[: height * width] == EMPTY_KEY).view(height, width).to(torch.int32)
+        table = torch.nn.functional.pad(empty.cumsum(0).cumsum(1), (1, 0, 1, 0))  # (H+1, W+1)
+        holes = table[y1 + 1, x1 + 1] - table[y0, x1 + 1] - table[y1 + 1, x0] + table[y0, x0]
+        sel = torch.nonzero(holes > 0).squeeze(1)
+        if sel.numel() == 0:
+            return None
+        q, uq, vq, zq = q[sel], uq[sel], vq[sel], zq[sel]  # (M'', 4) each
+        x0, y0, x1, y1 = x0[sel], y0[sel], x1[sel], y1[sel]  # (M'',) each
+    nx, ny = x1 - x0 + 1, y1 - y0 + 1  # (M'',) box size in pixels
+    counts = nx * ny  # (M'',) candidate pixel centres per quad
+    owner = torch.repeat_interleave(torch.arange(len(q), device=q.device), counts)  # (C,)
+    local = torch.arange(len(owner), device=q.device) - (counts.cumsum(0) - counts)[owner]
+    px = x0[owner] + local % nx[owner]  # (C,) pixel column
+    py = y0[owner] + local // nx[owner]  # (C,) pixel row
+    if buffer is not None:
+        todo = torch.nonzero(buffer[py * width + px] == EMPTY_KEY).squeeze(1)  # empty pixels
+        owner, px, py = owner[todo], px[todo], py[todo]  # (C',) each
+    return q, uq, vq, zq, owner, px, py
+
+
+TRIANGLES = ((0, 2, 1), (1, 2, 3))  # a quad's two triangles: corners (tl, bl, tr), (tr, bl, br)
+
+
+def _triangle_hits(
+    uq: torch.Tensor,
+    vq: torch.Tensor,
+    zq: torch.Tensor,
+    owner: torch.Tensor,
+    px: torch.Tensor,
+    py: torch.Tensor,
+    corners: tuple[int, int, int],
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Where each candidate pixel centre lies in one triangle of its quad: ``(inside (C,) bool,
+    depth (C,), weights (C, 3))``, screen-space barycentric weights of ``corners``; ``1/z`` is
+    linear in the image for a planar triangle, so the depth is exact."""
+    a, b, c = corners
+    pu, pv = px.to(uq.dtype) + 0.5, py.to(uq.dtype) + 0.5  # (C,) pixel centres
+    ua, ub, uc = uq[owner, a], uq[owner, b], uq[owner, c]  # (C,) each
+    va, vb, vc = vq[owner, a], vq[owner, b], vq[owner, c]
+    den = (vb - vc) * (ua - uc) + (uc - ub) * (va - vc)  # (C,) twice the signed area
+    safe = torch.where(den.abs() > 1e-12, den, 1.0)
+    wa = ((vb - vc) * (pu - uc) + (uc - ub) * (pv - vc)) / safe  # (C,) barycentric weights
+    wb = ((vc - va) * (pu - uc) + (ua - uc) * (pv - vc)) / safe
+    wc = 1.0 - wa - wb
+    inside = (den.abs() > 1e-12) & (wa >= -1e-6) & (wb >= -1e-6) & (wc >= -1e-6)
+    inv = wa / zq[owner, a] + wb / zq[owner, b] + wc / zq[owner, c]  # (C,) 1/z
+    inside &= inv > 0
+    depth = 1.0 / torch.where(inside, inv, 1.0)  # (C,)
+    return inside, depth, torch.stack([wa, wb, wc], 1)
+
+
 def _fill_from_mesh(
     buffer: torch.Tensor,
     quads: torch.Tensor,
@@ -298,70 +393,80 @@ def _fill_from_mesh(
 
     ``u, v (N,)`` exact projections of the points, ``z (N,)`` their camera depth. Each quad is
     two triangles (top-left, bottom-left, top-right) and (top-right, bottom-left, bottom-right);
-    a pixel whose centre lies in one takes the depth of the triangle there (``1/z`` is linear in
-    the image for a planar triangle) and the index of its corner of largest barycentric weight,
-    and the z-test picks the nearest triangle. Quads with a corner at or behind ``near``, or
-    over ``max_px`` pixels across (a sheet stretched over a disocclusion), are skipped. Only
-    empty pixels of ``buffer`` change.
+    a pixel whose centre lies in one takes the depth of the triangle there and the index of its
+    corner of largest barycentric weight, and the z-test picks the nearest triangle. Quads with
+    a corner at or behind ``near``, or over ``max_px`` pixels across (a sheet stretched over a
+    disocclusion), are skipped. Only empty pixels of ``buffer`` change.
     """
-    zq = z[quads]  # (Q, 4)
-    front = torch.nonzero((zq > near).all(1)).squeeze(1)
-    if front.numel() == 0:
+    cand = _quad_candidates(quads, u, v, z, width, height, near, max_px, buffer)
+    if cand is None:
         return
-    q = quads[front]  # (M, 4)
-    uq, vq, zq = u[q], v[q], zq[front]  # (M, 4) each
-    lo_u, hi_u = uq.min(1).values, uq.max(1).values  # (M,)
-    lo_v, hi_v = vq.min(1).values, vq.max(1).values  # (M,)
-    x0 = (lo_u - 0.5).ceil().clamp(min=0)  # first pixel column whose centre may be inside
-    x1 = (hi_u - 0.5).floor().clamp(max=width - 1)
-    y0 = (lo_v - 0.5).ceil().clamp(min=0)
-    y1 = (hi_v - 0.5).floor().clamp(max=height - 1)
-    keep = (x1 >= x0) & (y1 >= y0)
-    keep &= (hi_u - lo_u <= max_px) & (hi_v - lo_v <= max_px)
-    sel = torch.nonzero(keep).squeeze(1)
-    if sel.numel() == 0:
-        return
-    q, uq, vq, zq = q[sel], uq[sel], vq[sel], zq[sel]  # (M', 4) each
-    x0, y0 = x0[sel].to(torch.int64), y0[sel].to(torch.int64)  # (M',)
-    x1, y1 = x1[sel].to(torch.int64), y1[sel].to(torch.int64)  # (M',)
-    # Only quads whose box holds an empty pixel can change anything (summed-area table).
-    empty = (buffer[: height * width] == EMPTY_KEY).view(height, width).to(torch.int32)
-    table = torch.nn.functional.pad(empty.cumsum(0).cumsum(1), (1, 0, 1, 0))  # (H+1, W+1)
-    holes = table[y1 + 1, x1 + 1] - table[y0, x1 + 1] - table[y1 + 1, x0] + table[y0, x0]
-    sel = torch.nonzero(holes > 0).squeeze(1)
-    if sel.numel() == 0:
-        return
-    q, uq, vq, zq = q[sel], uq[sel], vq[sel], zq[sel]  # (M'', 4) each
-    x0, y0, x1, y1 = x0[sel], y0[sel], x1[sel], y1[sel]  # (M'',) each
-    nx, ny = x1 - x0 + 1, y1 - y0 + 1  # (M'',) box size in pixels
-    counts = nx * ny  # (M',) candidate pixel centres per quad
-    owner = torch.repeat_interleave(torch.arange(len(sel), device=q.device), counts)  # (C,)
-    local = torch.arange(len(owner), device=q.device) - (counts.cumsum(0) - counts)[owner]
-    px = x0[owner] + local % nx[owner]  # (C,) pixel column
-    py = y0[owner] + local // nx[owner]  # (C,) pixel row
-    todo = torch.nonzero(buffer[py * width + px] == EMPTY_KEY).squeeze(1)  # only empty pixels
-    owner, px, py = owner[todo], px[todo], py[todo]  # (C',) each
-    pu, pv = px.to(u.dtype) + 0.5, py.to(u.dtype) + 0.5  # (C,) pixel centres
+    q, uq, vq, zq, owner, px, py = cand
     dump = height * width
     mesh = torch.full_like(buffer, EMPTY_KEY)  # (H*W+1,)
-    for a, b, c in ((0, 2, 1), (1, 2, 3)):
-        ua, ub, uc = uq[owner, a], uq[owner, b], uq[owner, c]  # (C,) each
-        va, vb, vc = vq[owner, a], vq[owner, b], vq[owner, c]
-        den = (vb - vc) * (ua - uc) + (uc - ub) * (va - vc)  # (C,) twice the signed area
-        safe = torch.where(den.abs() > 1e-12, den, 1.0)
-        wa = ((vb - vc) * (pu - uc) + (uc - ub) * (pv - vc)) / safe  # (C,) barycentric weights
-        wb = ((vc - va) * (pu - uc) + (ua - uc) * (pv - vc)) / safe
-        wc = 1.0 - wa - wb
-        inside = (den.abs() > 1e-12) & (wa >= -1e-6) & (wb >= -1e-6) & (wc >= -1e-6)
-        inv = wa / zq[owner, a] + wb / zq[owner, b] + wc / zq[owner, c]  # (C,) 1/z
-        depth = 1.0 / torch.where(inside & (inv > 0), inv, 1.0)  # (C,)
-        weights = torch.stack([wa, wb, wc], 1)  # (C, 3)
-        corner = torch.tensor([a, b, c], device=q.device)[weights.argmax(1)]  # (C,)
+    for corners in TRIANGLES:
+        inside, depth, weights = _triangle_hits(uq, vq, zq, owner, px, py, corners)
+        corner = torch.tensor(corners, device=q.device)[weights.argmax(1)]  # (C,)
         point = index[q[owner, corner]]  # (C,) point of the nearest corner
         keys = (depth.to(torch.float32).view(torch.int32).to(torch.int64) << INDEX_BITS) | point
-        pix = torch.where(inside & (inv > 0), py * width + px, dump)  # (C,)
+        pix = torch.where(inside, py * width + px, dump)  # (C,)
         mesh.scatter_reduce_(0, pix, keys, reduce="amin")
     buffer.copy_(torch.where(buffer == EMPTY_KEY, mesh, buffer))
+
+
+def surface_frame(
+    cloud: DeviceCloud,
+    cam_from_world: torch.Tensor,
+    intrinsics: np.ndarray,
+    height: int,
+    width: int,
+    near: float = 1e-3,
+    max_px: float = MESH_MAX_QUAD_PX,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Rasterise the cloud's quads in one frame: ``(rgb (P, 3) uint8, hit (P,) bool, depth (P,)
+    float32)`` over the ``P = H*W`` pixels; the nearest triangle wins and its colour is the
+    perspective-correct blend of its three corners' colours."""
+    dev = cloud.points.device
+    p = height * width
+    rgb = torch.zeros((p, 3), dtype=torch.uint8, device=dev)
+    hit = torch.zeros(p, dtype=torch.bool, device=dev)
+    depth_out = torch.zeros(p, dtype=torch.float32, device=dev)
+    if cloud.quads is None or cloud.quads.numel() == 0:
+        return rgb, hit, depth_out
+    u, v, z = project_world_points_torch(cloud.points, cam_from_world, intrinsics)  # (N,) each
+    cand = _quad_candidates(cloud.quads, u, v, z, width, height, near, max_px)
+    if cand is None:
+        return rgb, hit, depth_out
+    q, uq, vq, zq, owner, px, py = cand
+    pix_all, bits_all, points_all, weights_all = [], [], [], []
+    for corners in TRIANGLES:
+        inside, depth, weights = _triangle_hits(uq, vq, zq, owner, px, py, corners)
+        keep = torch.nonzero(inside).squeeze(1)
+        idx = torch.tensor(corners, device=dev)
+        z3 = zq[owner[keep]][:, idx]  # (C', 3) corner depths
+        persp = weights[keep] / z3  # (C', 3) perspective-correct weights
+        pix_all.append((py * width + px)[keep])
+        bits_all.append(depth[keep].to(torch.float32).view(torch.int32).to(torch.int64))
+        points_all.append(q[owner[keep]][:, idx])  # (C', 3) corner points
+        weights_all.append(persp / persp.sum(1, keepdim=True))
+    pix, bits = torch.cat(pix_all), torch.cat(bits_all)  # (K,) each
+    if pix.numel() == 0:
+        return rgb, hit, depth_out
+    nearest = torch.full((p,), torch.iinfo(torch.int64).max, dtype=torch.int64, device=dev)
+    nearest.scatter_reduce_(0, pix, bits, reduce="amin")
+    wins = torch.nonzero(bits == nearest[pix]).squeeze(1)  # candidates at their pixel's depth
+    winner = torch.full((p,), -1, dtype=torch.int64, device=dev)
+    winner.scatter_reduce_(0, pix[wins], wins, reduce="amax")  # one per pixel (ties: any)
+    covered = torch.nonzero(winner >= 0).squeeze(1)
+    best = winner[covered]  # (P',) candidate of each covered pixel
+    corners_pts = torch.cat(points_all)[best]  # (P', 3)
+    weights = torch.cat(weights_all)[best]  # (P', 3)
+    colours = cloud.colours.view(torch.uint8).view(-1, 4)[:, :3].to(torch.float32)  # (N, 3)
+    blend = (colours[corners_pts] * weights[..., None]).sum(1)  # (P', 3)
+    rgb[covered] = blend.round().clamp(0, 255).to(torch.uint8)
+    hit[covered] = True
+    depth_out[covered] = bits[best].to(torch.int32).view(torch.float32)
+    return rgb, hit, depth_out
 
 
 def decode_keys(keys: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -453,6 +558,7 @@ def render_point_cloud(
     mesh_from_cam: np.ndarray | None = None,
     mesh_max_step: float = 0.0,
     mesh_max_px: float = MESH_MAX_QUAD_PX,
+    mesh_mode: str = "surface",
 ) -> SplatResult:
     """Render a coloured cloud along a trajectory by z-buffered splatting.
 
@@ -463,8 +569,10 @@ def render_point_cloud(
     inside the render and gaps up to ``max_crack_width`` pixels wide are closed by
     :func:`close_cracks` (0 = off). With ``mesh_max_step > 0`` and the pose ``mesh_from_cam
     (4, 4)`` of the frame the cloud was unprojected from, pixels no splat reached are filled
-    from the cloud's surface quads (:func:`grid_quads`, :func:`_fill_from_mesh`; quads over
-    ``mesh_max_px`` across in a frame are not drawn) before the cracks are closed. Raises
+    from the cloud's surface quads (:func:`grid_quads`; quads over ``mesh_max_px`` across in a
+    frame are not drawn) before the cracks are closed: ``mesh_mode`` "surface" draws the quads
+    over the splats with blended colours (:func:`surface_frame`), "fill" only fills the pixels
+    no splat reached with a corner's colour (:func:`_fill_from_mesh`). Raises
     :class:`SplatError` for an empty cloud, non-finite points, non-rigid or NaN poses and shapes
     that disagree.
     """
@@ -476,6 +584,8 @@ def render_point_cloud(
     _check_inputs(points_world, colours, world_from_cam, intrinsics, height, width, point_size)
     if max_splat_radius < 0:
         raise SplatError(f"max_splat_radius must be >= 0, got {max_splat_radius}")
+    if mesh_mode not in MESH_MODES:
+        raise SplatError(f"mesh_mode must be one of {MESH_MODES}, got {mesh_mode!r}")
     if not (np.isfinite(mesh_max_step) and mesh_max_step >= 0):
         raise SplatError(f"mesh_max_step must be finite and >= 0, got {mesh_max_step}")
     quads = None
@@ -494,11 +604,30 @@ def render_point_cloud(
     out_rgb = torch.zeros((t, height * width, 3), dtype=torch.uint8, device=dev)
     out_vis = torch.zeros((t, height * width), dtype=torch.uint8, device=dev)
     out_depth = torch.zeros((t, height * width), dtype=torch.float32, device=dev)
+    # "surface": splats without the quads' hole fill, then the surface over them
+    splat_cloud = dataclasses.replace(cloud, quads=None) if mesh_mode == "surface" else cloud
     for i in range(t):
         keys = splat_frame(
-            cloud, cam_from_world[i], intrinsics, height, width, max_splat_radius, near, mesh_max_px
+            splat_cloud,
+            cam_from_world[i],
+            intrinsics,
+            height,
+            width,
+            max_splat_radius,
+            near,
+            mesh_max_px,
         )
-        out_rgb[i], out_vis[i], out_depth[i] = shade(cloud, keys)  # (H*W, 3), (H*W,), (H*W,)
+        rgb_i, hit_i, depth_i = shade(cloud, keys)  # (H*W, 3), (H*W,), (H*W,)
+        if mesh_mode == "surface" and cloud.quads is not None:
+            rgb_m, hit_m, depth_m = surface_frame(
+                cloud, cam_from_world[i], intrinsics, height, width, near, mesh_max_px
+            )
+            # The surface wins unless a point (one no quad holds) is clearly nearer.
+            use = hit_m & (~hit_i | (depth_m <= depth_i * (1.0 + SEE_THROUGH_MARGIN)))
+            rgb_i = torch.where(use[:, None], rgb_m, rgb_i)
+            hit_i = hit_i | hit_m
+            depth_i = torch.where(use, depth_m, depth_i)
+        out_rgb[i], out_vis[i], out_depth[i] = rgb_i, hit_i, depth_i
     rgb = out_rgb.reshape(t, height, width, 3).cpu().numpy()
     visible = out_vis.reshape(t, height, width).cpu().numpy()
     depth = out_depth.reshape(t, height, width).cpu().numpy()

@@ -29,7 +29,7 @@ from egosim.schemas import CLIPS, ShardSchema
 from egosim.schemas.scene import SCENE_CLOUD, SCENE_RENDER, cloud_from_row
 from egosim.schemas.state import STATE, scene_cloud_row_from_state
 from egosim.stages.common.cameras import CAMERA_COLUMNS, CAMERA_ROLES, resolve_cameras
-from egosim.stages.scene_render.splat import SplatError, render_point_cloud
+from egosim.stages.scene_render.splat import MESH_MODES, SplatError, render_point_cloud
 
 
 @dataclasses.dataclass(frozen=True)
@@ -44,6 +44,8 @@ class SceneRenderConfig(StageConfig):
     mesh_max_step: float = 0.3  # scene_cloud rows: neighbouring points are one surface unless
     # their inverse depths differ by more than this (relative); it fills what splats miss; 0 = off
     mesh_max_px: int = 32  # surface quads wider or taller than this in a frame are not drawn
+    mesh_mode: str = "surface"  # "surface": quads drawn with their corners' colours blended,
+    # splats only where no quad is or a point is nearer; "fill": quads fill what splats miss
     crf: int = 18  # H.264 quality of the scene video (lower = better, bigger)
 
     def __post_init__(self) -> None:
@@ -58,6 +60,8 @@ class SceneRenderConfig(StageConfig):
             problems.append(f"max_crack_px must be in [0, 10000], got {self.max_crack_px}")
         if not (np.isfinite(self.mesh_max_step) and self.mesh_max_step >= 0):
             problems.append(f"mesh_max_step must be finite and >= 0, got {self.mesh_max_step}")
+        if self.mesh_mode not in MESH_MODES:
+            problems.append(f"mesh_mode must be one of {MESH_MODES}, got {self.mesh_mode!r}")
         if not 1 <= self.mesh_max_px <= 4096:
             problems.append(f"mesh_max_px must be in [1, 4096], got {self.mesh_max_px}")
         if not (np.isfinite(self.near) and self.near > 0):
@@ -102,7 +106,8 @@ class SceneRenderStage(ClipStage):
         {"clips": ("num_frames", "height", "width", "fps")}, CAMERA_COLUMNS
     )
     # 3: renders a state row (optional role) as well as a scene_cloud row
-    # 4: a scene_cloud row's surface quads fill the pixels splats miss (mesh_max_step)
+    # 4: a scene_cloud row's depth grid is drawn as a surface of quads (mesh_max_step,
+    #    mesh_mode "surface"; the "fill" mode came first, in no run)
     version = 4
     config: SceneRenderConfig
 
@@ -136,6 +141,7 @@ class SceneRenderStage(ClipStage):
                 mesh_from_cam=None if rows.get("state") is not None else mesh_pose,
                 mesh_max_step=cfg.mesh_max_step,
                 mesh_max_px=cfg.mesh_max_px,
+                mesh_mode=cfg.mesh_mode,
             )
         except SplatError as exc:
             raise ClipRejected(f"clip {cid!r}: {exc}") from exc
