@@ -82,3 +82,43 @@ def test_a_two_frame_track_cannot_be_called_still(egodex_frame) -> None:
         presence = landmark_presence(frames, three)
         assert np.nanmax(presence[:, 2]) < 0.1
         assert scene_tracks(frames, three, tracks, presence) == (ours if dropped else [])
+
+
+def test_a_still_real_hand_in_shadow_beside_a_lit_one_is_kept(egodex_frame) -> None:
+    """EgoDex frame 0 held for 12 frames with the left hand's hull darkened to 0.65 (a hand
+    resting in shadow; hands15): MediaPipe finds it on 6 of the 12 frames with presence 0.56
+    (measured; under the 0.8 that exempts a confident hand). Its Lab chroma shrinks towards grey:
+    4.26 from the lit right hand's, over ``max_skin_distance`` (4.0), and it does not move, so
+    the Lab rule alone (hands v13-14) dropped this real hand. Its chromaticity is the lit hand's
+    (0.65, under ``max_chromaticity_distance`` 2.0; the curtain fold measured 3.2-4.9, fakes on
+    EgoDex's wall and table 2.3-3.1), so it is kept."""
+    from egosim.stages.hands.scene_check import SceneCheckParams, hull_mask, scene_tracks
+
+    raw0, _, _ = _detect(egodex_frame[None])
+    left = int(np.nanargmin(raw0.uv[0, :, :, 0].mean(axis=1)))  # the hand on the image's left
+    hull = hull_mask(egodex_frame.shape[:2], raw0.uv[0, left], 6).astype(np.float32)
+    shade = 1.0 - 0.35 * cv2.GaussianBlur(hull, (0, 0), 4)[..., None]  # 0.65 inside the hull
+    frames = np.repeat((egodex_frame * shade).astype(np.uint8)[None], 12, axis=0)
+    raw, tracks, presence = _detect(frames)
+    assert len(tracks) == 2
+    shaded = [ti for ti, tr in enumerate(tracks) if hand_centres(raw.uv)[tr[0]][0] < 500]
+    assert len(shaded) == 1 and len(tracks[shaded[0]]) >= 3
+    f, k = np.array(tracks[shaded[0]]).T
+    assert np.nanmedian(presence[f, k]) < 0.8  # not exempt as a confident hand
+    lab_only = SceneCheckParams(max_chromaticity_distance=0.0)  # the rule before hands15
+    assert scene_tracks(frames, raw, tracks, presence, lab_only) == shaded
+    assert scene_tracks(frames, raw, tracks, presence) == []
+
+
+def test_chromaticity_ignores_shade_and_lab_chroma_does_not() -> None:
+    """``scene_check.colour_image``: a skin-like pixel (200, 140, 110) and the same at 0.5 have
+    the same chromaticity 255 (R, G) / (R + G + B) = (113.3, 79.3) within 8-bit rounding, while
+    their Lab (a, b) move towards grey (128, 128)."""
+    from egosim.stages.hands.scene_check import colour_image
+
+    lit = np.array([[[200, 140, 110]]], np.uint8)
+    dim = np.array([[[100, 70, 55]]], np.uint8)
+    a, b = colour_image(lit)[0, 0], colour_image(dim)[0, 0]  # (4,) each
+    np.testing.assert_allclose(a[2:], [255 * 200 / 450, 255 * 140 / 450], atol=0.01)
+    np.testing.assert_allclose(b[2:], a[2:], atol=0.2)
+    assert np.all(np.abs(b[:2] - 128) < np.abs(a[:2] - 128) - 3)  # Lab chroma shrinks

@@ -12,7 +12,13 @@ two cues across the scene do, together:
   distribution, the median over the track. Real hands measured 0.7-3.5 (3.5: EgoDex's right
   hand judged against a small hand in the cup's shadow), the curtain fold 4.5-5.9 on each of
   its four encodes. Presence is asked of at most ``seed_samples`` detections a track
-  (:func:`seed_candidates`).
+  (:func:`seed_candidates`). Lab chroma shrinks towards grey in shadow, so a real hand in
+  shadow is "off-skin" too (EgoDex's left hand darkened to 0.65 and held still: 4.26; hands15).
+  A track must also be off-skin in chromaticity (R, G over R + G + B, :func:`colour_image`),
+  which shade leaves alone: that hand 0.65, every shaded real hand tried (0.8 and 0.65, either
+  hand, three EgoDex frames) 0.65-1.67, real hands unshaded 0.2-2.4, the curtain fold 3.2-4.9,
+  a still fake hand on EgoDex's wall or table 2.3-3.1 (over ``max_chromaticity_distance``,
+  2.0). Chromaticity alone would not do: beige walls and tables are near skin in it (2.2-3.1).
 - **Still in the scene** (:func:`scene_travel`): the track's centre carried into its first
   frame's coordinates by the background's motion (a similarity per frame pair fitted to tracked
   corners outside every detection), the extent of its 3-frame running median in hand sizes. The
@@ -20,7 +26,7 @@ two cues across the scene do, together:
   EgoDex's right hand) are on the clip's skin.
 
 A track is dropped when both hold (:func:`scene_tracks`): the real hand nearest the skin
-threshold (3.5) was saved by moving (0.70), and stillness alone drops every resting hand. Both
+threshold (3.5) was saved by moving (0.70), and stillness alone drops every resting hand. The
 thresholds were set seeing these clips: none of these figures is held out. Never dropped: a
 track whose sampled detections' median presence reaches ``seed_presence`` (a confident hand; a
 lit resting hand judged against a darker one measured skin 5.1 on EgoDex frames, review10a; the
@@ -49,7 +55,8 @@ class SceneCheckParams:
 
     seed_presence: float = 0.8  # detections at least this present seed the clip's skin colour
     seed_samples: int = 12  # detections per track asked for their presence (evenly spaced; speed)
-    max_skin_distance: float = 4.0  # a track further than this from the seed is off-skin
+    max_skin_distance: float = 4.0  # a track further than this from the seed (Lab a, b) and
+    max_chromaticity_distance: float = 2.0  # than this in chromaticity (shade-free) is off-skin
     min_scene_travel: float = 0.5  # a track moving less (hand sizes, against the scene) is still
     analysis_scale: float = 0.5  # images are analysed at this scale (speed)
     min_track_frames: int = 3  # shorter tracks are kept: too short to tell still from moving
@@ -60,6 +67,10 @@ class SceneCheckParams:
             problems.append(f"seed_presence must be in [0, 1], got {self.seed_presence!r}")
         if not self.max_skin_distance > 0:
             problems.append(f"max_skin_distance must be > 0, got {self.max_skin_distance!r}")
+        if not self.max_chromaticity_distance >= 0:
+            problems.append(
+                f"max_chromaticity_distance must be >= 0, got {self.max_chromaticity_distance!r}"
+            )
         if not self.min_scene_travel >= 0:
             problems.append(f"min_scene_travel must be >= 0, got {self.min_scene_travel!r}")
         if self.min_track_frames < 1:
@@ -103,14 +114,25 @@ def _resized(frame: np.ndarray, scale: float) -> np.ndarray:
     return cv2.resize(frame, size, interpolation=cv2.INTER_AREA)
 
 
+def colour_image(rgb: np.ndarray) -> np.ndarray:
+    """``(H, W, 4)`` float: two pairs of colour without brightness for ``rgb (H, W, 3)`` uint8.
+    Channels 0-1: CIE Lab (a, b) on OpenCV's 8-bit scale, which shrink towards grey (128) as a
+    surface darkens; channels 2-3: the chromaticity 255 (R, G) / (R + G + B), which a surface
+    lit less keeps (every channel scaled alike)."""
+    ab = cv2.cvtColor(rgb, cv2.COLOR_RGB2LAB)[..., 1:].astype(float)  # (H, W, 2)
+    x = rgb.astype(float)  # (H, W, 3)
+    rg = 255.0 * x[..., :2] / np.maximum(x.sum(axis=-1, keepdims=True), 1.0)  # (H, W, 2)
+    return np.concatenate([ab, rg], axis=-1)
+
+
 def hull_chroma(
-    lab: dict[int, np.ndarray], uv: np.ndarray, present: np.ndarray
+    colour: dict[int, np.ndarray], uv: np.ndarray, present: np.ndarray
 ) -> dict[tuple[int, int], np.ndarray]:
-    """``(frame, slot) -> (n, 2)`` the Lab chroma (a, b) of the pixels inside each present
-    detection's landmark hull. ``lab`` frame index -> ``(H, W, 3)`` float Lab image (OpenCV's
-    8-bit scale), ``uv (T, K, 21, 2)`` landmarks in that image's pixels, ``present (T, K)``."""
+    """``(frame, slot) -> (n, C)`` the colour of the pixels inside each present detection's
+    landmark hull. ``colour`` frame index -> ``(H, W, C)`` float image (:func:`colour_image`),
+    ``uv (T, K, 21, 2)`` landmarks in that image's pixels, ``present (T, K)``."""
     return {
-        (int(f), int(k)): lab[f][hull_mask(lab[f].shape[:2], uv[f, k])][:, 1:]
+        (int(f), int(k)): colour[f][hull_mask(colour[f].shape[:2], uv[f, k])]
         for f, k in zip(*np.nonzero(present), strict=True)
     }
 
@@ -202,10 +224,10 @@ def scene_tracks(
     scale = params.analysis_scale
     uv = raw.uv * scale  # (T, K, 21, 2) analysis pixels
     used = sorted({f for tr in tracks for f, _ in tr})
-    lab = {
-        f: cv2.cvtColor(_resized(frames[f], scale), cv2.COLOR_RGB2LAB).astype(float) for f in used
-    }
-    pixels = hull_chroma(lab, uv, raw.present)
+    colour = {f: colour_image(_resized(frames[f], scale)) for f in used}
+    pixels = hull_chroma(colour, uv, raw.present)  # (n, 4) each: Lab a, b; chromaticity
+    lab = {key: px[:, :2] for key, px in pixels.items()}
+    rg = {key: px[:, 2:] for key, px in pixels.items()}
     seeds = {(int(f), int(k)) for f, k in zip(*np.nonzero(seed), strict=True)}
     size = hand_size(uv)  # (T, K)
     centre = hand_centres(uv)  # (T, K, 2)
@@ -220,9 +242,11 @@ def scene_tracks(
             continue  # a confident hand is a hand, whatever the other tracks' colour
         own = [(int(f), int(k)) for f, k in tr]
         # judged against the other tracks' confident detections, never its own
-        skin = skin_distance(pixels, sorted(seeds - set(own)), own)
-        if not skin > params.max_skin_distance:
+        seed_of = sorted(seeds - set(own))
+        if not skin_distance(lab, seed_of, own) > params.max_skin_distance:
             continue
+        if not skin_distance(rg, seed_of, own) > params.max_chromaticity_distance:
+            continue  # its colour is the seed's, only darker: a hand in shadow
         if motion is None:  # only for an off-skin track: the clip's background motion
             small = [_resized(fr, scale) for fr in frames]
             grey = [cv2.cvtColor(im, cv2.COLOR_RGB2GRAY) for im in small]
