@@ -1341,3 +1341,58 @@ def test_steady_directions_holds_off_side_frames_at_a_track_end() -> None:
     assert np.isnan(got[:2, 0]).all() and np.isnan(got[6:, 1]).all()
     assert np.isnan(got[:, 2]).all(), "a run longer than max_frames is kept"
     assert np.isnan(got[:, 3]).all(), "inside a track or within jump_deg nothing is held"
+
+
+def test_hand_turned_over_on_its_forearm_gets_its_neighbours_mask() -> None:
+    """HOT3D window 1, t=57-60 (hand_mask v22): the keypoints of frames 2-3 put the hand on
+    its own forearm, turned over (fingers down the forearm to the border), so its arm would run
+    up-left from that wrist through the real hand and a uniform bar (the house's roof) to the
+    top border. That arm is not drawn,
+    and the frames receive the hand's mask from frames 0-1 (which found it) by propagation, as
+    a carried hand's: the real hand is masked and nothing up to the top border is. v21 masked
+    the band to the top border; without the propagation the real hand is missed."""
+    import egosim.stages.hand_mask.stage as stage
+
+    h, w = 160, 240
+    rng = np.random.default_rng(7)
+    image = cv2.GaussianBlur(np.clip(rng.normal(90, 35, (h, w, 3)), 0, 255).astype(np.uint8),
+                             (5, 5), 0)  # fmt: skip
+    down_right = np.array([1.0, 1.0]) / np.sqrt(2.0)
+    wrist = np.array([100.5, 50.5])
+    true_kp = _hand_keypoints(wrist, -down_right, 25.0, 18.0)  # (21, 2) fingers up-left
+    hand, _ = draw_hand(true_kp, 0, h, w, CapsuleParams(forearm=False))  # (H, W)
+    skin = (205, 150, 125)
+    cv2.line(image, tuple(int(v) for v in wrist), tuple(int(v) for v in wrist + 300 * down_right),
+             skin, 18)  # fmt: skip
+    roof = wrist - 45 * down_right  # a uniform blue bar past the fingertips to the top border
+    cv2.line(image, tuple(int(v) for v in roof), tuple(int(v) for v in roof - 300 * down_right),
+             (60, 110, 200), 18)  # fmt: skip
+    image[hand > 0] = skin
+    image = np.clip(image + rng.normal(0, 3, image.shape), 0, 255).astype(np.uint8)
+    false_wrist = wrist + 45 * down_right  # on the forearm
+    false_kp = _hand_keypoints(false_wrist, down_right, 25.0, 18.0)  # turned over, fingers down
+    frames = np.stack([image] * 4)  # (4, H, W, 3) a still camera
+    keypoints = np.full((4, 2, 21, 2), np.nan)
+    keypoints[:2, 0] = true_kp
+    keypoints[2:, 0] = false_kp
+    valid = np.array([[True, False]] * 4)
+    # the ray up-left from the false wrist, beyond the real hand's fingertips to the top border
+    yy, xx = np.mgrid[0:h, 0:w] + 0.5
+    along = (xx - wrist[0]) * -down_right[0] + (yy - wrist[1]) * -down_right[1]  # (H, W)
+    across = np.abs((xx - wrist[0]) * down_right[1] - (yy - wrist[1]) * down_right[0])
+    near = cv2.dilate(hand, np.ones((3, 3), np.uint8), iterations=10) > 0
+    beyond = (along > 0) & (across < 8) & ~near  # (H, W) the band's path past the hand
+    assert beyond.sum() > 100
+
+    masks = stage.masks_from_keypoints(frames, keypoints, valid, HandMaskConfig()) > 0
+    for t in (2, 3):
+        assert masks[t][hand > 0].mean() > 0.8, f"t={t} real hand {masks[t][hand > 0].mean():.2f}"
+        assert masks[t][beyond].mean() < 0.05, f"t={t} band {masks[t][beyond].mean():.2f}"
+    old = dataclasses.replace(stage.ArmParams(), no_arm_from_top=False)
+    stage_params = stage.ArmParams
+    try:
+        stage.ArmParams = lambda **kw: dataclasses.replace(old, **kw)  # type: ignore[misc]
+        before = stage.masks_from_keypoints(frames, keypoints, valid, HandMaskConfig()) > 0
+    finally:
+        stage.ArmParams = stage_params  # type: ignore[misc]
+    assert before[2][beyond].mean() > 0.5, f"v21's band {before[2][beyond].mean():.2f}"

@@ -412,6 +412,24 @@ def leaves_through_top(point: np.ndarray, d: np.ndarray, width: int, height: int
     return bool(end[1] <= 1e-6)
 
 
+def arms_through_top(
+    keypoints: np.ndarray, valid: np.ndarray, directions: np.ndarray, height: int, width: int
+) -> np.ndarray:
+    """``(T, K)`` bool: hands whose arm, drawn along ``directions (T, K, 2)`` (NaN: none) from
+    the wrist of ``keypoints (T, K, 21, 2)`` (``valid (T, K)``), would leave the image through
+    its top border (:func:`leaves_through_top`): such an arm is not drawn, and the hand's
+    keypoints are doubtful (a hand turned over on its own forearm), so the stage lets its
+    neighbours' masks of that hand be carried into the frame, as into a carried hand's.
+    """
+    out = np.zeros(valid.shape, bool)
+    for t, k in zip(*np.nonzero(valid), strict=True):
+        wrist = np.asarray(keypoints[t, k, 0], np.float64)  # (2,)
+        d = np.asarray(directions[t, k], np.float64)  # (2,)
+        if np.all(np.isfinite(wrist)) and np.all(np.isfinite(d)):
+            out[t, k] = leaves_through_top(wrist, d, width, height)
+    return out
+
+
 def _turn_deg(a: np.ndarray, b: np.ndarray) -> float:
     """Degrees between unit vectors ``a (2,)`` and ``b (2,)``."""
     return float(np.degrees(np.arccos(np.clip(float(a @ b), -1.0, 1.0))))

@@ -66,6 +66,7 @@ from egosim.schemas.hands import HANDS
 from egosim.stages.common.cameras import CAMERA_COLUMNS, CAMERA_ROLES, resolve_cameras
 from egosim.stages.hand_mask.arm_region import (
     ArmParams,
+    arms_through_top,
     crosses_other_wrist,
     hand_labels,
     masks_from_labels,
@@ -217,8 +218,14 @@ def masks_from_keypoints(
         per_hand = np.stack([f[1] for f in found])  # (T, K, H, W)
         certain = np.stack([f[2] for f in found])  # (T, K, H, W)
         # A frame whose hand was carried there still receives that hand's mask from its
-        # neighbours (its arm, from frames where the search found it), joined to its own.
-        masks = propagate_hands(frames, masks, per_hand, certain, params, carried)
+        # neighbours (its arm, from frames where the search found it), joined to its own; so
+        # does one whose arm would run up to the top border (not drawn: the hand's keypoints
+        # are doubtful, HOT3D window 1 t=57-60 a hand turned over on its own forearm).
+        opened = carried
+        if arm.no_arm_from_top:
+            final = np.where(np.isfinite(steady), steady, drawn)  # (T, K, 2) directions drawn
+            opened = carried | arms_through_top(keypoints, valid, final, *frames.shape[1:3])
+        masks = propagate_hands(frames, masks, per_hand, certain, params, opened)
     if config.grow_margin_m > 0 and config.colour_refine:
         grow = GrowParams(config.grow_margin_m, radius_scale=config.radius_scale)
         masks = grow_masks(frames, masks, keypoints, valid, grow)
@@ -330,7 +337,8 @@ class HandMaskStage(ClipStage):
     # 21: the off-side mark also wants the arm tilted at least off_side_min_tilt_deg (45) from
     # straight down towards the other hand (two hands close together, steep arms: review10c)
     # 22: an arm whose ray leaves through the top border is not drawn (no_arm_from_top: a hand
-    # the hands stage put on its own forearm, fingers down); an off-side run that starts or
+    # the hands stage put on its own forearm, fingers down) and that hand's frame receives its
+    # neighbours' mask of it by propagation, as a carried hand's; an off-side run that starts or
     # ends a hand's track, swung more than steady_jump_deg from the track's frame next to it,
     # holds that frame's direction (HOT3D window 1, t=1 and t=55-60)
     backends = ("keypoints", "sam")
