@@ -604,8 +604,13 @@ def render_point_cloud(
     out_rgb = torch.zeros((t, height * width, 3), dtype=torch.uint8, device=dev)
     out_vis = torch.zeros((t, height * width), dtype=torch.uint8, device=dev)
     out_depth = torch.zeros((t, height * width), dtype=torch.float32, device=dev)
-    # "surface": splats without the quads' hole fill, then the surface over them
+    # "surface": splats without the quads' hole fill, then the surface over them; from the
+    # source frame's own pose the splats are that frame exactly (every pixel centre has its
+    # point), so the surface pass is skipped there (a static camera: every frame)
     splat_cloud = dataclasses.replace(cloud, quads=None) if mesh_mode == "surface" else cloud
+    at_source = np.zeros(t, bool)  # (T,)
+    if quads is not None:
+        at_source = np.abs(world_from_cam - mesh_from_cam).reshape(t, -1).max(1) <= 1e-9
     for i in range(t):
         keys = splat_frame(
             splat_cloud,
@@ -618,7 +623,7 @@ def render_point_cloud(
             mesh_max_px,
         )
         rgb_i, hit_i, depth_i = shade(cloud, keys)  # (H*W, 3), (H*W,), (H*W,)
-        if mesh_mode == "surface" and cloud.quads is not None:
+        if mesh_mode == "surface" and cloud.quads is not None and not at_source[i]:
             rgb_m, hit_m, depth_m = surface_frame(
                 cloud, cam_from_world[i], intrinsics, height, width, near, mesh_max_px
             )
