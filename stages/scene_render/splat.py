@@ -22,13 +22,13 @@ frame) and links every 2x2 block of neighbouring points into a quad unless its i
 differ by more than ``mesh_max_step`` (relative: a tear, an occlusion edge). Each frame, the
 quads' two triangles are rasterised. ``mesh_mode`` "surface" (:func:`surface_frame`): the
 nearest triangle covers the pixel with the perspective-correct blend of its three corners'
-colours, and the splats count only where no quad lands or a point is clearly nearer (a point
-no quad holds); "fill" (:func:`_fill_from_mesh`): only pixels that every splat left empty take
-the nearest triangle's depth and its nearest corner's colour. Points split apart by the
-camera's motion (a surface seen closer or less obliquely than from the source frame, or two
-neighbouring pixels of the source frame whose estimated depths differ by a few per cent) no
-longer leave holes, and a magnified surface is drawn smooth instead of in blocks of one
-point's colour; torn quads still leave holes (disocclusions).
+colours, and the splats count only where no quad lands; "fill" (:func:`_fill_from_mesh`):
+only pixels that every splat left empty take the nearest triangle's depth and its nearest
+corner's colour. Points split apart by the camera's motion (a surface seen closer or less
+obliquely than from the source frame, or two neighbouring pixels of the source frame whose
+estimated depths differ by a few per cent) no longer leave holes, and a magnified surface is
+drawn smooth instead of in blocks of one point's colour; torn quads still leave holes
+(disocclusions).
 
 Cracks that remain (the camera much closer than frame 0, beyond the widest splat, or a surface
 seen more obliquely than from frame 0) are closed in image space by :func:`close_cracks`: every
@@ -627,8 +627,9 @@ def render_point_cloud(
             rgb_m, hit_m, depth_m = surface_frame(
                 cloud, cam_from_world[i], intrinsics, height, width, near, mesh_max_px
             )
-            # The surface wins unless a point (one no quad holds) is clearly nearer.
-            use = hit_m & (~hit_i | (depth_m <= depth_i * (1.0 + SEE_THROUGH_MARGIN)))
+            # Where a quad lands it is the surface; the splats only where none does (their
+            # widened squares would otherwise fatten edges and show noisy points over it).
+            use = hit_m
             rgb_i = torch.where(use[:, None], rgb_m, rgb_i)
             hit_i = hit_i | hit_m
             depth_i = torch.where(use, depth_m, depth_i)

@@ -45,7 +45,7 @@ class SceneRenderConfig(StageConfig):
     # their inverse depths differ by more than this (relative); it fills what splats miss; 0 = off
     mesh_max_px: int = 32  # surface quads wider or taller than this in a frame are not drawn
     mesh_mode: str = "surface"  # "surface": quads drawn with their corners' colours blended,
-    # splats only where no quad is or a point is nearer; "fill": quads fill what splats miss
+    # splats only where no quad lands; "fill": quads fill only what the splats miss
     crf: int = 18  # H.264 quality of the scene video (lower = better, bigger)
 
     def __post_init__(self) -> None:
