@@ -425,6 +425,20 @@ def side_landmarks(
     return bridge_and_smooth(raw, assign_sides(raw, width, params), params)
 
 
+def checked_side_landmarks(
+    raw: RawLandmarks, width: int, params: MediaPipeParams, frames: np.ndarray | None
+) -> tuple[RawLandmarks, SideLandmarks]:
+    """The 2D chain of :func:`hands_from_raw`, shared with the regressor backend's boxes: overlaps
+    dropped (:func:`drop_overlapping`), then, with the ``frames (T, H, W, 3)`` and unless
+    ``params.scene_check`` is None, the tracks that are part of the scene
+    (:func:`drop_scene_tracks`), then sides, bridging and smoothing (:func:`side_landmarks`) of
+    frames ``width`` pixels wide. Returns the detections kept and their landmarks per side."""
+    raw = drop_overlapping(raw, params.duplicate_distance)
+    if frames is not None and params.scene_check is not None:
+        raw = drop_scene_tracks(raw, frames, params)
+    return raw, side_landmarks(raw, width, params)
+
+
 def hands_from_raw(
     raw: RawLandmarks,
     width: int,
@@ -444,10 +458,7 @@ def hands_from_raw(
     has no default, so a caller without them (landmarks made up in a test) says None on purpose
     and a bench cannot skip the check unnoticed."""
     params = params or MediaPipeParams()
-    raw = drop_overlapping(raw, params.duplicate_distance)
-    if frames is not None and params.scene_check is not None:
-        raw = drop_scene_tracks(raw, frames, params)
-    lm = side_landmarks(raw, width, params)
+    raw, lm = checked_side_landmarks(raw, width, params, frames)
     t = raw.present.shape[0]
     joints = np.full((t, 2, NUM_HAND_JOINTS, 3), np.nan)  # camera metres, world below
     poses = _palm_poses(lm, intrinsics, params) if params.lift == "palm_pnp" else {}

@@ -81,10 +81,8 @@ from egosim.stages.hands.mano import (
 )
 from egosim.stages.hands.mediapipe_backend import (
     MediaPipeParams,
+    checked_side_landmarks,
     detect_landmarks,
-    drop_overlapping,
-    drop_scene_tracks,
-    side_landmarks,
 )
 
 CONFIG_FILE = "config.json"  # architecture and preprocessing of a weights folder
@@ -572,18 +570,16 @@ def hand_boxes(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """2D landmarks per side ``(T, 2, 21, 2)`` pixels, ``present (T, 2)`` and detector
     ``confidence (T, 2)`` from the default backend or the clip's labels. The default backend's
-    are its 2D as :func:`~egosim.stages.hands.mediapipe_backend.hands_from_raw` has it: overlaps
-    dropped, then the tracks that are part of the scene
-    (:func:`~egosim.stages.hands.mediapipe_backend.drop_scene_tracks`, unless
+    are its 2D as :func:`~egosim.stages.hands.mediapipe_backend.hands_from_raw` has it, from the
+    same function (:func:`~egosim.stages.hands.mediapipe_backend.checked_side_landmarks`):
+    overlaps dropped, then the tracks that are part of the scene (unless
     ``mediapipe.scene_check`` is None), then sides, bridging and smoothing."""
     t = clip.num_frames
     if boxes == "mediapipe":  # the 2D landmarks only: the backend's 3D lift is not needed here
-        raw = drop_overlapping(
-            detect_landmarks(clip.frames, mediapipe), mediapipe.duplicate_distance
-        )
-        # the default backend's scene check on the same tracks: its false hands are not boxed
-        raw = drop_scene_tracks(raw, clip.frames, mediapipe)
-        lm = side_landmarks(raw, clip.width, mediapipe)
+        # the default backend's own 2D chain (its scene check included): its false hands are
+        # not boxed, and a filter added there is added here too
+        raw = detect_landmarks(clip.frames, mediapipe)
+        lm = checked_side_landmarks(raw, clip.width, mediapipe, clip.frames)[1]
         return lm.uv, lm.present.copy(), lm.confidence
     if clip.hand_joints is None:
         raise NoHandLabelsError("regressor_boxes 'given' needs the clip's hand_joints labels")
