@@ -215,3 +215,23 @@ def test_hole_causes_names_steps_and_the_unseen(split_plane) -> None:
     assert shares["h_view"] == pytest.approx(unseen.sum() / holes.size)
     assert shares["h_step"] == pytest.approx((holes[1] & ~beyond).sum() / holes.size)
     assert shares["h_step"] > 0 and shares["h_mag"] == 0
+
+
+def test_candidate_budget_drops_the_widest_quads(monkeypatch) -> None:
+    """Over MESH_MAX_CANDIDATES pixel-quad pairs, the widest quads go first: a plane seen 3.3x
+    magnified keeps its render where the budget reaches and stays correct there."""
+    import egosim.stages.scene_render.splat as splat
+
+    depth = np.full((H, W), 2.0)
+    depth[:, W // 2 :] = 1.7  # the right half nearer: its quads are magnified 5.7x, the left 3.3x
+    colours = np.full((H, W, 3), 120, np.uint8)
+    points, colours_n, size = _cloud(depth, colours)
+    args = (points, colours_n, _pose(0.0, 0.0, 1.4)[None], K, H, W)
+    kw = dict(point_size=size, mesh_from_cam=np.eye(4), mesh_max_step=0.3)
+    full = render_point_cloud(*args, **kw)
+    monkeypatch.setattr(splat, "MESH_MAX_CANDIDATES", 2000)
+    capped = render_point_cloud(*args, **kw)
+    assert full.visible.all()
+    drawn = capped.visible[0] > 0
+    assert 0 < drawn.mean() < 1  # part of the surface fell to the budget (the splats cover some)
+    np.testing.assert_array_equal(capped.rgb[0][drawn], full.rgb[0][drawn])

@@ -149,6 +149,7 @@ SEE_THROUGH_MARGIN = 0.05  # relative depth gap beyond which a wide splat hides 
 GRID_TOLERANCE_PX = 0.02  # a point lies on its source pixel's centre when within this (float32)
 MESH_MAX_QUAD_PX = 32  # default: a quad wider or taller than this in a frame is not drawn
 MESH_MODES = ("fill", "surface")  # quads fill only what splats miss / are the surface itself
+MESH_MAX_CANDIDATES = 1 << 24  # pixel-quad pairs tested per frame at most (the widest dropped)
 
 
 def splat_frame(
@@ -301,8 +302,9 @@ def _quad_candidates(
 ) -> tuple[torch.Tensor, ...] | None:
     """Pixel centres each quad may cover: ``(q (M, 4), uq, vq, zq (M, 4), owner, px, py (C,))``.
 
-    Quads with a corner at or behind ``near`` or over ``max_px`` pixels across are skipped; with
-    ``buffer`` (z-buffer keys) only pixels still empty there are returned. None: no candidate.
+    Quads with a corner at or behind ``near`` or over ``max_px`` pixels across are skipped, and
+    the widest ones beyond ``MESH_MAX_CANDIDATES`` pairs in all; with ``buffer`` (z-buffer keys)
+    only pixels still empty there are returned. None: no candidate.
     """
     zq = z[quads]  # (Q, 4)
     front = torch.nonzero((zq > near).all(1)).squeeze(1)
@@ -336,6 +338,11 @@ def _quad_candidates(
         x0, y0, x1, y1 = x0[sel], y0[sel], x1[sel], y1[sel]  # (M'',) each
     nx, ny = x1 - x0 + 1, y1 - y0 + 1  # (M'',) box size in pixels
     counts = nx * ny  # (M'',) candidate pixel centres per quad
+    if int(counts.sum()) > MESH_MAX_CANDIDATES:  # memory bound: the smallest quads first
+        order = torch.argsort(counts)
+        fits = order[counts[order].cumsum(0) <= MESH_MAX_CANDIDATES]
+        q, uq, vq, zq = q[fits], uq[fits], vq[fits], zq[fits]
+        x0, y0, nx, ny, counts = x0[fits], y0[fits], nx[fits], ny[fits], counts[fits]
     owner = torch.repeat_interleave(torch.arange(len(q), device=q.device), counts)  # (C,)
     local = torch.arange(len(owner), device=q.device) - (counts.cumsum(0) - counts)[owner]
     px = x0[owner] + local % nx[owner]  # (C,) pixel column
