@@ -87,6 +87,54 @@ def test_a_clear_hand_reads_steadily(model) -> None:
     assert landmark_spread(model, rgb, truth) < 0.5 * MediaPipeParams().max_spread
 
 
+def _hand_on_canvas(size_px: float, height: int, hand: bool = True) -> tuple[np.ndarray, object]:
+    """One frame ``(1, height, 4/3 height, 3)``, grey, with the FreiHAND fixture hand scaled to
+    ``size_px`` from wrist to middle knuckle pasted in (``hand=False``: left out, a blank
+    canvas), and its true landmarks as the left hand's smoothed landmarks (the right absent)."""
+    from egosim.stages.hands.mediapipe_backend import SideLandmarks
+
+    rgb, truth = _freihand_hand()
+    k = size_px / float(np.linalg.norm(truth[9] - truth[0]))
+    small = cv2.resize(rgb, None, fx=k, fy=k, interpolation=cv2.INTER_AREA)
+    canvas = np.full((height, height * 4 // 3, 3), 128, dtype=np.uint8)
+    y0, x0 = height // 2 - small.shape[0] // 2, height * 2 // 3 - small.shape[1] // 2
+    if hand:
+        canvas[y0 : y0 + small.shape[0], x0 : x0 + small.shape[1]] = small
+    uv = np.full((1, 2, 21, 2), np.nan)  # (T, 2, 21, 2) frame pixels
+    uv[0, 0] = truth * (np.array(small.shape[1::-1]) / rgb.shape[1::-1]) + [x0, y0]
+    present = np.array([[True, False]])  # (T, 2)
+    lm = SideLandmarks(uv, np.zeros((1, 2, 21, 3)), present * 0.9, present, present.copy())
+    return canvas[None], lm
+
+
+def _count_model_runs(monkeypatch) -> list[int]:
+    """A list that grows by one at every run of the landmark model."""
+    from egosim.stages.common.roi_landmarks import LandmarkModel
+
+    runs: list[int] = []
+    run = LandmarkModel.run
+
+    def counted(self, *args, **kwargs):
+        runs.append(1)
+        return run(self, *args, **kwargs)
+
+    monkeypatch.setattr(LandmarkModel, "run", counted)
+    return runs
+
+
+def test_only_valid_hand_frames_are_read_again(model, monkeypatch) -> None:
+    """A small hand present but not valid (its lift gave no joints) is not read again: its 3D is
+    withheld anyway, and the six model runs per hand-frame are the rule's cost (review11a)."""
+    from egosim.stages.hands.mediapipe_backend import spread_outliers
+
+    frames, lm = _hand_on_canvas(30.0, 480)
+    runs = _count_model_runs(monkeypatch)
+    out = spread_outliers(frames, lm, MediaPipeParams(), np.zeros_like(lm.present))
+    assert not out.any() and len(runs) == 0
+    out = spread_outliers(frames, lm, MediaPipeParams(), lm.present)
+    assert not out.any() and len(runs) == 6  # read, and steady (spread 0.022 measured)
+
+
 @pytest.mark.slow
 def test_unsteady_small_hands_lose_their_3d_against_truth(model) -> None:
     """The tuned synthetic world's seed 1 (tabletop): its right hand behind a cylinder (frames

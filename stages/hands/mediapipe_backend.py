@@ -489,7 +489,7 @@ def hands_from_raw(
     valid = lm.present & np.all(np.isfinite(joints), axis=(2, 3))
     shaky = np.zeros_like(valid)  # (T, 2) hands whose landmarks the model reads unsteadily
     if frames is not None:
-        shaky = spread_outliers(frames, lm, params) & valid
+        shaky = spread_outliers(frames, lm, params, valid)
     unsure = turn_outliers(joints, valid & ~shaky, fps, params.turn_window, params.max_turn_rate)
     unsure |= shaky
     joints = smooth_finger_depths(joints, valid & ~unsure, params.finger_depth_sigma, lm.starts)
@@ -502,19 +502,22 @@ def hands_from_raw(
     return MediaPipeResult(joints, valid, conf, lm, raw, lifted)
 
 
-def spread_outliers(frames: np.ndarray, lm: SideLandmarks, params: MediaPipeParams) -> np.ndarray:
-    """``(T, 2)`` bool: present hand-frames smaller than ``spread_max_size`` pixels (wrist to
-    middle knuckle) whose landmarks the model does not read steadily: their
-    :func:`~egosim.stages.common.roi_landmarks.landmark_spread` on ``frames (T, H, W, 3)`` is
-    over ``max_spread``. Their 2D is kept, their 3D withheld (or interpolated between trusted
-    neighbours by :func:`repair_unsure`). On the synthetic world these are small hands and
-    hands half behind an object, whose palm the lift turns 60-180 degrees off (docs/design.md,
-    "Hands v15: small hands")."""
+def spread_outliers(
+    frames: np.ndarray, lm: SideLandmarks, params: MediaPipeParams, valid: np.ndarray
+) -> np.ndarray:
+    """``(T, 2)`` bool: ``valid (T, 2)`` hand-frames (:func:`hands_from_raw`'s: present, with
+    finite joints; the model runs six times on each one tested, so on no other) smaller than
+    ``spread_max_size`` pixels (wrist to middle knuckle) whose landmarks the model does not read
+    steadily: their :func:`~egosim.stages.common.roi_landmarks.landmark_spread` on ``frames (T,
+    H, W, 3)`` is over ``max_spread``. Their 2D is kept, their 3D withheld (or interpolated
+    between trusted neighbours by :func:`repair_unsure`). On the synthetic world these are small
+    hands and hands half behind an object, whose palm the lift turns 60-180 degrees off
+    (docs/design.md, "Hands v15: small hands")."""
     out = np.zeros(lm.present.shape, dtype=bool)  # (T, 2)
     if not np.isfinite(params.max_spread):
         return out
     size = np.linalg.norm(lm.uv[:, :, MIDDLE_MCP] - lm.uv[:, :, 0], axis=-1)  # (T, 2) NaN: absent
-    small = lm.present & (np.nan_to_num(size, nan=np.inf) < params.spread_max_size)
+    small = valid & (np.nan_to_num(size, nan=np.inf) < params.spread_max_size)
     if not small.any():
         return out
     model = LandmarkModel(params.model_complexity)
