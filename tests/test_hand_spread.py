@@ -36,8 +36,23 @@ def test_a_turned_roi_keeps_its_centre_and_turns_its_crop() -> None:
 def test_spread_settings_are_checked() -> None:
     with pytest.raises(ValueError, match="max_spread must be > 0, got 0"):
         MediaPipeParams(max_spread=0.0)
-    with pytest.raises(ValueError, match="spread_max_size must be >= 0 px, got -1"):
+    with pytest.raises(ValueError, match=r"spread_max_size must be >= 0 \(of the frame height\)"):
         MediaPipeParams(spread_max_size=-1.0)
+
+
+def test_the_size_gate_is_a_share_of_the_frame_height(model, monkeypatch) -> None:
+    """The size under which a hand is read again is 40 px at 480 rows and scales with the frame
+    (review11a: a 40 px gate in pixels tested 79% of DWM 00013's hand-frames when kept at 240
+    rows): a 30 px hand is read again at 480 rows, not at 240 (where the gate is 20 px)."""
+    from egosim.stages.hands.mediapipe_backend import spread_outliers
+
+    assert MediaPipeParams().spread_max_size * 480 == 40.0
+    runs = _count_model_runs(monkeypatch)
+    for height, expected in ((480, 6), (240, 0), (960, 6)):
+        runs.clear()
+        frames, lm = _hand_on_canvas(30.0, height)
+        spread_outliers(frames, lm, MediaPipeParams(), lm.present)
+        assert len(runs) == expected, (height, len(runs))
 
 
 @pytest.fixture

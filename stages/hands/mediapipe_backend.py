@@ -64,10 +64,11 @@ Steps, for one clip:
    within ``max_gap`` (turn slerped, wrist lerped); where there are none its 3D is withheld: the
    hand stays valid with its joints on its landmarks' rays (its 2D), confidence times 0.1, and
    ``MediaPipeResult.lifted`` False, which the stage writes as ``hand_lifted`` (hands schema v3).
-   A small hand (under ``spread_max_size`` px from wrist to middle knuckle) whose landmarks the
-   model reads differently when its ROI is turned, scaled or mirrored (:func:`spread_outliers`,
-   over ``max_spread`` of its size; hands v15) is treated the same way: on the synthetic world
-   these are small and half-hidden hands whose lifted palm is 60-180 degrees off.
+   A small hand (wrist to middle knuckle under ``spread_max_size`` of the frame height: 40 px at
+   480 rows) whose landmarks the model reads differently when its ROI is turned, scaled or
+   mirrored (:func:`spread_outliers`, over ``max_spread`` of its size; hands v15) is treated the
+   same way: on the synthetic world these are small and half-hidden hands whose lifted palm is
+   60-180 degrees off.
    The fingers' wrist-relative depths are smoothed over time within runs of trusted frames
    (``finger_depth_sigma``, :func:`~egosim.stages.hands.filters.smooth_finger_depths`, hands
    v14; each joint kept on its ray). Then to world with ``world_from_cam``.
@@ -140,12 +141,14 @@ class MediaPipeParams(HandLandmarkParams):
     max_turn_rate: float = 320.0  # deg/s: a palm turning faster than this from its track's
     # neighbours (filters.turn_outliers) is interpolated between them or withheld; inf = no test
     turn_window: int = 3  # frames either side the turn test compares with
-    # a hand smaller than spread_max_size px (wrist to middle knuckle) whose landmarks move by
-    # more than max_spread of that size when the landmark model is run again on its ROI turned,
-    # scaled and mirrored (roi_landmarks.landmark_spread) has its 3D withheld (hands v15); the
-    # test needs the frames (hands_from_raw's frames=None skips it); inf = no test
+    # a small hand (spread_max_size) whose landmarks move by more than max_spread of its size
+    # when the landmark model is run again on its ROI turned, scaled and mirrored
+    # (roi_landmarks.landmark_spread) has its 3D withheld (hands v15); the test needs the frames
+    # (hands_from_raw's frames=None skips it); inf = no test
     max_spread: float = 0.06
-    spread_max_size: float = 40.0
+    # wrist to middle knuckle as a share of the frame height (40 px at 480 rows, so an ingest at
+    # another size tests the same hands); only smaller hands are tested (0 = none)
+    spread_max_size: float = 40.0 / 480.0
     scene_check: SceneCheckParams | None = SceneCheckParams()  # noqa: RUF009 (frozen) a track
     # off the clip's skin and still against the scene is dropped (scene_check); None = keep all
 
@@ -159,7 +162,9 @@ class MediaPipeParams(HandLandmarkParams):
         if not self.max_spread > 0:
             problems.append(f"max_spread must be > 0, got {self.max_spread!r}")
         if not self.spread_max_size >= 0:
-            problems.append(f"spread_max_size must be >= 0 px, got {self.spread_max_size!r}")
+            problems.append(
+                f"spread_max_size must be >= 0 (of the frame height), got {self.spread_max_size!r}"
+            )
         if problems:
             raise ValueError("invalid MediaPipeParams: " + "; ".join(problems))
 
@@ -507,17 +512,18 @@ def spread_outliers(
 ) -> np.ndarray:
     """``(T, 2)`` bool: ``valid (T, 2)`` hand-frames (:func:`hands_from_raw`'s: present, with
     finite joints; the model runs six times on each one tested, so on no other) smaller than
-    ``spread_max_size`` pixels (wrist to middle knuckle) whose landmarks the model does not read
-    steadily: their :func:`~egosim.stages.common.roi_landmarks.landmark_spread` on ``frames (T,
-    H, W, 3)`` is over ``max_spread``. Their 2D is kept, their 3D withheld (or interpolated
-    between trusted neighbours by :func:`repair_unsure`). On the synthetic world these are small
-    hands and hands half behind an object, whose palm the lift turns 60-180 degrees off
-    (docs/design.md, "Hands v15: small hands")."""
+    ``spread_max_size`` of the frame height (wrist to middle knuckle) whose landmarks the model
+    does not read steadily: their :func:`~egosim.stages.common.roi_landmarks.landmark_spread`
+    on ``frames (T, H, W, 3)`` is over ``max_spread``. Their 2D is kept, their 3D withheld (or
+    interpolated between trusted neighbours by :func:`repair_unsure`). On the synthetic world
+    these are small hands and hands half behind an object, whose palm the lift turns 60-180
+    degrees off (docs/design.md, "Hands v15: small hands")."""
     out = np.zeros(lm.present.shape, dtype=bool)  # (T, 2)
     if not np.isfinite(params.max_spread):
         return out
     size = np.linalg.norm(lm.uv[:, :, MIDDLE_MCP] - lm.uv[:, :, 0], axis=-1)  # (T, 2) NaN: absent
-    small = valid & (np.nan_to_num(size, nan=np.inf) < params.spread_max_size)
+    max_size = params.spread_max_size * frames.shape[1]  # pixels: 40 at 480 rows
+    small = valid & (np.nan_to_num(size, nan=np.inf) < max_size)
     if not small.any():
         return out
     model = LandmarkModel(params.model_complexity)

@@ -224,10 +224,11 @@ class HandsStage(ClipStage):
     # Also (mediapipe) the scene check never drops a confident track (median presence >=
     # seed_presence) or one under min_track_frames frames (review10a, 3033934), and takes the
     # background's motion from forward-backward checked corners (klt, df46f3e).
-    # 15: (mediapipe) a hand under spread_max_size (40) px from wrist to middle knuckle whose
-    # landmarks move by more than max_spread (0.06) of that size when the landmark model reads
-    # its ROI turned +-20 degrees, scaled 0.8 / 1.25 and mirrored (roi_landmarks.landmark_spread)
-    # has its 3D withheld or interpolated like a palm turned off its track; the 2D is kept.
+    # 15: (mediapipe) a hand under spread_max_size from wrist to middle knuckle (a share of the
+    # frame height: 40 px at 480 rows) whose landmarks move by more than max_spread (0.06) of
+    # that size when the landmark model reads its ROI turned +-20 degrees, scaled 0.8 / 1.25 and
+    # mirrored (roi_landmarks.landmark_spread) has its 3D withheld or interpolated like a palm
+    # turned off its track; the 2D is kept.
     # Also the regressor backend (boxes="mediapipe") runs the same scene check (hands15, ac4ffba).
     version = 15
     description = "3D hand joints per frame from the clip's labels, de-duplicated and de-spiked"
