@@ -150,6 +150,31 @@ def test_only_valid_hand_frames_are_read_again(model, monkeypatch) -> None:
     assert not out.any() and len(runs) == 6  # read, and steady (spread 0.022 measured)
 
 
+def test_the_gate_reads_small_hands_only_and_flags_an_unsteady_one(model, monkeypatch) -> None:
+    """At 480 rows a 60 px hand is not read again and a 30 px one is (six model runs); a clear
+    30 px hand reads steadily (spread 0.022 measured), its landmarks on a blank canvas do not
+    (nothing there to read: 0.079) and are flagged; max_spread inf or spread_max_size 0 read
+    nothing (review11a finding 5: no fast test ran the gate)."""
+    from egosim.stages.hands.mediapipe_backend import spread_outliers
+
+    params = MediaPipeParams()
+    runs = _count_model_runs(monkeypatch)
+    frames, lm = _hand_on_canvas(60.0, 480)
+    assert not spread_outliers(frames, lm, params, lm.present).any()
+    assert len(runs) == 0
+    frames, lm = _hand_on_canvas(30.0, 480)
+    assert not spread_outliers(frames, lm, params, lm.present).any()
+    assert len(runs) == 6
+    blank, lm = _hand_on_canvas(30.0, 480, hand=False)
+    runs.clear()
+    flagged = spread_outliers(blank, lm, params, lm.present)  # (T, 2)
+    assert flagged.tolist() == [[True, False]] and len(runs) == 6
+    for off in (replace(params, max_spread=np.inf), replace(params, spread_max_size=0.0)):
+        runs.clear()
+        assert not spread_outliers(blank, lm, off, lm.present).any()
+        assert len(runs) == 0
+
+
 @pytest.mark.slow
 def test_unsteady_small_hands_lose_their_3d_against_truth(model) -> None:
     """The tuned synthetic world's seed 1 (tabletop): its right hand behind a cylinder (frames
