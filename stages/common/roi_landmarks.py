@@ -29,6 +29,7 @@ import numpy as np
 from egosim.pipeline.records import NUM_HAND_JOINTS
 
 INPUT_SIZE = 224  # the landmark model's square input, pixels
+MIDDLE_MCP = 9  # joint index of the middle finger's knuckle (hand size: wrist to it)
 # Landmarks MediaPipe builds its tracking ROI from: wrist, thumb CMC/MCP/IP, index, middle, ring and
 # pinky MCP and PIP (hand_landmark_landmarks_to_roi.pbtxt).
 ROI_JOINTS = (0, 1, 2, 3, 5, 6, 9, 10, 13, 14, 17, 18)
@@ -225,7 +226,7 @@ def landmark_spread(
 ) -> float:
     """How much the landmark model's answer on the ROI of landmarks ``uv (21, 2)`` in ``frame
     (H, W, 3)`` moves when the ROI is turned, scaled or mirrored (``transforms``, see
-    :data:`SPREAD_TRANSFORMS`): the median over joints of each answer's distance from the
+    :data:`SPREAD_TRANSFORMS`): the median, over all answers and joints, of the distance from the
     per-joint median answer, over the hand's size (wrist to middle knuckle in ``uv``).
 
     A truth-free cue of a hand-frame whose 2D cannot be trusted: a small or half-hidden hand the
@@ -241,7 +242,7 @@ def landmark_spread(
         ]
     )  # (N, 21, 2) frame pixels
     median = np.median(answers, axis=0)  # (21, 2)
-    size = max(float(np.linalg.norm(uv[9] - uv[0])), 1.0)
+    size = max(float(np.linalg.norm(uv[MIDDLE_MCP] - uv[0])), 1.0)
     return float(np.median(np.linalg.norm(answers - median, axis=2))) / size
 
 

@@ -104,7 +104,7 @@ from egosim.stages.common.hand_lift import (  # one lift for the hands and the m
     palm_pnp_pose,
     scale_to_depth,
 )
-from egosim.stages.common.roi_landmarks import LandmarkModel, landmark_spread
+from egosim.stages.common.roi_landmarks import MIDDLE_MCP, LandmarkModel, landmark_spread
 from egosim.stages.hands.filters import (
     Detections,
     gaussian_smooth_runs,
@@ -116,7 +116,6 @@ from egosim.stages.hands.scene_check import SceneCheckParams, scene_tracks, seed
 
 BRIDGED_CONFIDENCE_FACTOR = 0.5  # confidence of interpolated frames relative to detected ones
 WITHHELD_CONFIDENCE_FACTOR = 0.1  # confidence of a hand whose 3D is withheld (2D kept)
-MIDDLE_MCP = 9  # joint index of the middle finger's knuckle (hand size: wrist to it)
 
 
 @dataclass(frozen=True)
@@ -459,9 +458,10 @@ def hands_from_raw(
     turned off their track (:func:`~egosim.stages.hands.filters.turn_outliers`,
     :func:`repair_unsure`) of ``raw`` landmarks found in frames ``width`` pixels wide (arguments
     otherwise as :func:`mediapipe_hands`). With the ``frames (T, H, W, 3)`` they were found in,
-    tracks that are part of the scene are dropped first (:func:`drop_scene_tracks`); ``frames``
+    tracks that are part of the scene are dropped first (:func:`drop_scene_tracks`) and the small
+    hands' spread test (:func:`spread_outliers`) runs; both are skipped without them. ``frames``
     has no default, so a caller without them (landmarks made up in a test) says None on purpose
-    and a bench cannot skip the check unnoticed."""
+    and a bench cannot skip the checks unnoticed."""
     params = params or MediaPipeParams()
     raw, lm = checked_side_landmarks(raw, width, params, frames)
     t = raw.present.shape[0]
