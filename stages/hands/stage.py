@@ -229,7 +229,10 @@ class HandsStage(ClipStage):
     # that size when the landmark model reads its ROI turned +-20 degrees, scaled 0.8 / 1.25 and
     # mirrored (roi_landmarks.landmark_spread) has its 3D withheld or interpolated like a palm
     # turned off its track; the 2D is kept.
-    # Also the regressor backend (boxes="mediapipe") runs the same scene check (hands15, ac4ffba).
+    # Also the regressor backend (boxes="mediapipe") runs the same scene check (hands15, ac4ffba),
+    # and the scene check drops a still, Lab-off-skin track only when it is also off-skin in
+    # chromaticity (max_chromaticity_distance 2.0: a real hand resting in shadow is kept;
+    # hands15, 1eab93d).
     version = 15
     description = "3D hand joints per frame from the clip's labels, de-duplicated and de-spiked"
     config_class = HandsConfig
