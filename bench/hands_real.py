@@ -612,9 +612,11 @@ PERTURB_KEYS = (
     "right_recall_on_hand",
     "left_false_pos_frames",
     "right_false_pos_frames",
+    "left_coverage_3d",
+    "right_coverage_3d",
     "side_agreement",
     "centroid_px",
-)  # the figures of dwm_figures the perturbation table shows
+)  # the figures of dwm_figures the perturbation table shows (coverage_3d: what withheld 3D costs)
 
 
 def perturbed(data: Path, names: list[str]) -> None:

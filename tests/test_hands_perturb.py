@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from bench.hands_real import PERTURBATIONS, perturb_clip
+from bench.hands_real import PERTURB_KEYS, PERTURBATIONS, perturb_clip
 
 
 def _clip(t: int = 6) -> tuple[np.ndarray, np.ndarray]:
@@ -69,3 +69,10 @@ def test_unknown_perturbation_is_named() -> None:
     frames, render = _clip()
     with pytest.raises(ValueError, match="unknown perturbation 'fog'"):
         perturb_clip(frames, render, (), "fog")
+
+
+def test_the_perturbation_table_shows_each_sides_3d_coverage() -> None:
+    """The share of shown hand-frames found with their 3D kept is in the table, so a perturbed
+    clip's loss to the withheld-3D rules (turn test, spread test) can be read there (review11a)."""
+    assert {"left_coverage_3d", "right_coverage_3d"} <= set(PERTURB_KEYS)
+    assert {"left_recall", "right_recall"} <= set(PERTURB_KEYS)
