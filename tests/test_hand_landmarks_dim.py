@@ -1,0 +1,96 @@
+"""The palm detector's second pass on contrast-stretched frames (``stretch_gain``).
+
+DWM clip 00013 (real Aria footage, sleeved hands on a cushion) darkened x0.5: the palm detector
+finds its left hand on no frame of the clip, so the ROI tracker has nothing to follow and the
+hand is lost for the whole clip (``python -m bench.hands_real --perturb``, hands15). On the
+contrast-stretched frames it finds it at frame 34, on the left hand's truth render.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from egosim.stages.common import hand_landmarks
+from egosim.stages.common.hand_landmarks import (
+    HandLandmarkParams,
+    detect_hand_landmarks,
+    stretched_frame,
+)
+from egosim.stages.common.roi_landmarks import stretch_contrast
+from tests.conftest import shared_data
+
+FIRST, LAST = 32, 37  # DWM 00013 frames used (the left hand's seed is at 34)
+
+
+def _clip() -> tuple[np.ndarray, np.ndarray]:
+    """``(frames, left)``: DWM 00013 frames FIRST..LAST-1 ``(5, 480, 720, 3)`` and the left
+    hand's truth render ``(5, 480, 720)`` bool (green in ``videos_hands``)."""
+    pytest.importorskip("mediapipe")
+    from egosim.pipeline.media import read_video_file
+
+    folder = shared_data("dwm_realworld", "realworld_dynamic")
+    frames, _ = read_video_file(folder / "videos" / "00013.mp4")
+    render, _ = read_video_file(folder / "videos_hands" / "00013.mp4")
+    r, g, b = (render[FIRST:LAST, ..., c].astype(np.int16) for c in range(3))
+    left = (g > 100) & (g > r + 50) & (g > b + 50)  # (5, H, W)
+    return frames[FIRST:LAST], left
+
+
+def _hands(frames: np.ndarray, gain: float):
+    """The palm detector's hands alone (no ROI tracking), with or without the stretched pass."""
+    params = HandLandmarkParams(track_misses=False, stretch_gain=gain)
+    return detect_hand_landmarks(frames, params)
+
+
+def test_darkened_real_hand_is_found_on_the_stretched_frames() -> None:
+    frames, left = _clip()
+    dark = np.round(frames * 0.5).astype(np.uint8)  # bench.hands_real's "dark"
+    assert not _hands(dark, 1.0).present.any()  # without the pass: nothing at all
+    raw = _hands(dark, 4.0)
+    found = [
+        (f, k) for f, k in zip(*np.nonzero(raw.present), strict=True) if raw.label_right[f, k] < 0.5
+    ]
+    assert found, "no left hand on the stretched frames"
+    for f, k in found:  # every left hand found lies on the left hand's render
+        u, v = raw.uv[f, k].mean(axis=0)  # (2,) landmark centroid, pixels
+        assert left[f, int(v), int(u)], (FIRST + f, u, v)
+
+
+def test_well_exposed_frames_are_not_searched_again(monkeypatch) -> None:
+    frames, _ = _clip()
+    dark = np.round(frames * 0.5).astype(np.uint8)
+    # The darkened frames stretched to their full range: well exposed (gain under 2).
+    bright = np.stack([stretched_frame(f, 4.0) for f in dark])  # (5, H, W, 3)
+    assert all(stretched_frame(f, 4.0) is None for f in bright)
+    calls = []
+    real = hand_landmarks._hands_in
+
+    def counted(hands, image, box, swap):
+        calls.append(image.shape)
+        return real(hands, image, box, swap)
+
+    monkeypatch.setattr(hand_landmarks, "_hands_in", counted)
+    plain = _hands(bright, 1.0)
+    n_plain = len(calls)
+    stretched = _hands(bright, 4.0)
+    assert len(calls) == 2 * n_plain  # no frame searched a second time
+    np.testing.assert_array_equal(stretched.present, plain.present)
+    np.testing.assert_array_equal(stretched.uv, plain.uv)
+    calls.clear()
+    _hands(dark, 4.0)  # the dark frames are searched again (a side is missing on them)
+    assert len(calls) > n_plain
+
+
+def test_stretched_frame_is_stretch_contrast_on_uint8() -> None:
+    rng = np.random.default_rng(1)
+    # A dim frame, constant over 4x4 blocks: its every-4th-pixel sample has the same levels.
+    blocks = rng.integers(20, 90, (30, 40, 3)).astype(np.uint8)
+    frame = np.repeat(np.repeat(blocks, 4, axis=0), 4, axis=1)  # (120, 160, 3)
+    expected = stretch_contrast(frame / 255.0, 4.0)  # float in [0, 1]
+    got = stretched_frame(frame, 4.0)
+    assert got is not None and got.dtype == np.uint8
+    assert np.abs(got / 255.0 - expected).max() <= 1.0 / 255.0  # rounding only
+    assert got.max() > 200 and got.min() < 50  # the 20..90 range spread out
+    wide = rng.integers(0, 256, (120, 160, 3)).astype(np.uint8)  # full range: left alone
+    assert stretched_frame(wide, 4.0) is None
