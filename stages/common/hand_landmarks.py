@@ -7,7 +7,10 @@ Two pieces that more than one stage needs:
   per-image mode), plus zoomed tiles of the lower image where head-mounted footage shows small,
   partial hands; per frame up to two hands: 21 image landmarks (pixels), 21 world landmarks
   (metres about the hand's centre, MediaPipe's average-hand size prior) and the handedness
-  score; then every found hand is followed through the frames where the palm detector missed it,
+  score; while one side has no palm detection in the whole clip, the palm detector runs again on
+  the dim frames contrast-stretched (:func:`stretched_frame`; issue 10, hands16: DWM 00013
+  darkened x0.5 lost its left hand for the whole clip for want of a single palm detection);
+  then every found hand is followed through the frames where the palm detector missed it,
   forwards and backwards (:func:`egosim.stages.common.roi_landmarks.track_through_misses`).
   The ``hands`` stage and ``depth_camera``'s metric scale call it with the same
   :class:`HandLandmarkParams`, so the scale measures the hands the hands stage places (issue 17:
