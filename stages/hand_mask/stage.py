@@ -35,6 +35,9 @@ Backends:
 - ``sam``: a SAM-family model from ``sam_model_path`` through transformers, prompted with the
   keypoints and the capsule mask's box (see ``sam``).
 
+The clip's black border (pixels black in every frame: a letterbox bar with its compression
+ringing, the outside of a fisheye circle; see ``border``) is never masked: it is not picture.
+
 A robot clip's ``embodiment_mask`` (the arm's silhouette ingest rendered from its URDF and joint
 states, clips v4) is added to every backend's masks: the arm is removed from the hand-free first
 frame and the scene like a human arm.
@@ -73,6 +76,7 @@ from egosim.stages.hand_mask.arm_region import (
     off_side_runs,
     steady_directions,
 )
+from egosim.stages.hand_mask.border import BorderParams, not_image
 from egosim.stages.hand_mask.capsules import CapsuleParams, draw_hands
 from egosim.stages.hand_mask.carry import CarryParams, carry_keypoints
 from egosim.stages.hand_mask.grow import GrowParams, grow_masks
@@ -100,6 +104,8 @@ class HandMaskConfig(StageConfig):
     # scale) into pixels of the hand's colour rather than the nearby background's (0 or
     # colour_refine False: off; see grow)
     min_joint_confidence: float = 0.0  # joints with lower confidence are ignored
+    border: bool = True  # the clip's black border (pixels black in every frame: a letterbox
+    # bar, the outside of a fisheye circle; see border) is never masked (False: v22's masks)
     sam_model_path: str = ""  # local folder of a SAM model (backend "sam")
     sam_device: str = "cpu"  # torch device of the SAM model
 
@@ -229,8 +235,13 @@ def masks_from_keypoints(
     if config.grow_margin_m > 0 and config.colour_refine:
         grow = GrowParams(config.grow_margin_m, radius_scale=config.radius_scale)
         masks = grow_masks(frames, masks, keypoints, valid, grow)
+    # The clip's black border (pixels black in every frame: a letterbox bar with its compression
+    # ringing, the outside of a fisheye circle) is not picture either.
+    outside = not_image(frames, BorderParams()) if config.border else None  # (H, W) bool
     for t, frame in enumerate(frames):
         masks[t][padding(frame)] = 0  # letterbox bars are not part of the picture
+        if outside is not None:
+            masks[t][outside] = 0
     return masks
 
 
@@ -306,7 +317,7 @@ class HandMaskStage(ClipStage):
     # cleaned joints and a replacement camera (see the module docstring)
     optional_inputs: ClassVar[Mapping[str, ShardSchema]] = {**CAMERA_ROLES, "hands": HANDS}
     output = HAND_MASK
-    version = 22  # 2: image-space arm masks (no world axis). 3: arm found by a colour walk, masks
+    version = 23  # 2: image-space arm masks (no world axis). 3: arm found by a colour walk, masks
     # carried into frames whose hands were missed. 4: arm re-aimed along its colour region.
     # 5: that region is probably arm wherever it runs. 6: each hand carried into the frames that
     # missed it, and only its certain seeds (skeleton, arm strip) carried with confidence.
@@ -341,6 +352,9 @@ class HandMaskStage(ClipStage):
     # neighbours' mask of it by propagation, as a carried hand's; an off-side run that starts or
     # ends a hand's track, swung more than steady_jump_deg from the track's frame next to it,
     # holds that frame's direction (HOT3D window 1, t=1 and t=55-60)
+    # 23: the clip's black border (border.not_image: pixels no brighter than 10 in every frame,
+    # connected to the frame's edge, round a core of at most 2) is never masked: HOT3D's ringing
+    # rows above its letterbox bar and the fisheye circle's black corners (1-4k px per frame)
     backends = ("keypoints", "sam")
     # What process reads (the executor decodes nothing else): the frames, joints and camera
     # of the clip, the robot arm's mask, the cleaned joints.
