@@ -224,7 +224,8 @@ def test_candidate_budget_drops_the_widest_quads(monkeypatch) -> None:
 
     depth = np.full((H, W), 2.0)
     depth[:, W // 2 :] = 1.7  # the right half nearer: its quads are magnified 5.7x, the left 3.3x
-    colours = np.full((H, W, 3), 120, np.uint8)
+    x = np.arange(W, dtype=np.float64)
+    colours = np.broadcast_to((40 + 2 * x)[None, :, None], (H, W, 3)).astype(np.uint8)  # ramp
     points, colours_n, size = _cloud(depth, colours)
     args = (points, colours_n, _pose(0.0, 0.0, 1.4)[None], K, H, W)
     kw = dict(point_size=size, mesh_from_cam=np.eye(4), mesh_max_step=0.3)
@@ -234,4 +235,6 @@ def test_candidate_budget_drops_the_widest_quads(monkeypatch) -> None:
     assert full.visible.all()
     drawn = capped.visible[0] > 0
     assert 0 < drawn.mean() < 1  # part of the surface fell to the budget (the splats cover some)
+    # The right half's (wider) quads fell, the left half's were kept: not the reverse.
+    assert drawn[:, : W // 2].mean() > 0.8 and drawn[:, W // 2 :].mean() < 0.1
     np.testing.assert_array_equal(capped.rgb[0][drawn], full.rgb[0][drawn])
