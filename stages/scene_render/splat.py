@@ -54,9 +54,9 @@ from egosim.pipeline.export.pack_rows import (
 )
 from egosim.pipeline.geometry import (
     invert_se3,
+    project_world_points,
     project_world_points_torch,
     se3_problems,
-    transform_points,
 )
 
 INDEX_BITS = 24  # low bits of the z-buffer key that hold the point index
@@ -268,12 +268,8 @@ def grid_quads(
     unless ``max(1/z) / min(1/z) - 1`` over its corners (source-frame depth ``z``) exceeds
     ``max_step``: the surface is torn there. Returns ``(0, 4)`` when nothing qualifies.
     """
-    fx, fy, cx, cy = np.asarray(intrinsics, dtype=np.float64)
-    cam = transform_points(invert_se3(world_from_cam), np.asarray(points_world, np.float64))
-    z = cam[:, 2]  # (N,)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        u = np.where(z > 0, fx * cam[:, 0] / z + cx, -1.0)  # (N,)
-        v = np.where(z > 0, fy * cam[:, 1] / z + cy, -1.0)  # (N,)
+    uv, z = project_world_points(points_world, world_from_cam, intrinsics)  # (N, 2), (N,)
+    u, v = np.nan_to_num(uv[:, 0], nan=-1.0), np.nan_to_num(uv[:, 1], nan=-1.0)  # (N,) each
     col, row = np.floor(u), np.floor(v)  # (N,) each
     on = (z > 0) & (col >= 0) & (col < width) & (row >= 0) & (row < height)
     on &= (np.abs(u - col - 0.5) <= GRID_TOLERANCE_PX) & (
@@ -575,11 +571,11 @@ def render_point_cloud(
     behind ``near`` metres of camera z are skipped; holes of at most ``max_crack_px`` pixels
     inside the render and gaps up to ``max_crack_width`` pixels wide are closed by
     :func:`close_cracks` (0 = off). With ``mesh_max_step > 0`` and the pose ``mesh_from_cam
-    (4, 4)`` of the frame the cloud was unprojected from, pixels no splat reached are filled
-    from the cloud's surface quads (:func:`grid_quads`; quads over ``mesh_max_px`` across in a
-    frame are not drawn) before the cracks are closed: ``mesh_mode`` "surface" draws the quads
-    over the splats with blended colours (:func:`surface_frame`), "fill" only fills the pixels
-    no splat reached with a corner's colour (:func:`_fill_from_mesh`). Raises
+    (4, 4)`` of the frame the cloud was unprojected from, the cloud's surface quads are drawn
+    (:func:`grid_quads`; quads over ``mesh_max_px`` across in a frame are not drawn) before the
+    cracks are closed: ``mesh_mode`` "surface" draws the quads over the splats with blended
+    colours (:func:`surface_frame`), "fill" only fills the pixels no splat reached with a
+    corner's colour (:func:`_fill_from_mesh`). Raises
     :class:`SplatError` for an empty cloud, non-finite points, non-rigid or NaN poses and shapes
     that disagree.
     """

@@ -41,8 +41,8 @@ class SceneRenderConfig(StageConfig):
     near: float = 0.01  # points closer than this camera z (metres) are skipped
     max_crack_px: int = 64  # holes inside the render up to this many pixels are closed; 0 = off
     max_crack_width: int = 4  # gaps between rendered pixels up to this wide are closed; 0 = off
-    mesh_max_step: float = 0.3  # scene_cloud rows: neighbouring points are one surface unless
-    # their inverse depths differ by more than this (relative); it fills what splats miss; 0 = off
+    mesh_max_step: float = 0.3  # scene_cloud rows: 2x2 neighbours form a surface quad unless
+    # their 1/z differ by more than this (relative); 0 = off (splats only)
     mesh_max_px: int = 32  # surface quads wider or taller than this in a frame are not drawn
     mesh_mode: str = "surface"  # "surface": quads drawn with their corners' colours blended,
     # splats only where no quad lands; "fill": quads fill only what the splats miss
