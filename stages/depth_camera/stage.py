@@ -993,7 +993,10 @@ class DepthCameraStage(ClipStage):
     # their median before its contact quantile (a misfit MediaPipe track made tabletop 1 +46%)
     # 13: the palm lift's fingers are bent to fit their 2D (hand_lift.fit_finger_bends, hands
     # v13); the joints the scale reads move, palm and wrist do not (scale within 1.1 points)
-    version = 13
+    # 14: the scale's hand detector also runs the palm detector on contrast-stretched dim frames
+    # while a side has no palm detection in the clip (hand_landmarks.stretch_gain, hands16): a
+    # dim clip may give the scale more detections; well-exposed clips are unchanged
+    version = 14
     config_class = DepthCameraConfig
     inputs: ClassVar[Mapping[str, ShardSchema]] = {"clips": CLIPS}
     output = DEPTH_CAMERA

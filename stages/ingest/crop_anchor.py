@@ -65,8 +65,10 @@ SIFT_CONTRAST = 0.01  # SIFT contrast threshold of the static-match count
 MATCH_RATIO = 0.8  # Lowe's ratio test of the static-match count
 MATCH_RANSAC_PX = 1.0  # fundamental-matrix RANSAC threshold, pixels of the sampled frames
 # Per-image detection (a few frames far apart: nothing to track), the full frame plus the
-# detector's default lower-frame tiles, no following through misses.
-DETECT_PARAMS = HandLandmarkParams(video_mode=False, track_misses=False)
+# detector's default lower-frame tiles, no following through misses, and no second pass on
+# contrast-stretched dim frames (hands16's pass needs the whole clip's detections; the crop reads a
+# few frames: unmeasured there, so ingest keeps its detections as they were).
+DETECT_PARAMS = HandLandmarkParams(video_mode=False, track_misses=False, stretch_gain=1.0)
 
 
 @functools.cache  # one lookup of the package's metadata per process, not one per file unit
