@@ -238,3 +238,25 @@ def test_candidate_budget_drops_the_widest_quads(monkeypatch) -> None:
     # The right half's (wider) quads fell, the left half's were kept: not the reverse.
     assert drawn[:, : W // 2].mean() > 0.8 and drawn[:, W // 2 :].mean() < 0.1
     np.testing.assert_array_equal(capped.rgb[0][drawn], full.rgb[0][drawn])
+
+
+def test_a_one_pixel_pole_is_not_hidden_by_the_wall_behind() -> None:
+    """A red pole one pixel wide 1 m away in front of a grey wall 2 m away has no quads of its
+    own (its neighbours tear at the step), while the wall's quads span behind it; seen from 3 cm
+    sideways the wall's surface must not hide the nearer pole: truth is one red column (120 px)
+    in front of the wall, and the splats draw it 1-3 px wide."""
+    h, w = 120, 160
+    k = np.array([120.0, 120.0, w / 2, h / 2])
+    depth = np.full((h, w), 2.0)
+    colours = np.full((h, w, 3), 128, np.uint8)
+    depth[:, 80] = 1.0
+    colours[:, 80] = (255, 0, 0)
+    points = unproject_depth(depth, k).reshape(-1, 3)
+    size = (depth / k[0]).reshape(-1).astype(np.float32)
+    kw = dict(point_size=size, max_splat_radius=2, near=0.01, max_crack_px=64, max_crack_width=4)
+    kw |= dict(mesh_from_cam=np.eye(4), mesh_max_step=0.3, mesh_max_px=32)
+    out = render_point_cloud(points, colours.reshape(-1, 3), _pose(0.03, 0, 0)[None], k, h, w, **kw)
+    red = (out.rgb[0, :, :, 0] > 200) & (out.rgb[0, :, :, 1] < 60)  # (H, W)
+    # The pole at 1 m moves 120 * 0.03 / 1 = 3.6 px left (the wall 1.8 px): column 76.
+    assert red.sum() >= h and red.any(1).all()  # every row keeps its pole pixel
+    assert red.sum() <= 3 * h and not red[:, :70].any() and not red[:, 82:].any()

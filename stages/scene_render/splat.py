@@ -612,6 +612,10 @@ def render_point_cloud(
     # point), so the surface pass is skipped there (a static camera: every frame)
     splat_cloud = dataclasses.replace(cloud, quads=None) if mesh_mode == "surface" else cloud
     at_source = np.zeros(t, bool)  # (T,)
+    loose = None  # (N,) bool: the points that are in no quad (only they may beat the surface)
+    if cloud.quads is not None:
+        loose = torch.ones(len(cloud.index), dtype=torch.bool, device=dev)
+        loose[cloud.quads.flatten()] = False
     if quads is not None:
         at_source = np.abs(world_from_cam - mesh_from_cam).reshape(t, -1).max(1) <= 1e-9
     for i in range(t):
@@ -631,8 +635,12 @@ def render_point_cloud(
                 cloud, cam_from_world[i], intrinsics, height, width, near, mesh_max_px
             )
             # Where a quad lands it is the surface; the splats only where none does (their
-            # widened squares would otherwise fatten edges and show noisy points over it).
-            use = hit_m
+            # widened squares would otherwise fatten edges and show noisy points over it), or
+            # where a point in no quad (a thin object, one pixel wide in the source frame) is
+            # clearly nearer: surface edges are all in quads, so they do not fatten.
+            _, idx_i, _ = decode_keys(keys)  # (H*W,)
+            nearer = depth_i < depth_m * (1.0 - SEE_THROUGH_MARGIN)  # (H*W,)
+            use = hit_m & ~(hit_i & loose[idx_i] & nearer)
             rgb_i = torch.where(use[:, None], rgb_m, rgb_i)
             hit_i = hit_i | hit_m
             depth_i = torch.where(use, depth_m, depth_i)
