@@ -111,12 +111,16 @@ def _check_render(row: Mapping[str, Any]) -> list[str]:
         problems.append("visible_fraction must be finite and in [0, 1]")
     if not len(row["scene_video"]) or not len(row["visible"]):
         problems.append("scene_video and visible must be non-empty encoded videos")
+    if row["surface_quads"] < 0:
+        problems.append(f"surface_quads must be >= 0, got {row['surface_quads']}")
     return problems
 
 
 SCENE_RENDER = ShardSchema(
     name="scene_render",
-    version=2,  # 2: visible also marks the small cracks the renderer closed
+    # 2: visible also marks the small cracks the renderer closed
+    # 3: surface_quads (how many surface quads the render drew from the cloud's depth grid)
+    version=3,
     doc="The scene cloud rendered along each clip's trajectory: scene video and visibility mask.",
     columns=(
         Column("clip_id", pa.string(), "Clip id, joins with the clips shard."),
@@ -139,6 +143,14 @@ SCENE_RENDER = ShardSchema(
         ),
         Column("visible_fraction", pa.list_(pa.float32()), "(T,) fraction of pixels visible."),
         Column("splat_radius", pa.int32(), "Largest splat radius in pixels used for near points."),
+        Column(
+            "surface_quads",
+            pa.int64(),
+            "Surface quads linked from the cloud's depth grid (>= 0), drawn in frames away from "
+            "its source pose (those over mesh_max_px in a frame skipped). 0: splats only: "
+            "a state row (closed loop), mesh_max_step 0, or a cloud whose source pixels the "
+            "render's pose at source_frame does not recover (a pose not exactly the cloud's).",
+        ),
     ),
     validators=(_check_render,),
 )

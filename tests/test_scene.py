@@ -329,6 +329,8 @@ def test_stages_end_to_end(world_clip, tmp_path: Path) -> None:
     visible = media.decode_lossless_video(row["visible"])
     video = media.decode_rgb_video(row["scene_video"], H, W)
     assert visible.shape == (T, H, W) and video.shape == (T, H, W, 3)
+    # every 2x2 block of the cloud's grid whose four points exist and do not tear is a quad
+    assert 0.5 * (H - 1) * (W - 1) < row["surface_quads"] <= (H - 1) * (W - 1)
     covis = gt_covisibility(world_clip)
     vis = visible.astype(bool)
     assert (vis & covis).sum() / (vis | covis).sum() >= 0.9
@@ -520,6 +522,9 @@ def test_scene_render_renders_a_state_as_its_scene_cloud(world_clip) -> None:
         {"clips": clip_row, "scene_cloud": scene_cloud_row_from_state(state_row)}
     )
     assert from_state == from_cloud  # same bytes: one renderer
+    # A state is no frame's depth grid: splats only, and the row says so (the cloud has quads).
+    assert from_state["surface_quads"] == 0
+    assert stage.process({"clips": clip_row, "scene_cloud": cloud_row})["surface_quads"] > 0
     # The state wins over a scene_cloud row given beside it.
     empty_cloud = {
         **cloud_row,

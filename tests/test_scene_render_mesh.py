@@ -260,3 +260,16 @@ def test_a_one_pixel_pole_is_not_hidden_by_the_wall_behind() -> None:
     # The pole at 1 m moves 120 * 0.03 / 1 = 3.6 px left (the wall 1.8 px): column 76.
     assert red.sum() >= h and red.any(1).all()  # every row keeps its pole pixel
     assert red.sum() <= 3 * h and not red[:, :70].any() and not red[:, 82:].any()
+
+
+def test_num_quads_counts_the_grid_and_says_when_the_pose_loses_it() -> None:
+    """A plane's W x H grid gives (H-1)(W-1) quads, all drawn; from a source pose 1 cm off the
+    cloud's own the grid is not recovered (review11c finding 2) and num_quads says 0."""
+    depth = np.full((H, W), 2.0)
+    points, colours, size = _cloud(depth, np.full((H, W, 3), 90, np.uint8))
+    args = (points, colours, _pose(0.0, 0.0, 0.5)[None], K, H, W)
+    kw = dict(point_size=size, mesh_max_step=0.3)
+    assert render_point_cloud(*args, **kw, mesh_from_cam=np.eye(4)).num_quads == (H - 1) * (W - 1)
+    off = render_point_cloud(*args, **kw, mesh_from_cam=_pose(0.01, 0.0, 0.0))
+    assert off.num_quads == 0
+    assert render_point_cloud(*args, point_size=size).num_quads == 0  # no mesh_from_cam

@@ -75,6 +75,9 @@ class SplatResult:
     rgb: np.ndarray  # (T, H, W, 3) uint8 colour of the nearest point; 0 where nothing landed
     visible: np.ndarray  # (T, H, W) uint8 1 = a scene point landed on the pixel, 0 = none
     depth: np.ndarray  # (T, H, W) float32 camera z of the nearest point in metres; 0 = none
+    # surface quads linked from the cloud's depth grid (:func:`grid_quads`); 0 = splats only
+    # (no mesh_from_cam, mesh_max_step 0, or the grid not recovered from mesh_from_cam)
+    num_quads: int = 0
 
 
 def _check_inputs(
@@ -653,4 +656,5 @@ def render_point_cloud(
             rgb[i], visible[i], depth[i] = close_cracks(
                 rgb[i], visible[i], depth[i], max_crack_px, max_crack_width
             )
-    return SplatResult(rgb=rgb, visible=visible, depth=depth)
+    num_quads = 0 if quads is None else len(quads)
+    return SplatResult(rgb=rgb, visible=visible, depth=depth, num_quads=num_quads)

@@ -107,7 +107,8 @@ class SceneRenderStage(ClipStage):
     )
     # 3: renders a state row (optional role) as well as a scene_cloud row
     # 4: a scene_cloud row's depth grid is drawn as a surface of quads (mesh_max_step,
-    #    mesh_mode "surface"; the "fill" mode came first, in no run)
+    #    mesh_mode "surface"; the "fill" mode came first, in no run); a point in no quad nearer
+    #    than the surface is drawn over it; surface_quads written (SCENE_RENDER v3)
     version = 4
     config: SceneRenderConfig
 
@@ -155,4 +156,5 @@ class SceneRenderStage(ClipStage):
             "visible": media.encode_mask_video(result.visible),
             "visible_fraction": result.visible.reshape(t, -1).mean(axis=1).tolist(),
             "splat_radius": cfg.max_splat_radius,
+            "surface_quads": result.num_quads,
         }
