@@ -1343,16 +1343,12 @@ def test_steady_directions_holds_off_side_frames_at_a_track_end() -> None:
     assert np.isnan(got[:, 3]).all(), "inside a track or within jump_deg nothing is held"
 
 
-def test_hand_turned_over_on_its_forearm_gets_its_neighbours_mask() -> None:
-    """HOT3D window 1, t=57-60 (hand_mask v22): the keypoints of frames 2-3 put the hand on
-    its own forearm, turned over (fingers down the forearm to the border), so its arm would run
-    up-left from that wrist through the real hand and a uniform bar (the house's roof) to the
-    top border. That arm is not drawn,
-    and the frames receive the hand's mask from frames 0-1 (which found it) by propagation, as
-    a carried hand's: the real hand is masked and nothing up to the top border is. v21 masked
-    the band to the top border; without the propagation the real hand is missed."""
-    import egosim.stages.hand_mask.stage as stage
-
+def _turned_over_scene() -> tuple[np.ndarray, ...]:
+    """A still 4-frame clip (160 x 240): a real hand at frames 0-1, fingers up-left, its forearm
+    down-right to the border and a uniform blue bar past its fingertips to the top border; at
+    frames 2-3 the keypoints put the hand on its own forearm, turned over (fingers down), so its
+    arm would run up-left to the top border. ``(frames, keypoints, valid, true_kp, false_kp,
+    hand (H, W) the real hand's capsules, beyond (H, W) the band's path past the hand)``."""
     h, w = 160, 240
     rng = np.random.default_rng(7)
     image = cv2.GaussianBlur(np.clip(rng.normal(90, 35, (h, w, 3)), 0, 255).astype(np.uint8),
@@ -1383,7 +1379,20 @@ def test_hand_turned_over_on_its_forearm_gets_its_neighbours_mask() -> None:
     near = cv2.dilate(hand, np.ones((3, 3), np.uint8), iterations=10) > 0
     beyond = (along > 0) & (across < 8) & ~near  # (H, W) the band's path past the hand
     assert beyond.sum() > 100
+    return frames, keypoints, valid, true_kp, false_kp, hand, beyond
 
+
+def test_hand_turned_over_on_its_forearm_gets_its_neighbours_mask() -> None:
+    """HOT3D window 1, t=57-60 (hand_mask v22): the keypoints of frames 2-3 put the hand on
+    its own forearm, turned over (fingers down the forearm to the border), so its arm would run
+    up-left from that wrist through the real hand and a uniform bar (the house's roof) to the
+    top border. That arm is not drawn,
+    and the frames receive the hand's mask from frames 0-1 (which found it) by propagation, as
+    a carried hand's: the real hand is masked and nothing up to the top border is. v21 masked
+    the band to the top border; without the propagation the real hand is missed."""
+    import egosim.stages.hand_mask.stage as stage
+
+    frames, keypoints, valid, _, _, hand, beyond = _turned_over_scene()
     masks = stage.masks_from_keypoints(frames, keypoints, valid, HandMaskConfig()) > 0
     for t in (2, 3):
         assert masks[t][hand > 0].mean() > 0.8, f"t={t} real hand {masks[t][hand > 0].mean():.2f}"
@@ -1396,3 +1405,58 @@ def test_hand_turned_over_on_its_forearm_gets_its_neighbours_mask() -> None:
     finally:
         stage.ArmParams = stage_params  # type: ignore[misc]
     assert before[2][beyond].mean() > 0.5, f"v21's band {before[2][beyond].mean():.2f}"
+
+
+def _rule_off_masks(frames: np.ndarray, kp: np.ndarray, valid: np.ndarray, cfg: HandMaskConfig):
+    """v21's masks: ``masks_from_keypoints`` with ``ArmParams.no_arm_from_top`` False."""
+    import egosim.stages.hand_mask.stage as stage
+
+    old = dataclasses.replace(stage.ArmParams(), no_arm_from_top=False)
+    stage_params = stage.ArmParams
+    try:
+        stage.ArmParams = lambda **kw: dataclasses.replace(old, **kw)  # type: ignore[misc]
+        return stage.masks_from_keypoints(frames, kp, valid, cfg)
+    finally:
+        stage.ArmParams = stage_params  # type: ignore[misc]
+
+
+def test_short_top_runs_wants_a_short_run_next_to_a_source() -> None:
+    """review11b finding 1: only runs of at most ``max_run`` top-exit frames of a hand with a
+    valid frame of that hand next to them, not top-exit, are opened."""
+    from egosim.stages.hand_mask.stage import short_top_runs
+
+    top = np.zeros((10, 3), bool)
+    valid = np.ones((10, 3), bool)
+    top[3:5, 0] = True  # two frames, sources both sides: opened
+    top[0:10, 1] = True  # the whole track: no source
+    top[1:5, 2] = True  # four frames, longer than max_run 3
+    top[7:9, 2] = True  # two frames whose neighbours are not valid
+    valid[6, 2] = valid[9, 2] = False
+    out = short_top_runs(top, valid, 3)
+    expected = np.zeros_like(top)
+    expected[3:5, 0] = True
+    np.testing.assert_array_equal(out, expected)
+    assert short_top_runs(top, valid, 4)[1:5, 2].all()
+
+
+def test_long_or_sourceless_top_runs_draw_their_arm() -> None:
+    """review11b finding 1 (hand_mask v23 also): v22 opened every frame whose arm would run up
+    to the top border, with no limit, so a false hand on a curtain (EgoDex portrait_09, 17
+    frames) or a view turned over (HOT3D window 1 turned 180 degrees) spread background through
+    the whole run. A run longer than ``carry_frames``, or one with no frame of the same hand
+    next to it that is not in the run, is the view's geometry: its arm is drawn as v21 drew it
+    (masks equal to the rule off), and the band up to the top border is masked again."""
+    import egosim.stages.hand_mask.stage as stage
+
+    frames, keypoints, valid, _, false_kp, _, beyond = _turned_over_scene()
+    cases = []
+    cfg = HandMaskConfig(carry_frames=1)  # frames 2-3: a run of 2 > 1
+    cases.append((keypoints, cfg))
+    sourceless = keypoints.copy()
+    sourceless[:, 0] = false_kp  # turned over in every frame: no source next to the run
+    cases.append((sourceless, HandMaskConfig()))
+    for kp, c in cases:
+        masks = stage.masks_from_keypoints(frames, kp, valid, c) > 0
+        before = _rule_off_masks(frames, kp, valid, c) > 0
+        np.testing.assert_array_equal(masks, before)
+        assert masks[2][beyond].mean() > 0.5, f"the arm drawn {masks[2][beyond].mean():.2f}"

@@ -772,6 +772,7 @@ def hand_labels(
     directions: np.ndarray | None = None,
     starts: np.ndarray | None = None,
     no_region: np.ndarray | None = None,
+    allow_top: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """``(labels (K, H, W) uint8, drawn (K, 2))``: each hand's GrabCut labels of ``image (H, W,
     3)`` (``cv2.GC_*``; see :func:`draw_arm_labels`) and the arm direction drawn (NaN: none).
@@ -781,7 +782,8 @@ def hand_labels(
     (K,)`` bool: hands whose track starts in this frame, searched for a strip that stands out
     from both sides (``nearer_side`` of :func:`arm_search`; ``ArmParams.start_both_sides``);
     ``no_region (K,)`` bool: hands drawn without the probable colour region (``region_probable``
-    off; :func:`off_side_runs`).
+    off; :func:`off_side_runs`); ``allow_top (K,)`` bool: hands whose arm ``no_arm_from_top``
+    may leave undrawn (None: all; the others' arm is drawn whatever its direction).
     """
     h, w = image.shape[:2]
     own = np.full((len(keypoints), h, w), cv2.GC_BGD, np.uint8)
@@ -802,6 +804,8 @@ def hand_labels(
         arm_k = arm
         if no_region is not None and no_region[k]:
             arm_k = replace(arm, region_probable=False)
+        if allow_top is not None and not allow_top[k]:
+            arm_k = replace(arm_k, no_arm_from_top=False)
         points = np.asarray(hand, dtype=np.float64)  # (21, 2)
         d = draw_arm_labels(own[k], points, capsule, arm_k, lab, others[k], fixed, nearer)
         if d is not None:

@@ -157,6 +157,29 @@ def padding(image: np.ndarray, level: int = 2) -> np.ndarray:
     return out
 
 
+def short_top_runs(top: np.ndarray, valid: np.ndarray, max_run: int) -> np.ndarray:
+    """``(T, K)`` bool: the frames of ``top (T, K)`` (arms that would run up to the top border)
+    in runs of at most ``max_run`` consecutive frames of a hand with a frame of the same hand
+    next to the run that is ``valid (T, K)`` and not in ``top`` (a source for propagation).
+    """
+    out = np.zeros(top.shape, bool)
+    n = len(top)
+    for k in range(top.shape[1]):
+        t = 0
+        while t < n:
+            if not top[t, k]:
+                t += 1
+                continue
+            end = t
+            while end < n and top[end, k]:
+                end += 1  # the run is [t, end)
+            source = (t > 0 and valid[t - 1, k]) or (end < n and valid[end, k])
+            if end - t <= max_run and source:
+                out[t:end, k] = True
+            t = end
+    return out
+
+
 def masks_from_keypoints(
     frames: np.ndarray, keypoints: np.ndarray, valid: np.ndarray, config: HandMaskConfig
 ) -> np.ndarray:
@@ -181,12 +204,16 @@ def masks_from_keypoints(
         starts[:] = False
 
     def labels(
-        t: int, directions: np.ndarray | None = None, no_region: np.ndarray | None = None
+        t: int,
+        directions: np.ndarray | None = None,
+        no_region: np.ndarray | None = None,
+        allow_top: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
         """Frame ``t``'s GrabCut labels ``(K, H, W)`` and arm directions ``(K, 2)``."""
         return hand_labels(
-            frames[t], keypoints[t], valid[t], capsule, arm, directions, starts[t], no_region
-        )
+            frames[t], keypoints[t], valid[t], capsule, arm, directions, starts[t], no_region,
+            allow_top,
+        )  # fmt: skip
 
     # Labels first (arm searches), GrabCut once per frame after: an arm that swung away for a
     # few frames and back is drawn between its neighbours (steady_directions) before the cut.
@@ -209,6 +236,22 @@ def masks_from_keypoints(
         guessed = off_side_runs(steady, off_side) & ~np.all(np.isfinite(plain), axis=2)
     for t in np.nonzero(np.any(np.isfinite(steady[..., 0]), axis=1))[0]:
         own[t] = labels(int(t), steady[t], guessed[t])[0]
+    # Arms that would run up to the top border (not drawn, see no_arm_from_top): only a short
+    # run of them next to a frame of the same hand that is not is taken for a hand turned over
+    # on its own forearm (HOT3D window 1, t=56-60 flagged) and opened to its neighbours' masks
+    # below; a longer run, or one with no such neighbour, is the view's geometry (a false hand
+    # on a curtain, a camera rolled over) and its arm is drawn as before v22.
+    opened_top = np.zeros(valid.shape, bool)  # (T, K)
+    if arm.no_arm_from_top:
+        final = np.where(np.isfinite(steady), steady, drawn)  # (T, K, 2) directions drawn
+        top = arms_through_top(keypoints, valid, final, *frames.shape[1:3])  # (T, K)
+        opened_top = short_top_runs(top, valid, config.carry_frames)
+        for t in np.nonzero(np.any(top & ~opened_top, axis=1))[0]:
+            again = np.any(np.isfinite(steady[t]))  # as drawn above: steady, else searched
+            own[t] = labels(
+                int(t), steady[t] if again else None, guessed[t] if again else None,
+                opened_top[t] | ~top[t],
+            )[0]  # fmt: skip
     found = [
         masks_from_labels(
             frames[t], own[t], config.colour_refine, config.grabcut_iterations,
@@ -225,13 +268,9 @@ def masks_from_keypoints(
         certain = np.stack([f[2] for f in found])  # (T, K, H, W)
         # A frame whose hand was carried there still receives that hand's mask from its
         # neighbours (its arm, from frames where the search found it), joined to its own; so
-        # does one whose arm would run up to the top border (not drawn: the hand's keypoints
-        # are doubtful, HOT3D window 1 t=57-60 a hand turned over on its own forearm).
-        opened = carried
-        if arm.no_arm_from_top:
-            final = np.where(np.isfinite(steady), steady, drawn)  # (T, K, 2) directions drawn
-            opened = carried | arms_through_top(keypoints, valid, final, *frames.shape[1:3])
-        masks = propagate_hands(frames, masks, per_hand, certain, params, opened)
+        # does a short run whose arm would run up to the top border (not drawn: the hand's
+        # keypoints are doubtful, HOT3D window 1 t=56-60 a hand turned over on its own forearm).
+        masks = propagate_hands(frames, masks, per_hand, certain, params, carried | opened_top)
     if config.grow_margin_m > 0 and config.colour_refine:
         grow = GrowParams(config.grow_margin_m, radius_scale=config.radius_scale)
         masks = grow_masks(frames, masks, keypoints, valid, grow)
@@ -354,7 +393,10 @@ class HandMaskStage(ClipStage):
     # holds that frame's direction (HOT3D window 1, t=1 and t=55-60)
     # 23: the clip's black border (border.not_image: pixels no brighter than 10 in every frame,
     # connected to the frame's edge, round a core of at most 2) is never masked: HOT3D's ringing
-    # rows above its letterbox bar and the fisheye circle's black corners (1-4k px per frame)
+    # rows above its letterbox bar and the fisheye circle's black corners (1-4k px per frame).
+    # v23 also: only a run of at most carry_frames arms up to the top border next to a frame of
+    # the same hand that is not is left undrawn and opened to propagation (short_top_runs);
+    # longer runs, or runs with no such frame, draw their arm as v21 (review11b finding 1)
     backends = ("keypoints", "sam")
     # What process reads (the executor decodes nothing else): the frames, joints and camera
     # of the clip, the robot arm's mask, the cleaned joints.
