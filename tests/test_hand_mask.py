@@ -1460,3 +1460,56 @@ def test_long_or_sourceless_top_runs_draw_their_arm() -> None:
         before = _rule_off_masks(frames, kp, valid, c) > 0
         np.testing.assert_array_equal(masks, before)
         assert masks[2][beyond].mean() > 0.5, f"the arm drawn {masks[2][beyond].mean():.2f}"
+
+
+def test_arm_from_the_top_kept_when_the_rule_is_off_or_the_camera_static(monkeypatch) -> None:
+    """review11b finding 2: a still camera facing a person across a table sees the forearm (a
+    sleeve) run from the wrist straight up to the top border. v22 drew no arm there (sleeve
+    masked 0.00) and nothing could turn the rule off. ``HandMaskConfig.no_arm_from_top`` False
+    masks the sleeve (1.00 in review11b's across.py), and the stage does not apply the rule to
+    a clip whose ``cameras`` row says the camera is static."""
+    import egosim.stages.hand_mask.stage as stage
+
+    h, w = 160, 240
+    d = np.array([0.0, -1.0])  # the arm straight up from the wrist
+    wrist = np.array([120.5, 90.5])
+    image = _sleeve_frame(h, w, wrist, d, 3)
+    kp = _hand_keypoints(wrist, -d, 30.0, 20.0)  # (21, 2) fingers down at the camera
+    hand, _ = draw_hand(kp, 0, h, w, CapsuleParams(forearm=False))
+    image[hand > 0] = (205, 150, 125)
+    near = cv2.dilate(hand, np.ones((3, 3), np.uint8), iterations=10) > 0
+    sleeve = _sleeve_pixels(h, w, wrist, d) & ~near  # (H, W)
+    assert sleeve.sum() > 300
+    frames = np.stack([image] * 4)  # (4, H, W, 3)
+    keypoints = np.full((4, 2, 21, 2), np.nan)
+    keypoints[:, 1] = kp
+    # t=0: the arm hangs down from the wrist, fingers up; t=1-3 are a short run with a source
+    # (t=0), where the rule applies
+    frames[0] = _sleeve_frame(h, w, wrist, -d, 3)
+    keypoints[0, 1] = _hand_keypoints(wrist, d, 30.0, 20.0)
+    frames[0][draw_hand(keypoints[0, 1], 0, h, w, CapsuleParams(forearm=False))[0] > 0] = (
+        205, 150, 125,
+    )  # fmt: skip
+    valid = np.array([[False, True]] * 4)
+    on = stage.masks_from_keypoints(frames, keypoints, valid, HandMaskConfig()) > 0
+    off_cfg = HandMaskConfig(no_arm_from_top=False)
+    off = stage.masks_from_keypoints(frames, keypoints, valid, off_cfg) > 0
+    assert on[1:, sleeve].mean() < 0.05, f"head-worn rule: sleeve {on[1:, sleeve].mean():.2f}"
+    assert off[1:, sleeve].mean() > 0.9, f"rule off: sleeve {off[1:, sleeve].mean():.2f}"
+    assert off[1:, hand > 0].mean() > 0.8
+
+    # A static camera's clip (its cameras row) is masked with the rule off.
+    assert stage.static_camera({"cameras": {"static_camera": True, "camera_model": "static"}})
+    assert not stage.static_camera({"cameras": {"static_camera": False, "camera_model": "full"}})
+    assert not stage.static_camera({"clips": {}})
+    seen: list[HandMaskConfig] = []
+
+    def spy(f: np.ndarray, k: np.ndarray, v: np.ndarray, cfg: HandMaskConfig) -> np.ndarray:
+        seen.append(cfg)
+        return np.zeros(f.shape[:3], np.uint8)
+
+    monkeypatch.setattr(stage, "masks_from_keypoints", spy)
+    clip = render_clip(WorldConfig(seed=3, height=48, width=64, num_frames=2))
+    for static in (False, True):
+        HandMaskStage().masks_for_clip(clip, static_camera=static)
+    assert [c.no_arm_from_top for c in seen] == [True, False]

@@ -106,6 +106,10 @@ class HandMaskConfig(StageConfig):
     min_joint_confidence: float = 0.0  # joints with lower confidence are ignored
     border: bool = True  # the clip's black border (pixels black in every frame: a letterbox
     # bar, the outside of a fisheye circle; see border) is never masked (False: v22's masks)
+    no_arm_from_top: bool = True  # an arm whose ray from the wrist leaves through the top
+    # border is not drawn (forearms enter a head-worn view from the bottom or the sides; see
+    # arm_region.leaves_through_top). Off for fixed or third-person cameras: an arm may enter
+    # from the top. Never applied to a clip whose cameras row says the camera is static.
     sam_model_path: str = ""  # local folder of a SAM model (backend "sam")
     sam_device: str = "cpu"  # torch device of the SAM model
 
@@ -180,6 +184,16 @@ def short_top_runs(top: np.ndarray, valid: np.ndarray, max_run: int) -> np.ndarr
     return out
 
 
+def static_camera(rows: Mapping[str, Mapping[str, Any]]) -> bool:
+    """Whether the ``cameras`` row (when connected) says the clip's camera is fixed
+    (``static_camera``, or ``camera_model`` "static": real_s27b's pour_coke, lift_tumbler): not
+    head-worn, so an arm may enter its view from the top."""
+    cams = rows.get("cameras")
+    if cams is None:
+        return False
+    return bool(cams.get("static_camera")) or cams.get("camera_model") == "static"
+
+
 def masks_from_keypoints(
     frames: np.ndarray, keypoints: np.ndarray, valid: np.ndarray, config: HandMaskConfig
 ) -> np.ndarray:
@@ -194,7 +208,9 @@ def masks_from_keypoints(
             frames, keypoints, valid, CarryParams(max_frames=config.carry_frames)
         )
     capsule = CapsuleParams(radius_scale=config.radius_scale, forearm=config.forearm)
-    arm = ArmParams(fan_half_angle_deg=config.fan_half_angle_deg)
+    arm = ArmParams(
+        fan_half_angle_deg=config.fan_half_angle_deg, no_arm_from_top=config.no_arm_from_top
+    )
 
     # The first frame of each hand's track: no steady run reaches it, so its search asks that
     # the arm's strip stand out from both sides (HOT3D window 1's frame 0: a floor strip).
@@ -396,7 +412,9 @@ class HandMaskStage(ClipStage):
     # rows above its letterbox bar and the fisheye circle's black corners (1-4k px per frame).
     # v23 also: only a run of at most carry_frames arms up to the top border next to a frame of
     # the same hand that is not is left undrawn and opened to propagation (short_top_runs);
-    # longer runs, or runs with no such frame, draw their arm as v21 (review11b finding 1)
+    # longer runs, or runs with no such frame, draw their arm as v21 (review11b finding 1);
+    # and the rule can be turned off (HandMaskConfig.no_arm_from_top) and is never applied to a
+    # clip whose cameras row says the camera is static (static_camera; review11b finding 2)
     backends = ("keypoints", "sam")
     # What process reads (the executor decodes nothing else): the frames, joints and camera
     # of the clip, the robot arm's mask, the cleaned joints.
@@ -422,10 +440,13 @@ class HandMaskStage(ClipStage):
         super().__init__(config)
         self._sam: SamSegmenter | None = None
 
-    def masks_for_clip(self, clip: Clip | HandInputs) -> np.ndarray:
+    def masks_for_clip(self, clip: Clip | HandInputs, static_camera: bool = False) -> np.ndarray:
         """Masks ``(T, H, W)`` uint8 (1 = hand or arm) for a decoded clip (or its
-        :class:`HandInputs`)."""
+        :class:`HandInputs`). ``static_camera``: the clip's camera is fixed (not head-worn), so
+        an arm may enter from the top (``no_arm_from_top`` is not applied)."""
         cfg: HandMaskConfig = self.config  # type: ignore[assignment]
+        if static_camera:
+            cfg = dataclasses.replace(cfg, no_arm_from_top=False)
         keypoints = project_keypoints(clip, cfg.min_joint_confidence)  # (T, 2, 21, 2)
         valid = np.ones((clip.num_frames, 2), bool) if clip.hand_valid is None else clip.hand_valid
         if cfg.backend == "sam":
@@ -470,7 +491,7 @@ class HandMaskStage(ClipStage):
             valid,
             confidence,
         )
-        masks = self.masks_for_clip(inputs)
+        masks = self.masks_for_clip(inputs, static_camera(rows))
         robot = clip.mask_video("embodiment_mask")  # (T, H, W) a robot arm from its URDF (ingest)
         if robot is not None:
             masks = np.maximum(masks, robot.astype(masks.dtype))
