@@ -293,6 +293,7 @@ def real_case(
         hand = dilate(hand, HAND_DILATE_PX) > 0  # (T, H, W)
         row = {"case": case.name, "clip": cid, **_cloud_figures(cloud_rows.get(cid), (h, w))}
         row.update(coverage_figures(video, visible, truth, hand, inside))
+        row["quads"] = render.get("surface_quads")  # None: a render before SCENE_RENDER v3
         if holes and cid in cloud_rows:
             cams = resolve_cameras(
                 {
@@ -369,19 +370,21 @@ def synthetic_case(
     cloud_row = _rows(cloud).get(clip.clip_id)
     out = {"case": label, "clip": clip.clip_id, **_cloud_figures(cloud_row, (h, w))}
     out.update(coverage_figures(scene, visible, truth, hand))
+    out["quads"] = row.get("surface_quads")  # None: a render before SCENE_RENDER v3
     return out
 
 
 def print_table(rows: list[dict[str, Any]]) -> None:
     """One line per case."""
     cols = ("measured", "cloud", "cov0", "cov", "covN", "dB0", "dB")
-    print(f"{'case':<16}" + "".join(f"{c:>9}" for c in cols) + f"{'s':>6}")
+    print(f"{'case':<16}" + "".join(f"{c:>9}" for c in cols) + f"{'s':>6}{'quads':>9}")
     for r in rows:
         if "error" in r:
             print(f"{r['case']:<16} {r['error']}")
             continue
         cells = [f"{r[c]:>9.1f}" if c.startswith("dB") else f"{100 * r[c]:>8.1f}%" for c in cols]
-        print(f"{r['case']:<16}" + "".join(cells) + f"{r.get('seconds', 0.0):>6.0f}")
+        quads = "-" if r.get("quads") is None else str(r["quads"])  # surface quads, 0 = none
+        print(f"{r['case']:<16}" + "".join(cells) + f"{r.get('seconds', 0.0):>6.0f}{quads:>9}")
 
 
 def main() -> int:
