@@ -225,10 +225,11 @@ class HandsStage(ClipStage):
     # seed_presence) or one under min_track_frames frames (review10a, 3033934), and takes the
     # background's motion from forward-backward checked corners (klt, df46f3e).
     # 15: (mediapipe) a hand under spread_max_size from wrist to middle knuckle (a share of the
-    # frame height: 40 px at 480 rows) whose landmarks move by more than max_spread (0.06) of
-    # that size when the landmark model reads its ROI turned +-20 degrees, scaled 0.8 / 1.25 and
-    # mirrored (roi_landmarks.landmark_spread) has its 3D withheld or interpolated like a palm
-    # turned off its track; the 2D is kept.
+    # frame height: 40 px at 480 rows) whose landmarks move by more than max_spread (0.05) of
+    # that size when the landmark model reads its ROI as it is, turned +20 degrees, scaled 1.25
+    # and mirrored (roi_landmarks.landmark_spread; four runs, hands17: hands14's six, with -20
+    # degrees and 0.8 at 0.06, cost a third more CPU) has its 3D withheld or interpolated like a
+    # palm turned off its track; the 2D is kept.
     # Also the regressor backend (boxes="mediapipe") runs the same scene check (hands15, ac4ffba),
     # and the scene check drops a still, Lab-off-skin track only when it is also off-skin in
     # chromaticity (max_chromaticity_distance 2.0: a real hand resting in shadow is kept;
