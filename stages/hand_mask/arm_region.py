@@ -404,7 +404,11 @@ def leaves_through_top(point: np.ndarray, d: np.ndarray, width: int, height: int
     stage put the right hand on its own forearm, fingers down towards the bottom-right corner,
     so the hand's direction (and the arm searched round it) pointed up-left, and a band ran from
     the forearm over the house to the top border. Every other drawn arm of the real clips
-    (HOT3D, EgoDex, DWM) leaves through a side or the bottom.
+    (HOT3D, EgoDex, DWM, pour_coke, lift_tumbler) leaves through a side or the bottom.
+
+    A ``point`` outside the image is its own end (exit distance 0): it counts only when it lies
+    above the top border (an arm pointing up from there); a wrist beside or below the image
+    never counts, even when its ray crosses the image and leaves through the top.
     """
     if d[1] >= -1e-9:
         return False
