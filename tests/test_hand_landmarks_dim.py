@@ -3,7 +3,8 @@
 DWM clip 00013 (real Aria footage, sleeved hands on a cushion) darkened x0.5: the palm detector
 finds its left hand on no frame of the clip, so the ROI tracker has nothing to follow and the
 hand is lost for the whole clip (``python -m bench.hands_real --perturb``, hands15). On the
-contrast-stretched frames it finds it at frame 34, on the left hand's truth render.
+contrast-stretched frames (the whole frame and the zoomed tiles) it finds it, on the left hand's
+truth render.
 """
 
 from __future__ import annotations
