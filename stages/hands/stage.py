@@ -233,7 +233,8 @@ class HandsStage(ClipStage):
     # Also the regressor backend (boxes="mediapipe") runs the same scene check (hands15, ac4ffba),
     # and the scene check drops a still, Lab-off-skin track only when it is also off-skin in
     # chromaticity (max_chromaticity_distance 2.0: a real hand resting in shadow is kept;
-    # hands15, 1eab93d).
+    # hands15, 1eab93d). And the palm detector also runs on contrast-stretched dim frames while
+    # a side has no palm detection in the clip (hand_landmarks.stretch_gain, hands16, 21db71e).
     version = 15
     description = "3D hand joints per frame from the clip's labels, de-duplicated and de-spiked"
     config_class = HandsConfig
