@@ -701,6 +701,38 @@ def test_carried_hand_frame_still_receives_its_neighbours_mask() -> None:
     assert closed[0][arm0].mean() < 0.1, "a frame with its own mask received without opening"
 
 
+def test_cut_frames_stop_a_chain_of_open_frames() -> None:
+    """review11b finding 1, second mend (hand_mask v23 also): an open frame has a mask of its
+    own, so it kept age 0 and passed what it received on with no limit: a run of opened frames
+    was one chain that ``max_frames`` never stopped. Marked as cut, an open frame counts as
+    empty for the chain: the last frame's arm reaches ``max_frames`` (2) frames back only."""
+    from egosim.stages.hand_mask.propagate import PropagationParams, propagate_hands
+
+    table = _static_table()
+    n = 6
+    frames = np.stack([table.copy() for _ in range(n)])
+    for f in frames:
+        f[30:96, 90:112] = (60, 40, 90)  # a still arm in a dark sleeve, from the bottom border
+    per_hand = np.zeros((n, 1, 96, 128), np.uint8)
+    per_hand[:, 0, 30:50, 90:112] = 1  # every frame: the hand only
+    per_hand[-1, 0, 30:96, 90:112] = 1  # the last frame: hand and arm
+    certain = np.zeros_like(per_hand)
+    certain[:, 0, 35:45, 96:106] = 1
+    certain[-1, 0, 40:90, 96:106] = 1
+    masks = per_hand.max(axis=1)  # (T, H, W)
+    arm = np.zeros((96, 128), bool)
+    arm[55:94, 92:110] = True  # the arm, inside its edges
+    opened = np.ones((n, 1), bool)
+    opened[-1] = False
+    params = PropagationParams(max_frames=2)
+    chain = propagate_hands(frames, masks, per_hand, certain, params, opened)
+    got = [round(float(chain[t][arm].mean()), 2) for t in range(n)]
+    assert min(got) > 0.9, f"open frames, one chain: arm covered {got}"
+    cut = propagate_hands(frames, masks, per_hand, certain, params, opened, opened)
+    got = [round(float(cut[t][arm].mean()), 2) for t in range(n)]
+    assert min(got[3:]) > 0.9 and max(got[:3]) < 0.1, f"cut after 2 frames: arm covered {got}"
+
+
 def test_carry_skips_steps_the_nearer_side_already_made(monkeypatch: pytest.MonkeyPatch) -> None:
     """A hand found in frames 0 and 3 of a moving clip: frame 1 takes frame 0's carry, frame 2
     frame 3's, each within a pixel; the backward track from frame 3 stops at frame 1, which the
@@ -1061,7 +1093,7 @@ def test_track_starts_are_the_first_frames_of_each_hand(monkeypatch: pytest.Monk
     def recording(
         image: np.ndarray, keypoints: np.ndarray, valid: np.ndarray, capsule: CapsuleParams,
         arm: object, directions: np.ndarray | None = None, starts: np.ndarray | None = None,
-        no_region: np.ndarray | None = None,
+        no_region: np.ndarray | None = None, allow_top: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
         assert starts is not None
         seen[len(seen)] = [bool(v) for v in starts]
@@ -1209,7 +1241,7 @@ def test_only_runs_the_off_side_mark_adds_lose_their_colour_region(
     def recording(
         image: np.ndarray, keypoints: np.ndarray, valid: np.ndarray, capsule: CapsuleParams,
         arm: object, directions: np.ndarray | None = None, starts: np.ndarray | None = None,
-        no_region: np.ndarray | None = None,
+        no_region: np.ndarray | None = None, allow_top: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
         h, w = image.shape[:2]
         t = int(image[0, 0, 0])  # the frame's index, written into its first pixel
@@ -1281,6 +1313,11 @@ def test_leaves_through_top_against_hand_computed_exits() -> None:
     assert not leaves_through_top(np.array([20.0, 50.0]), unit(-150.0), 200, 100)
     # from (20, 5), the same ray meets the top at x = 20 - 5 / tan 30 = 11.3
     assert leaves_through_top(np.array([20.0, 5.0]), unit(-150.0), 200, 100)
+    # a wrist outside the image is its own end (review11b finding 3, as the docstring says):
+    # left of the image, its ray up-right crosses the image to the top at x = 90, not counted;
+    # above the top border, an arm pointing up counts
+    assert not leaves_through_top(np.array([-10.0, 100.0]), unit(-45.0), 200, 100)
+    assert leaves_through_top(np.array([50.0, -5.0]), unit(-90.0), 200, 100)
 
 
 def test_no_arm_drawn_up_to_the_top_border() -> None:
@@ -1383,7 +1420,7 @@ def _turned_over_scene() -> tuple[np.ndarray, ...]:
 
 
 def test_hand_turned_over_on_its_forearm_gets_its_neighbours_mask() -> None:
-    """HOT3D window 1, t=57-60 (hand_mask v22): the keypoints of frames 2-3 put the hand on
+    """HOT3D window 1, t=56-60 flagged (hand_mask v22): the keypoints of frames 2-3 put the hand on
     its own forearm, turned over (fingers down the forearm to the border), so its arm would run
     up-left from that wrist through the real hand and a uniform bar (the house's roof) to the
     top border. That arm is not drawn,
@@ -1397,27 +1434,18 @@ def test_hand_turned_over_on_its_forearm_gets_its_neighbours_mask() -> None:
     for t in (2, 3):
         assert masks[t][hand > 0].mean() > 0.8, f"t={t} real hand {masks[t][hand > 0].mean():.2f}"
         assert masks[t][beyond].mean() < 0.05, f"t={t} band {masks[t][beyond].mean():.2f}"
-    old = dataclasses.replace(stage.ArmParams(), no_arm_from_top=False)
-    stage_params = stage.ArmParams
-    try:
-        stage.ArmParams = lambda **kw: dataclasses.replace(old, **kw)  # type: ignore[misc]
-        before = stage.masks_from_keypoints(frames, keypoints, valid, HandMaskConfig()) > 0
-    finally:
-        stage.ArmParams = stage_params  # type: ignore[misc]
+    off = HandMaskConfig(no_arm_from_top=False)
+    before = stage.masks_from_keypoints(frames, keypoints, valid, off) > 0
     assert before[2][beyond].mean() > 0.5, f"v21's band {before[2][beyond].mean():.2f}"
 
 
 def _rule_off_masks(frames: np.ndarray, kp: np.ndarray, valid: np.ndarray, cfg: HandMaskConfig):
-    """v21's masks: ``masks_from_keypoints`` with ``ArmParams.no_arm_from_top`` False."""
+    """v21's masks: ``masks_from_keypoints`` with ``no_arm_from_top`` False."""
     import egosim.stages.hand_mask.stage as stage
 
-    old = dataclasses.replace(stage.ArmParams(), no_arm_from_top=False)
-    stage_params = stage.ArmParams
-    try:
-        stage.ArmParams = lambda **kw: dataclasses.replace(old, **kw)  # type: ignore[misc]
-        return stage.masks_from_keypoints(frames, kp, valid, cfg)
-    finally:
-        stage.ArmParams = stage_params  # type: ignore[misc]
+    return stage.masks_from_keypoints(
+        frames, kp, valid, dataclasses.replace(cfg, no_arm_from_top=False)
+    )
 
 
 def test_short_top_runs_wants_a_short_run_next_to_a_source() -> None:

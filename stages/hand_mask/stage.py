@@ -286,7 +286,9 @@ def masks_from_keypoints(
         # neighbours (its arm, from frames where the search found it), joined to its own; so
         # does a short run whose arm would run up to the top border (not drawn: the hand's
         # keypoints are doubtful, HOT3D window 1 t=56-60 a hand turned over on its own forearm).
-        masks = propagate_hands(frames, masks, per_hand, certain, params, carried | opened_top)
+        masks = propagate_hands(
+            frames, masks, per_hand, certain, params, carried | opened_top, opened_top
+        )
     if config.grow_margin_m > 0 and config.colour_refine:
         grow = GrowParams(config.grow_margin_m, radius_scale=config.radius_scale)
         masks = grow_masks(frames, masks, keypoints, valid, grow)
@@ -406,7 +408,8 @@ class HandMaskStage(ClipStage):
     # the hands stage put on its own forearm, fingers down) and that hand's frame receives its
     # neighbours' mask of it by propagation, as a carried hand's; an off-side run that starts or
     # ends a hand's track, swung more than steady_jump_deg from the track's frame next to it,
-    # holds that frame's direction (HOT3D window 1, t=1 and t=55-60)
+    # holds that frame's direction (HOT3D window 1, t=1 and t=56-60 flagged, t=55-60 changed
+    # through propagation)
     # 23: the clip's black border (border.not_image: pixels no brighter than 10 in every frame,
     # connected to the frame's edge, round a core of at most 2) is never masked: HOT3D's ringing
     # rows above its letterbox bar and the fisheye circle's black corners (1-4k px per frame).
@@ -414,7 +417,9 @@ class HandMaskStage(ClipStage):
     # the same hand that is not is left undrawn and opened to propagation (short_top_runs);
     # longer runs, or runs with no such frame, draw their arm as v21 (review11b finding 1);
     # and the rule can be turned off (HandMaskConfig.no_arm_from_top) and is never applied to a
-    # clip whose cameras row says the camera is static (static_camera; review11b finding 2)
+    # clip whose cameras row says the camera is static (static_camera; review11b finding 2);
+    # an opened top-border frame counts as empty in propagation's chain (cut_frames), so a run
+    # of them passes masks on at most propagate_frames frames
     backends = ("keypoints", "sam")
     # What process reads (the executor decodes nothing else): the frames, joints and camera
     # of the clip, the robot arm's mask, the cleaned joints.
