@@ -129,7 +129,6 @@ def propagate_backwards(
     certain: np.ndarray | None = None,
     flows: FrameFlows | None = None,
     open_frames: np.ndarray | None = None,
-    cut_frames: np.ndarray | None = None,
 ) -> np.ndarray:
     """Masks ``(T, H, W)`` uint8 with later masks carried back into earlier frames.
 
@@ -141,10 +140,7 @@ def propagate_backwards(
     grey frames and flows of ``frames``, shared with other calls on the same clip (None: made
     here). ``open_frames (T,)`` bool, optional: frames that receive carried masks even though
     their own is not empty (a hand whose keypoints were themselves carried there, see
-    ``carry``); they are still sources for the frames beyond. ``cut_frames (T,)`` bool,
-    optional: frames whose own mask starts no chain, counted as empty (a run of them is a
-    source only up to ``max_frames`` frames from a frame that is not: the stage's frames of an
-    arm up to the top border, whose keypoints are doubtful).
+    ``carry``); they are still sources for the frames beyond.
     """
     p = params or PropagationParams()
     out = masks.astype(np.uint8).copy()
@@ -156,9 +152,6 @@ def propagate_backwards(
     receive = age > 0  # (T,) frames that may gain carried pixels
     if open_frames is not None:
         receive |= np.asarray(open_frames, bool)
-    if cut_frames is not None:
-        age[np.asarray(cut_frames, bool)] = p.max_frames + 1  # as if empty: a chain of them
-        # is cut after max_frames like one of empty frames
     flows = flows or FrameFlows(frames)
     grey_of = flows.grey
     erode = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * p.erode_px + 1,) * 2)
@@ -206,22 +199,20 @@ def propagate_both_ways(
     certain: np.ndarray | None = None,
     flows: FrameFlows | None = None,
     open_frames: np.ndarray | None = None,
-    cut_frames: np.ndarray | None = None,
 ) -> np.ndarray:
     """Masks ``(T, H, W)`` carried backwards and forwards in time (see :func:`propagate_backwards`).
 
     Each direction starts from the frames' own ``masks`` (and ``certain`` parts); the result is
     their union. Both directions share ``flows`` (None: made here). ``open_frames (T,)`` bool,
     optional: frames that receive carried masks although their own is not empty, in both
-    directions; ``cut_frames (T,)`` bool, optional: see :func:`propagate_backwards`.
+    directions.
     """
     flows = flows or FrameFlows(frames)
-    back = propagate_backwards(frames, masks, params, certain, flows, open_frames, cut_frames)
+    back = propagate_backwards(frames, masks, params, certain, flows, open_frames)
     rev = None if certain is None else certain[::-1]
     rev_open = None if open_frames is None else open_frames[::-1]
-    rev_cut = None if cut_frames is None else cut_frames[::-1]
     forward = propagate_backwards(
-        frames[::-1], masks[::-1], params, rev, flows.reversed(), rev_open, rev_cut
+        frames[::-1], masks[::-1], params, rev, flows.reversed(), rev_open
     )[::-1]
     return back | forward
 
@@ -233,15 +224,13 @@ def propagate_hands(
     certain: np.ndarray,
     params: PropagationParams | None = None,
     open_frames: np.ndarray | None = None,
-    cut_frames: np.ndarray | None = None,
 ) -> np.ndarray:
     """Masks ``(T, H, W)`` with each hand's mask carried into the frames that missed that hand.
 
     ``masks (T, H, W)`` every frame's own mask; ``per_hand (T, K, H, W)`` the parts of it that
     belong to hand ``k``; ``certain (T, K, H, W)`` their certain seeds (see ``arm_region``). Hand
     by hand, :func:`propagate_both_ways` carries ``per_hand[:, k]`` into the frames where it is
-    empty, and into those ``open_frames (T, K)`` marks for it (optional; ``cut_frames (T, K)``,
-    optional: see :func:`propagate_backwards`); the result is the union
+    empty, and into those ``open_frames (T, K)`` marks for it (optional); the result is the union
     with ``masks``. Every hand and direction shares one :class:`FrameFlows`, so each flow is
     computed once per clip.
     """
@@ -250,8 +239,5 @@ def propagate_hands(
     for k in range(per_hand.shape[1]):
         if per_hand[:, k].any():
             opened = None if open_frames is None else open_frames[:, k]
-            cut = None if cut_frames is None else cut_frames[:, k]
-            out |= propagate_both_ways(
-                frames, per_hand[:, k], params, certain[:, k], flows, opened, cut
-            )
+            out |= propagate_both_ways(frames, per_hand[:, k], params, certain[:, k], flows, opened)
     return out

@@ -286,9 +286,7 @@ def masks_from_keypoints(
         # neighbours (its arm, from frames where the search found it), joined to its own; so
         # does a short run whose arm would run up to the top border (not drawn: the hand's
         # keypoints are doubtful, HOT3D window 1 t=56-60 a hand turned over on its own forearm).
-        masks = propagate_hands(
-            frames, masks, per_hand, certain, params, carried | opened_top, opened_top
-        )
+        masks = propagate_hands(frames, masks, per_hand, certain, params, carried | opened_top)
     if config.grow_margin_m > 0 and config.colour_refine:
         grow = GrowParams(config.grow_margin_m, radius_scale=config.radius_scale)
         masks = grow_masks(frames, masks, keypoints, valid, grow)
@@ -417,9 +415,7 @@ class HandMaskStage(ClipStage):
     # the same hand that is not is left undrawn and opened to propagation (short_top_runs);
     # longer runs, or runs with no such frame, draw their arm as v21 (review11b finding 1);
     # and the rule can be turned off (HandMaskConfig.no_arm_from_top) and is never applied to a
-    # clip whose cameras row says the camera is static (static_camera; review11b finding 2);
-    # an opened top-border frame counts as empty in propagation's chain (cut_frames), so a run
-    # of them passes masks on at most propagate_frames frames
+    # clip whose cameras row says the camera is static (static_camera; review11b finding 2)
     backends = ("keypoints", "sam")
     # What process reads (the executor decodes nothing else): the frames, joints and camera
     # of the clip, the robot arm's mask, the cleaned joints.
