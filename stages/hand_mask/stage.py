@@ -433,6 +433,7 @@ class HandMaskStage(ClipStage):
                 "embodiment_mask",
             ),
             "hands": ("num_frames", "hand_joints", "hand_valid", "hand_confidence"),
+            "cameras": ("static_camera", "camera_model"),  # static_camera(): no top-border rule
         },
         CAMERA_COLUMNS,
     )
