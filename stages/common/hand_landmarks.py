@@ -113,7 +113,7 @@ def detect_hand_landmarks(
     """Run MediaPipe Hands on ``frames (T, H, W, 3)`` uint8 RGB, in order (full frame + tiles)."""
     params = params or HandLandmarkParams()
     mp = import_mediapipe()
-    t, h, w = frames.shape[:3]
+    t = frames.shape[0]
     out = RawLandmarks(
         uv=np.full((t, MAX_HANDS, NUM_JOINTS, 2), np.nan),
         world=np.full((t, MAX_HANDS, NUM_JOINTS, 3), np.nan),
@@ -136,19 +136,7 @@ def detect_hand_landmarks(
     try:
         for i in range(t):
             frame = np.ascontiguousarray(frames[i])
-            found = _hands_in(full, frame, (0, 0, w, h), params.swap_labels)
-            for hands, box in zip(tiled, params.tiles, strict=True):
-                if len(found) >= 2:  # both hands found: tiles cannot add one
-                    break
-                x0, y0 = round(box[0] * w), round(box[1] * h)
-                x1, y1 = round(box[2] * w), round(box[3] * h)
-                crop = frame[y0:y1, x0:x1]
-                if params.tile_zoom != 1.0:
-                    crop = cv2.resize(crop, None, fx=params.tile_zoom, fy=params.tile_zoom)
-                tile = _hands_in(hands, crop, (x0, y0, x1 - x0, y1 - y0), params.swap_labels)
-                tile = [d for d in tile if inside_tile(d[0], (x0, y0, x1, y1), (w, h))]
-                found = merge_tile_detections(found, tile, params.duplicate_distance)
-            per_frame.append(found)
+            per_frame.append(_search(full, tiled, frame, None, params))
     finally:
         for hands in (full, *tiled):
             hands.close()
@@ -165,6 +153,42 @@ def detect_hand_landmarks(
             frames, out.uv, out.world, out.label_right, out.present, model, params.track
         )
     return out
+
+
+def _search(
+    full,
+    tiled: list,
+    image: np.ndarray,
+    found: list[Detection] | None,
+    params: HandLandmarkParams,
+    sides: set[bool] | None = None,
+) -> list[Detection]:
+    """The hands the palm detector finds in ``image (H, W, 3)``: the whole frame with ``full``,
+    then, while fewer than two hands are kept, each of ``params.tiles`` zoomed with its detector
+    in ``tiled`` (a tile hand must lie inside its tile; the earlier source wins a duplicate).
+    ``found``: hands already kept (merged first), or None to start from the whole frame's hands
+    as they are; ``sides`` (True: right, by the label): only hands of these sides are added."""
+    h, w = image.shape[:2]
+
+    def wanted(dets: list[Detection]) -> list[Detection]:
+        return dets if sides is None else [d for d in dets if (d[2] > 0.5) in sides]
+
+    whole = wanted(_hands_in(full, image, (0, 0, w, h), params.swap_labels))
+    found = (
+        whole if found is None else merge_tile_detections(found, whole, params.duplicate_distance)
+    )
+    for hands, box in zip(tiled, params.tiles, strict=True):
+        if len(found) >= MAX_HANDS:  # both hands found: tiles cannot add one
+            break
+        x0, y0 = round(box[0] * w), round(box[1] * h)
+        x1, y1 = round(box[2] * w), round(box[3] * h)
+        crop = image[y0:y1, x0:x1]
+        if params.tile_zoom != 1.0:
+            crop = cv2.resize(crop, None, fx=params.tile_zoom, fy=params.tile_zoom)
+        tile = _hands_in(hands, crop, (x0, y0, x1 - x0, y1 - y0), params.swap_labels)
+        tile = wanted([d for d in tile if inside_tile(d[0], (x0, y0, x1, y1), (w, h))])
+        found = merge_tile_detections(found, tile, params.duplicate_distance)
+    return found
 
 
 def _sides(per_frame: list[list[Detection]]) -> set[bool]:
@@ -191,7 +215,6 @@ def _stretched_pass(
     labelled with a side the first pass found is not added (on DWM 00013 darkened and
     ingested, adding those too took the right hand's track onto the left hand: right recall
     0.958 -> 0.542)."""
-    h, w = frames.shape[1:3]
     hands = make(params.video_mode)
     tiled = [make(False) for _ in params.tiles]
     merged = []
@@ -200,27 +223,7 @@ def _stretched_pass(
             if len(found) < MAX_HANDS:
                 image = stretched_frame(frame, params.stretch_gain)
                 if image is not None:
-                    extra = _hands_in(hands, image, (0, 0, w, h), params.swap_labels)
-                    extra = [d for d in extra if (d[2] > 0.5) in missing]
-                    found = merge_tile_detections(found, extra, params.duplicate_distance)
-                    for tiler, box in zip(tiled, params.tiles, strict=True):
-                        if len(found) >= MAX_HANDS:
-                            break
-                        x0, y0 = round(box[0] * w), round(box[1] * h)
-                        x1, y1 = round(box[2] * w), round(box[3] * h)
-                        crop = image[y0:y1, x0:x1]
-                        if params.tile_zoom != 1.0:
-                            crop = cv2.resize(crop, None, fx=params.tile_zoom, fy=params.tile_zoom)
-                        tile = _hands_in(
-                            tiler, crop, (x0, y0, x1 - x0, y1 - y0), params.swap_labels
-                        )
-                        tile = [
-                            d
-                            for d in tile
-                            if inside_tile(d[0], (x0, y0, x1, y1), (w, h))
-                            and (d[2] > 0.5) in missing
-                        ]
-                        found = merge_tile_detections(found, tile, params.duplicate_distance)
+                    found = _search(hands, tiled, image, found, params, missing)
             merged.append(found)
     finally:
         for one in (hands, *tiled):
