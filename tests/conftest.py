@@ -148,6 +148,35 @@ def shared_data(*parts: str) -> Path:
     return path
 
 
+def egodex_portrait_frames() -> np.ndarray:
+    """``(33, 480, 832, 3)``: the EgoDex portrait variant's frames (docs/design.md, "Hands: the
+    curtain hand, scene cues"), rebuilt without either lossy encode: the sample's centre 9:16
+    cut at 1080x1920, ingest's 480x832 band at 0.625, 33 frames at 16 fps. Skips without
+    ../shared/data."""
+    import cv2
+
+    from egosim.stages.common.frame_plan import plan_resize
+
+    video, stamps = media.read_video_file(shared_data("egodex_sample", "sample.mp4"))
+    stamps = np.asarray(stamps) - stamps[0]
+    pick = [int(np.abs(stamps - t).argmin()) for t in np.arange(33) / 16.0]
+    h, w = video.shape[1:3]
+    cut = round(h * 9 / 16)
+    plan = plan_resize(1080, 1920, 832, 480, (0.5, 0.625))
+    return np.stack(
+        [
+            plan.apply(
+                cv2.resize(
+                    video[i][:, (w - cut) // 2 : (w - cut) // 2 + cut],
+                    (1080, 1920),
+                    interpolation=cv2.INTER_AREA,
+                )
+            )
+            for i in pick
+        ]
+    )
+
+
 def one_shard_task(
     stage: str,
     out_dir: Path,

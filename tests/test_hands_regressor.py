@@ -42,7 +42,7 @@ from egosim.stages.hands.regressor_backend import (  # noqa: E402
 from egosim.stages.hands.stage import HandsConfig  # noqa: E402
 from egosim.world.clip import render_clip  # noqa: E402
 from egosim.world.config import WorldConfig  # noqa: E402
-from tests.conftest import shared_data  # noqa: E402
+from tests.conftest import egodex_portrait_frames  # noqa: E402
 from tests.test_hands import hands_row  # noqa: E402
 from tests.test_mano import tiny_mano  # noqa: E402
 
@@ -230,33 +230,11 @@ def test_default_boxes_come_from_mediapipe(weights: Path, clip) -> None:
 
 def egodex_portrait_clip() -> Clip:
     """The EgoDex portrait variant's frames (docs/design.md, "Hands: the curtain hand, scene
-    cues"), rebuilt without either lossy encode as test_hands_tracking's curtain test builds
-    them: the sample's centre 9:16 cut, 1080x1920, ingest's 480x832 band at 0.625, 33 frames at
-    16 fps; a 90-degree camera, no poses."""
-    import cv2
-
+    cues"; ``tests.conftest.egodex_portrait_frames``, as test_hands_tracking's curtain test
+    uses them) at 16 fps; a 90-degree camera, no poses."""
     from egosim.pipeline.geometry import intrinsics_from_fov
-    from egosim.pipeline.media import read_video_file
-    from egosim.stages.common.frame_plan import plan_resize
 
-    video, stamps = read_video_file(shared_data("egodex_sample", "sample.mp4"))
-    stamps = np.asarray(stamps) - stamps[0]
-    pick = [int(np.abs(stamps - t).argmin()) for t in np.arange(33) / 16.0]
-    h, w = video.shape[1:3]
-    cut = round(h * 9 / 16)
-    plan = plan_resize(1080, 1920, 832, 480, (0.5, 0.625))
-    frames = np.stack(
-        [
-            plan.apply(
-                cv2.resize(
-                    video[i][:, (w - cut) // 2 : (w - cut) // 2 + cut],
-                    (1080, 1920),
-                    interpolation=cv2.INTER_AREA,
-                )
-            )
-            for i in pick
-        ]
-    )  # (33, 480, 832, 3)
+    frames = egodex_portrait_frames()  # (33, 480, 832, 3)
     return Clip(
         clip_id="egodex_portrait",
         source="video",

@@ -30,7 +30,7 @@ from egosim.stages.common.roi_landmarks import (
     track_through_misses,
 )
 from egosim.stages.hands.mediapipe_backend import hand_centres, hand_size
-from tests.conftest import shared_data
+from tests.conftest import egodex_portrait_frames, shared_data
 
 DWM_FPS = 8.0  # frame rate of the DWM real-world clips
 
@@ -599,11 +599,7 @@ def test_curtain_fold_of_the_egodex_portrait_cut_is_not_a_hand() -> None:
     none, and the real right hand is still found (measured 24 frames)."""
     from dataclasses import replace
 
-    import cv2
-
     from egosim.pipeline.geometry import intrinsics_from_fov
-    from egosim.pipeline.media import read_video_file
-    from egosim.stages.common.frame_plan import plan_resize
     from egosim.stages.hands.mediapipe_backend import (
         MediaPipeParams,
         detect_landmarks,
@@ -611,24 +607,7 @@ def test_curtain_fold_of_the_egodex_portrait_cut_is_not_a_hand() -> None:
     )
 
     pytest.importorskip("mediapipe")
-    video, stamps = read_video_file(shared_data("egodex_sample", "sample.mp4"))
-    stamps = np.asarray(stamps) - stamps[0]
-    pick = [int(np.abs(stamps - t).argmin()) for t in np.arange(33) / 16.0]
-    h, w = video.shape[1:3]
-    cut = round(h * 9 / 16)
-    plan = plan_resize(1080, 1920, 832, 480, (0.5, 0.625))
-    frames = np.stack(
-        [
-            plan.apply(
-                cv2.resize(
-                    video[i][:, (w - cut) // 2 : (w - cut) // 2 + cut],
-                    (1080, 1920),
-                    interpolation=cv2.INTER_AREA,
-                )
-            )
-            for i in pick
-        ]
-    )  # (33, 480, 832, 3)
+    frames = egodex_portrait_frames()  # (33, 480, 832, 3)
     k = intrinsics_from_fov(832, 480, 90.0)
     params = MediaPipeParams()
     raw = detect_landmarks(frames, params)
