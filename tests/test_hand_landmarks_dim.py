@@ -74,8 +74,21 @@ def test_well_exposed_frames_are_not_searched_again(monkeypatch) -> None:
     monkeypatch.setattr(hand_landmarks, "_hands_in", counted)
     plain = _hands(bright, 1.0)
     n_plain = len(calls)
+    # The first pass on these frames finds both sides (frame 33's left hand is labelled right),
+    # so the pass would not run at all: make the right side count as missing, and count the
+    # pass's entries, so that only the gain gate can keep the frames from a second search.
+    monkeypatch.setattr(hand_landmarks, "_sides", lambda per_frame: {False})
+    entered = []
+    real_pass = hand_landmarks._stretched_pass
+
+    def counted_pass(*args, **kwargs):
+        entered.append(1)
+        return real_pass(*args, **kwargs)
+
+    monkeypatch.setattr(hand_landmarks, "_stretched_pass", counted_pass)
     stretched = _hands(bright, 4.0)
-    assert len(calls) == 2 * n_plain  # no frame searched a second time
+    assert entered == [1]  # the pass ran ...
+    assert len(calls) == 2 * n_plain  # ... and searched no frame a second time
     np.testing.assert_array_equal(stretched.present, plain.present)
     np.testing.assert_array_equal(stretched.uv, plain.uv)
     calls.clear()
