@@ -35,8 +35,9 @@ Backends:
 - ``sam``: a SAM-family model from ``sam_model_path`` through transformers, prompted with the
   keypoints and the capsule mask's box (see ``sam``).
 
-The clip's black border (pixels black in every frame: a letterbox bar with its compression
-ringing, the outside of a fisheye circle; see ``border``) is never masked: it is not picture.
+With the ``keypoints`` backend the clip's black border (pixels black in every frame: a
+letterbox bar with its compression ringing, the outside of a fisheye circle; see ``border``) is
+never masked: it is not picture.
 
 A robot clip's ``embodiment_mask`` (the arm's silhouette ingest rendered from its URDF and joint
 states, clips v4) is added to every backend's masks: the arm is removed from the hand-free first
@@ -96,7 +97,8 @@ class HandMaskConfig(StageConfig):
     grabcut_iterations: int = 3  # GrabCut iterations per frame
     grabcut_max_side: int = 256  # GrabCut works on a region downscaled to this longest side
     carry_frames: int = 8  # track a missed hand's keypoints this many frames from a frame
-    # that found it, backwards and forwards (0: off; see carry)
+    # that found it, backwards and forwards (0: off; see carry); also the longest run of arms
+    # up to the top border left undrawn for their neighbours' mask (short_top_runs; 0: none)
     propagate_frames: int = 8  # carry each hand's mask this many frames backwards and forwards
     # in time by optical flow, into frames that missed that hand (0 or colour_refine False:
     # off; see propagate)
@@ -105,7 +107,8 @@ class HandMaskConfig(StageConfig):
     # colour_refine False: off; see grow)
     min_joint_confidence: float = 0.0  # joints with lower confidence are ignored
     border: bool = True  # the clip's black border (pixels black in every frame: a letterbox
-    # bar, the outside of a fisheye circle; see border) is never masked (False: v22's masks)
+    # bar, the outside of a fisheye circle; see border) is never masked by the keypoints
+    # backend (False: border pixels are masked like any other)
     no_arm_from_top: bool = True  # an arm whose ray from the wrist leaves through the top
     # border is not drawn (forearms enter a head-worn view from the bottom or the sides; see
     # arm_region.leaves_through_top). Off for fixed or third-person cameras: an arm may enter
@@ -415,7 +418,8 @@ class HandMaskStage(ClipStage):
     # the same hand that is not is left undrawn and opened to propagation (short_top_runs);
     # longer runs, or runs with no such frame, draw their arm as v21 (review11b finding 1);
     # and the rule can be turned off (HandMaskConfig.no_arm_from_top) and is never applied to a
-    # clip whose cameras row says the camera is static (static_camera; review11b finding 2)
+    # clip whose cameras row says the camera is static (static_camera; review11b finding 2);
+    # and a clip under BorderParams.min_frames (5) frames has no border (review11d)
     backends = ("keypoints", "sam")
     # What process reads (the executor decodes nothing else): the frames, joints and camera
     # of the clip, the robot arm's mask, the cleaned joints.
