@@ -1509,3 +1509,12 @@ def test_arm_from_the_top_kept_when_the_rule_is_off_or_the_camera_static(monkeyp
     for static in (False, True):
         HandMaskStage().masks_for_clip(clip, static_camera=static)
     assert [c.no_arm_from_top for c in seen] == [True, False]
+
+
+def test_true_runs_gives_each_run_of_true_frames() -> None:
+    from egosim.stages.hand_mask.arm_region import true_runs
+
+    assert true_runs(np.array([0, 1, 1, 0, 1], bool)) == [(1, 3), (4, 5)]
+    assert true_runs(np.array([1, 1, 1], bool)) == [(0, 3)]
+    assert true_runs(np.zeros(4, bool)) == []
+    assert true_runs(np.zeros(0, bool)) == []

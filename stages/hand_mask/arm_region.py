@@ -874,17 +874,17 @@ def off_side_runs(steady: np.ndarray, off_side: np.ndarray) -> np.ndarray:
     off = np.asarray(off_side, bool)  # (T, K)
     out = np.zeros(replaced.shape, bool)
     for k in range(replaced.shape[1]):
-        t = 0
-        while t < len(replaced):
-            if not replaced[t, k]:
-                t += 1
-                continue
-            q = t
-            while q < len(replaced) and replaced[q, k]:
-                q += 1
+        for t, q in true_runs(replaced[:, k]):
             out[t:q, k] = off[t:q, k].any()
-            t = q
     return out
+
+
+def true_runs(mask: np.ndarray) -> list[tuple[int, int]]:
+    """``[(start, end), ...]``: the runs of consecutive True frames of ``mask (T,)``, ``end``
+    exclusive, in order."""
+    padded = np.concatenate([[False], np.asarray(mask, bool), [False]])  # (T+2,)
+    edges = np.flatnonzero(padded[1:] != padded[:-1])  # run starts and ends, alternating
+    return list(zip(edges[::2].tolist(), edges[1::2].tolist(), strict=True))
 
 
 def steady_directions(
@@ -966,21 +966,13 @@ def _hold_track_ends(
     frames on both sides is left to the runs bracketed by agreeing frames.
     """
     t_count = len(drawn)
-    t = 0
-    while t < t_count:
-        if not (off[t] and has[t] and not np.isfinite(out[t, 0])):
-            t += 1
-            continue
-        q = t
-        while q < t_count and off[q] and has[q] and not np.isfinite(out[q, 0]):
-            q += 1
+    for t, q in true_runs(off & has & ~np.isfinite(out[:, 0])):  # runs not replaced yet
         before = t > 0 and bool(has[t - 1])
         after = q < t_count and bool(has[q])
         if q - t <= max_frames and before != after:
             src = drawn[t - 1 if before else q]  # (2,) not off-side, or already replaced
             if all(_turn_deg(drawn[r], src) > jump_deg for r in range(t, q)):
                 out[t:q] = src
-        t = q
 
 
 def masks_from_labels(

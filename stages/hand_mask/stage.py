@@ -76,6 +76,7 @@ from egosim.stages.hand_mask.arm_region import (
     masks_from_labels,
     off_side_runs,
     steady_directions,
+    true_runs,
 )
 from egosim.stages.hand_mask.border import BorderParams, not_image
 from egosim.stages.hand_mask.capsules import CapsuleParams, draw_hands
@@ -172,18 +173,10 @@ def short_top_runs(top: np.ndarray, valid: np.ndarray, max_run: int) -> np.ndarr
     out = np.zeros(top.shape, bool)
     n = len(top)
     for k in range(top.shape[1]):
-        t = 0
-        while t < n:
-            if not top[t, k]:
-                t += 1
-                continue
-            end = t
-            while end < n and top[end, k]:
-                end += 1  # the run is [t, end)
+        for t, end in true_runs(top[:, k]):
             source = (t > 0 and valid[t - 1, k]) or (end < n and valid[end, k])
             if end - t <= max_run and source:
                 out[t:end, k] = True
-            t = end
     return out
 
 
