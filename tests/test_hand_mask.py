@@ -1495,9 +1495,11 @@ def test_arm_from_the_top_kept_when_the_rule_is_off_or_the_camera_static(monkeyp
     assert off[1:, hand > 0].mean() > 0.8
 
     # A static camera's clip (its cameras row) is masked with the rule off.
-    assert stage.static_camera({"cameras": {"static_camera": True, "camera_model": "static"}})
-    assert not stage.static_camera({"cameras": {"static_camera": False, "camera_model": "full"}})
-    assert not stage.static_camera({"clips": {}})
+    from egosim.stages.common.cameras import camera_is_static
+
+    assert camera_is_static({"cameras": {"static_camera": True, "camera_model": "static"}})
+    assert not camera_is_static({"cameras": {"static_camera": False, "camera_model": "full"}})
+    assert not camera_is_static({"clips": {}})
     seen: list[HandMaskConfig] = []
 
     def spy(f: np.ndarray, k: np.ndarray, v: np.ndarray, cfg: HandMaskConfig) -> np.ndarray:

@@ -41,6 +41,9 @@ DEPTH0_COLUMNS: dict[str, tuple[str, ...]] = {
     "cameras": ("depth0", "depth_unit_m", "static_camera", "camera_model"),
 }
 
+# The column camera_is_static reads.
+STATIC_COLUMNS: dict[str, tuple[str, ...]] = {"cameras": ("static_camera",)}
+
 
 @dataclass(frozen=True)
 class Cameras:
@@ -101,6 +104,13 @@ def resolve_cameras(rows: Mapping[str, Mapping[str, Any]]) -> Cameras:
         if row is not None and row.get("world_from_cam") is not None:
             return Cameras(intrinsics, _poses(row, t, cid, role), role)
     return Cameras(intrinsics, None, "none")
+
+
+def camera_is_static(rows: Mapping[str, Mapping[str, Any]]) -> bool:
+    """Whether the connected ``cameras`` row says the clip's camera is fixed (``static_camera``;
+    the schema keeps it equal to ``camera_model == "static"``); False without a cameras row."""
+    cams = rows.get("cameras")
+    return cams is not None and bool(cams.get("static_camera"))
 
 
 def depth_is_unknown_by_model(rows: Mapping[str, Mapping[str, Any]]) -> bool:

@@ -67,7 +67,13 @@ from egosim.pipeline.stage import (
 from egosim.schemas import CLIPS, ShardSchema
 from egosim.schemas.hand_mask import HAND_MASK
 from egosim.schemas.hands import HANDS
-from egosim.stages.common.cameras import CAMERA_COLUMNS, CAMERA_ROLES, resolve_cameras
+from egosim.stages.common.cameras import (
+    CAMERA_COLUMNS,
+    CAMERA_ROLES,
+    STATIC_COLUMNS,
+    camera_is_static,
+    resolve_cameras,
+)
 from egosim.stages.hand_mask.arm_region import (
     ArmParams,
     arms_through_top,
@@ -178,16 +184,6 @@ def short_top_runs(top: np.ndarray, valid: np.ndarray, max_run: int) -> np.ndarr
             if end - t <= max_run and source:
                 out[t:end, k] = True
     return out
-
-
-def static_camera(rows: Mapping[str, Mapping[str, Any]]) -> bool:
-    """Whether the ``cameras`` row (when connected) says the clip's camera is fixed
-    (``static_camera``, or ``camera_model`` "static": real_s27b's pour_coke, lift_tumbler): not
-    head-worn, so an arm may enter its view from the top."""
-    cams = rows.get("cameras")
-    if cams is None:
-        return False
-    return bool(cams.get("static_camera")) or cams.get("camera_model") == "static"
 
 
 def masks_from_keypoints(
@@ -430,9 +426,9 @@ class HandMaskStage(ClipStage):
                 "embodiment_mask",
             ),
             "hands": ("num_frames", "hand_joints", "hand_valid", "hand_confidence"),
-            "cameras": ("static_camera", "camera_model"),  # static_camera(): no top-border rule
         },
         CAMERA_COLUMNS,
+        STATIC_COLUMNS,  # camera_is_static: a fixed camera skips the top-border rule
     )
 
     def __init__(self, config: StageConfig | None = None) -> None:
@@ -490,7 +486,7 @@ class HandMaskStage(ClipStage):
             valid,
             confidence,
         )
-        masks = self.masks_for_clip(inputs, static_camera(rows))
+        masks = self.masks_for_clip(inputs, camera_is_static(rows))
         robot = clip.mask_video("embodiment_mask")  # (T, H, W) a robot arm from its URDF (ingest)
         if robot is not None:
             masks = np.maximum(masks, robot.astype(masks.dtype))

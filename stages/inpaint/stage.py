@@ -45,7 +45,7 @@ import cv2
 import numpy as np
 
 from egosim.pipeline import media
-from egosim.pipeline.records import ClipsRecord, DepthCameraRecord, HandMaskRecord
+from egosim.pipeline.records import ClipsRecord, HandMaskRecord
 from egosim.pipeline.stage import ClipRejected, ClipStage, ConfigError, StageConfig, join_columns
 from egosim.schemas import CLIPS, ShardSchema
 from egosim.schemas.hand_mask import HAND_MASK
@@ -59,6 +59,7 @@ from egosim.stages.common.cameras import (
     CAMERA_COLUMNS,
     CAMERA_ROLES,
     DEPTH0_COLUMNS,
+    camera_is_static,
     first_frame_confidence,
     first_frame_depth,
     resolve_cameras,
@@ -326,7 +327,7 @@ class InpaintStage(ClipStage):
         confidence = None  # (H, W) of the cameras row's depth0, the depth first_frame_depth took
         if depth0 is not None and cam_row is not None and cam_row.get("depth0") is not None:
             confidence = first_frame_confidence(rows, depth0.shape)
-        static = cam_row is not None and DepthCameraRecord.of(cam_row).static_camera
+        static = camera_is_static(rows)
         cams = resolve_cameras(rows)
         # Per-frame depth (agreement test) only from the clip, and only when no other role
         # supplies the cameras' depth (see the module docstring).
