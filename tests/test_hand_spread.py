@@ -194,9 +194,9 @@ def test_unsteady_small_hands_lose_their_3d_against_truth(model) -> None:
     test (hands v15) the palm-PnP hands that keep their 3D are measured against the true joints:
     v14 28.3 degrees / 43.0 mm at 3D coverage 0.746, v15 17.5 / 32.2 at 0.664."""
     from egosim.stages.hands.mediapipe_backend import detect_landmarks, hands_from_raw
-    from egosim.stages.hands.metrics import hand_accuracy
     from egosim.world.clip import render_clip
     from egosim.world.config import WorldConfig
+    from tests.test_hands_mediapipe import clip_accuracy
 
     clip = render_clip(WorldConfig(seed=1, mode="tabletop"))
     params = MediaPipeParams()
@@ -206,17 +206,7 @@ def test_unsteady_small_hands_lose_their_3d_against_truth(model) -> None:
         res = hands_from_raw(
             raw, clip.width, clip.intrinsics, None, None, p, fps=clip.fps, frames=clip.frames
         )
-        figures[name] = hand_accuracy(
-            res.joints,
-            res.landmarks.uv,
-            res.valid,
-            clip.hand_joints,
-            clip.hand_valid,
-            clip.world_from_cam,
-            clip.intrinsics,
-            (clip.width, clip.height),
-            lifted=res.lifted,
-        ).summary()
+        figures[name] = clip_accuracy(res, clip, lifted=res.lifted)
     new, old = figures["v15"], figures["v14"]
     assert new["recall"] == old["recall"]  # the 2D stays: only the 3D is withheld
     assert new["orientation_deg"] <= 20.0 and new["mpjpe_mm"] <= 36.0, new

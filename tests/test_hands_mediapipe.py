@@ -94,6 +94,24 @@ def test_translation_placement_recovers_a_known_hand() -> None:
     assert np.abs(fixed - truth).max() < 0.01
 
 
+def clip_accuracy(res, clip: Clip, lifted: np.ndarray | None = None) -> dict:
+    """``hand_accuracy(...).summary()`` of a ``hands_from_raw`` result against a synthetic
+    ``clip``'s true hands (``lifted``: the hand-frames with a trusted 3D hand, None = all)."""
+    from egosim.stages.hands.metrics import hand_accuracy
+
+    return hand_accuracy(
+        res.joints,
+        res.landmarks.uv,
+        res.valid,
+        clip.hand_joints,
+        clip.hand_valid,
+        clip.world_from_cam,
+        clip.intrinsics,
+        (clip.width, clip.height),
+        lifted=lifted,
+    ).summary()
+
+
 def _template_hand(right: bool) -> np.ndarray:
     """A hand ``(21, 3)`` in its own frame (x to the fingers, y to the thumb of a right hand, z out
     of the back) whose palm is exactly ``PALM_TEMPLATE``; fingers curl towards the palm (-z)."""
@@ -695,7 +713,6 @@ def test_synthetic_world_3d_against_true_joints(mediapipe: object) -> None:
     orientation 10.8 degrees, MPJPE 24.2 mm; translation-only 78 degrees, 141 mm.
     """
     from egosim.stages.hands.mediapipe_backend import hands_from_raw
-    from egosim.stages.hands.metrics import hand_accuracy
     from egosim.world.clip import render_clip
     from egosim.world.config import WorldConfig
 
@@ -708,17 +725,7 @@ def test_synthetic_world_3d_against_true_joints(mediapipe: object) -> None:
         res = hands_from_raw(
             raw, clip.width, clip.intrinsics, None, None, p, fps=clip.fps, frames=clip.frames
         )
-        acc = hand_accuracy(
-            res.joints,
-            res.landmarks.uv,
-            res.valid,
-            clip.hand_joints,
-            clip.hand_valid,
-            clip.world_from_cam,
-            clip.intrinsics,
-            (clip.width, clip.height),
-        )
-        figures[lift] = acc.summary()
+        figures[lift] = clip_accuracy(res, clip)
     new, old = figures["palm_pnp"], figures["translation"]
     assert new["recall"] >= 0.35 and new["false_positive"] <= 2, new
     assert new["error_2d_px"] < 20.0, new
