@@ -30,9 +30,12 @@ before the last change; alt tabletop 7 and wild 8 are held out.
   from true joints, the clip's depth and poses) in the true hand+arm region of frame 0, against
   ``first_frame_clean``; ``telea``: OpenCV Telea given the true mask (dilated 2 px).
 
-Real DWM clips (``dwm_realworld/realworld_dynamic``; no cameras or depth: masks from MediaPipe 2D
+Real DWM clips (``dwm_realworld/realworld_dynamic``, every clip there:
+:func:`bench.real_clips.dwm_dynamic_ids`; no cameras or depth: masks from MediaPipe 2D
 landmarks, fill by the image-aligned path). Hand truth: ``videos_hands`` pixels brighter than 30
-(rendered hands, no arms; the render misses the hands in some frames).
+(rendered hands, no arms; the render misses the hands in some frames). A clip without its
+``videos_hands`` twin gets its mask figures as ``n/a``, one without ``videos_static`` its fill
+figures.
 
 - ``recall``: the fraction of hand-truth pixels (all frames) inside the mask; ``recall_3px``:
   within 3 px of it. The render is a hand mesh drawn without the scene: it covers fingers hidden
@@ -72,9 +75,10 @@ and how much of frame 0 the fill changed (pixels off by more than ``CHANGED_LEVE
 the hand-free frame 0 against frame 0 itself; where frame 0 shows no hand, as on pour_coke, any
 change is a false mask's ghost, which the static-camera scene video repeats in every frame).
 
-Real fixed-camera videos (``dwm_realworld/realworld_fixed``, no truth): the static-camera path of
-the default ``inpaint`` backend (temporal median), see :func:`fixed_case`. ``--selfie`` scores
-MediaPipe's selfie-segmentation model alone as a hand+arm cue (see :func:`selfie_cases`).
+Real fixed-camera videos (every ``dwm_realworld/realworld_fixed/*.mp4``, no truth): the
+static-camera path of the default ``inpaint`` backend (temporal median), see
+:func:`fixed_case`. ``--selfie`` scores MediaPipe's selfie-segmentation model alone as a
+hand+arm cue (see :func:`selfie_cases`).
 """
 
 from __future__ import annotations
@@ -89,6 +93,7 @@ from typing import Any, NamedTuple
 import cv2
 import numpy as np
 
+from bench import real_clips
 from bench.real_video import (
     DEFAULT_DATA,
     HAND_DILATE_PX,
@@ -110,7 +115,7 @@ from egosim.stages.inpaint.reproject_fill import dilate, opencv_fill
 from egosim.stages.inpaint.stage import InpaintConfig, InpaintStage
 from egosim.world import WorldConfig, render_clip
 
-DWM = "dwm_realworld/realworld_dynamic"
+DWM = real_clips.DWM_DYNAMIC  # the DWM dynamic clips' folder (found by bench.real_clips)
 FAR_PX = 50  # mask farther than this from a hand or its arm corridor is a false positive
 MIN_HAND_FRACTION = 0.003  # a frame "shows a hand" when this fraction of it is hand truth
 CHANGED_LEVELS = 20  # a frame-0 pixel the fill moved by more than this (any channel) is changed
@@ -285,46 +290,77 @@ def filled_region(masks: np.ndarray, config: InpaintConfig | None = None) -> np.
 
 
 class DwmTruth(NamedTuple):
-    """One real DWM clip and its truth."""
+    """One real DWM clip and its truth (a twin the data folder lacks is None)."""
 
     video: np.ndarray  # (T, H, W, 3) uint8: the real video
-    static: np.ndarray  # (T, H, W, 3) uint8: videos_static registered onto the real frames
+    static: np.ndarray | None  # (T, H, W, 3) uint8: videos_static registered onto the real frames
     inside: np.ndarray  # (H, W) bool: pixels the registered static video covers
-    hands: np.ndarray  # (T, H, W) bool: the videos_hands render's hand pixels
+    hands: np.ndarray | None  # (T, H, W) bool: the videos_hands render's hand pixels
     shift: tuple[float, float]  # (dx, dy) px that registered videos_static
 
 
 def dwm_truth(cid: str, data: Path) -> DwmTruth:
-    """Read DWM clip ``cid`` with its static-scene video (registered) and hand renders."""
-    folder = data / DWM
-    video, _ = media.read_video_file(folder / "videos" / f"{cid}.mp4")
-    static, _ = media.read_video_file(folder / "videos_static" / f"{cid}.mp4")
-    hands_video, _ = media.read_video_file(folder / "videos_hands" / f"{cid}.mp4")
-    # videos_static is offset from the real frames by its principal point: register it by the
-    # shift that moves static frame 0 onto real frame 0 (no hand in either). videos_hands is not
-    # offset (at t=10 of both clips its hands sit where the real frame differs from the
-    # registered static one with no shift), so it is used as it is.
-    dx, dy = truth_shift(video[0], static[0])
-    static = np.stack([_shift(f, dx, dy) for f in static])
-    inside = _shift(np.full(video.shape[1:3], 255, np.uint8), dx, dy) == 255  # (H, W)
-    hands = hands_video.max(axis=3) > HAND_RENDER_THRESHOLD  # (T, H, W)
-    return DwmTruth(video, static, inside, hands, (dx, dy))
+    """Read DWM clip ``cid`` with its static-scene video (registered) and hand renders.
+
+    A twin missing from the data folder (:func:`bench.real_clips.dwm_dynamic_clips`) comes back
+    as None, and the figures that need it are n/a. Twins of another length than the video are
+    cut, with the video, to the shortest (said once).
+    """
+    found = [c for c in real_clips.dwm_dynamic_clips(data) if c.clip_id == cid]
+    if not found:
+        raise FileNotFoundError(f"no DWM dynamic clip {cid!r} under {data / DWM}")
+    clip = found[0]
+    video, _ = media.read_video_file(data / clip.video)
+    static = media.read_video_file(data / clip.static)[0] if clip.static else None
+    hands_video = media.read_video_file(data / clip.hands)[0] if clip.hands else None
+    lengths = [len(v) for v in (video, static, hands_video) if v is not None]
+    if len(set(lengths)) > 1:
+        print(f"dwm {cid}: video and truth twins of {lengths} frames: cut to {min(lengths)}")
+        video = video[: min(lengths)]
+        static = None if static is None else static[: min(lengths)]
+        hands_video = None if hands_video is None else hands_video[: min(lengths)]
+    dx, dy = 0.0, 0.0
+    inside = np.ones(video.shape[1:3], bool)  # (H, W)
+    if static is not None:
+        # videos_static is offset from the real frames by its principal point: register it by
+        # the shift that moves static frame 0 onto real frame 0 (no hand in either).
+        # videos_hands is not offset (at t=10 of both clips its hands sit where the real frame
+        # differs from the registered static one with no shift), so it is used as it is.
+        dx, dy = truth_shift(video[0], static[0])
+        static = np.stack([_shift(f, dx, dy) for f in static])
+        inside = _shift(np.full(video.shape[1:3], 255, np.uint8), dx, dy) == 255  # (H, W)
+    hands = None if hands_video is None else hands_video.max(axis=3) > HAND_RENDER_THRESHOLD
+    return DwmTruth(video, static, inside, hands, (dx, dy))  # hands: (T, H, W)
+
+
+def _num(value: float | None, spec: str) -> str:
+    """``value`` formatted by ``spec``, or ``n/a`` for a figure with no truth (None or NaN)."""
+    return "n/a" if value is None or not np.isfinite(value) else format(value, spec)
 
 
 def dwm_case(cid: str, data: Path, out: Path) -> dict:
-    """Figures of one real DWM clip (see the module docstring)."""
+    """Figures of one real DWM clip (see the module docstring). Without ``videos_hands`` the
+    mask figures are NaN (no truth) and the fill is measured from frame 0; without
+    ``videos_static`` the fill figures are NaN."""
     video, static, inside, hands, (dx, dy) = dwm_truth(cid, data)
     start = time.perf_counter()
     uv, present = mediapipe_keypoints(video)
     masks = masks_from_keypoints(video, uv, present, HandMaskConfig()) > 0  # (T, H, W)
     mask_s = time.perf_counter() - start
+    truth = hands is not None
+    if hands is None:
+        print(f"dwm {cid}: no videos_hands twin: mask figures n/a", flush=True)
+        hands = np.zeros_like(masks)  # no truth: recall NaN, no frame judged
+    if static is None:
+        print(f"dwm {cid}: no videos_static twin: fill figures n/a", flush=True)
     recall = float(masks[hands].mean()) if hands.any() else float("nan")
     near = dilate(masks.astype(np.uint8), 3) > 0  # (T, H, W)
     recall_3px = float(near[hands].mean()) if hands.any() else float("nan")
     filled = filled_region(masks)  # (T, H, W): what the fill replaces
     recall_filled = float(filled[hands].mean()) if hands.any() else float("nan")
     missed = int((hands & ~masks).sum())
-    miss_bg = background_like_misses(video, masks, hands) / max(missed, 1)
+    nan = float("nan")
+    miss_bg = background_like_misses(video, masks, hands) / max(missed, 1) if truth else nan
     shown = np.nonzero(hands.reshape(len(hands), -1).mean(axis=1) >= MIN_HAND_FRACTION)[0]
     # videos_hands misses the hands in some frames (its own tracking): those frames have no
     # truth to judge a mask by, so the false-positive figure is taken on the others only.
@@ -338,8 +374,9 @@ def dwm_case(cid: str, data: Path, out: Path) -> dict:
     telea = opencv_fill(video[s], result.filled.astype(np.uint8))
     region = (dilate(hands[s], HAND_DILATE_PX) > 0) & inside
     whole = inside
+    truth_s = np.zeros_like(video[s]) if static is None else static[s]  # (H, W, 3)
     contact_sheet(
-        out / f"dwm_{cid}.png", [video[s], masks[s].astype(np.uint8), result.image, static[s]]
+        out / f"dwm_{cid}.png", [video[s], masks[s].astype(np.uint8), result.image, truth_s]
     )
     worst = int(np.argmax(far))
     contact_sheet(
@@ -359,15 +396,15 @@ def dwm_case(cid: str, data: Path, out: Path) -> dict:
         "filled_px_mean": float(filled.sum() / len(filled)),
         "missed_px": missed,
         "missed_bg_like": miss_bg,
-        "far_px_mean": float(np.mean(far[shown])) if len(shown) else 0.0,
-        "far_px_max": float(np.max(far)),
+        "far_px_mean": float(np.mean(far[shown])) if len(shown) else 0.0 if truth else nan,
+        "far_px_max": float(np.max(far)) if truth else nan,
         "far_px_frame": worst,
         "frames_judged": len(shown),
         "start": s,
-        "psnr_hand": _psnr(result.image, static[s], region),
-        "telea_hand": _psnr(telea, static[s], region),
-        "psnr_frame": _psnr(result.image, static[s], whole),
-        "telea_frame": _psnr(telea, static[s], whole),
+        "psnr_hand": nan if static is None else _psnr(result.image, static[s], region),
+        "telea_hand": nan if static is None else _psnr(telea, static[s], region),
+        "psnr_frame": nan if static is None else _psnr(result.image, static[s], whole),
+        "telea_frame": nan if static is None else _psnr(telea, static[s], whole),
         "truth_shift_px": [dx, dy],
         "mask_s": mask_s,
         "fill_s": fill_s,
@@ -461,16 +498,19 @@ def selfie_cases(worlds: list[tuple[str, str, int]], size: tuple[int, int], fram
         masks, truth = selfie_masks(clip.frames), clip.hand_mask > 0
         score = float(np.mean([iou(m, g) for m, g in zip(masks, truth, strict=True)]))
         rows.append({"case": f"{variant}:{mode}:{seed}", "iou": score})
-    if (data / DWM).is_dir():
-        for cid in ("00013", "00017"):
-            video, _ = media.read_video_file(data / DWM / "videos" / f"{cid}.mp4")
-            hands_video, _ = media.read_video_file(data / DWM / "videos_hands" / f"{cid}.mp4")
-            hands = hands_video.max(axis=3) > HAND_RENDER_THRESHOLD  # (T, H, W)
-            masks = selfie_masks(video)
-            shown = np.nonzero(hands.reshape(len(hands), -1).mean(axis=1) >= MIN_HAND_FRACTION)[0]
-            far = [float((masks[t] & ~allowed_region(hands[t])).sum()) for t in shown]
-            rows.append({"case": cid, "recall": float(masks[hands].mean()),
-                         "far_px_mean": float(np.mean(far))})  # fmt: skip
+    for dwm in real_clips.dwm_dynamic_clips(data):
+        cid = dwm.clip_id
+        if not dwm.hands:
+            print(f"selfie {cid}: no videos_hands twin, not scored", flush=True)
+            continue
+        video, _ = media.read_video_file(data / dwm.video)
+        hands_video, _ = media.read_video_file(data / dwm.hands)
+        hands = hands_video.max(axis=3) > HAND_RENDER_THRESHOLD  # (T, H, W)
+        masks = selfie_masks(video)
+        shown = np.nonzero(hands.reshape(len(hands), -1).mean(axis=1) >= MIN_HAND_FRACTION)[0]
+        far = [float((masks[t] & ~allowed_region(hands[t])).sum()) for t in shown]
+        rows.append({"case": cid, "recall": float(masks[hands].mean()),
+                     "far_px_mean": float(np.mean(far))})  # fmt: skip
     return rows
 
 
@@ -534,26 +574,26 @@ def main() -> int:
                 flush=True,
             )
     if not args.skip_real and not args.fixed_only and (args.data / DWM).is_dir():
-        for cid in ("00013", "00017"):
+        for cid in real_clips.dwm_dynamic_ids(args.data):
             r = dwm_case(cid, args.data, args.out)
             rows["dwm"].append(r)
             print(
-                f"dwm {cid} recall {r['recall']:.3f} (3 px {r['recall_3px']:.3f}; filled "
-                f"{r['recall_filled']:.3f} at {r['filled_px_mean']:.0f} px/frame against the "
-                f"mask's {r['mask_px_mean']:.0f}; missed "
-                f"{r['missed_px']} px, {100 * r['missed_bg_like']:.0f}% background-coloured) "
-                f"far px/frame {r['far_px_mean']:.0f} "
+                f"dwm {cid} recall {_num(r['recall'], '.3f')} (3 px {_num(r['recall_3px'], '.3f')}"
+                f"; filled {_num(r['recall_filled'], '.3f')} at {r['filled_px_mean']:.0f} "
+                f"px/frame against the mask's {r['mask_px_mean']:.0f}; missed "
+                f"{r['missed_px']} px, {_num(100 * r['missed_bg_like'], '.0f')}% "
+                f"background-coloured) far px/frame {_num(r['far_px_mean'], '.0f')} "
                 f"({r['frames_judged']} frames judged) "
-                f"(max {r['far_px_max']:.0f} at t={r['far_px_frame']}) | start {r['start']}: "
-                f"hand {r['psnr_hand']:.2f} vs Telea {r['telea_hand']:.2f} dB, frame "
-                f"{r['psnr_frame']:.2f} vs {r['telea_frame']:.2f} | "
-                f"{r['mask_s']:.1f}+{r['fill_s']:.1f} s",
+                f"(max {_num(r['far_px_max'], '.0f')} at t={r['far_px_frame']}) | start "
+                f"{r['start']}: hand {_num(r['psnr_hand'], '.2f')} vs Telea "
+                f"{_num(r['telea_hand'], '.2f')} dB, frame {_num(r['psnr_frame'], '.2f')} vs "
+                f"{_num(r['telea_frame'], '.2f')} | {r['mask_s']:.1f}+{r['fill_s']:.1f} s",
                 flush=True,
             )
     fixed = args.data / "dwm_realworld" / "realworld_fixed"
     rows["fixed"] = []
     if not args.skip_real and fixed.is_dir():
-        for path in sorted(fixed.glob("*.mp4")):
+        for path in (args.data / v for v in real_clips.dwm_fixed_videos(args.data)):
             r = fixed_case(path, args.out)
             rows["fixed"].append(r)
             print(

@@ -25,7 +25,8 @@ tabletop 3 (the issue's worst case) and alt seeds 9-12 nobody had looked at. Per
   the true mask dilated 2 px. All in the true hand+arm region of frame 0 against
   ``first_frame_clean``.
 
-Real DWM clips (``dwm_realworld/realworld_dynamic``): as ``bench.hand_free_real``'s ``dwm_case``:
+Real DWM clips (``dwm_realworld/realworld_dynamic``, every clip with both truth twins found
+there by :func:`bench.real_clips.dwm_dynamic_clips`): as ``bench.hand_free_real``'s ``dwm_case``:
 the sub-clip from the first frame with a visible hand, image-aligned fill, ``videos_static``
 registered to the real frames, PSNR in the hand truth dilated 15 px, Telea with the same mask.
 ``--aligned`` runs the synthetic cases without depth and poses too (the fill DWM gets: later
@@ -72,6 +73,7 @@ import cv2
 import numpy as np
 import yaml
 
+from bench import real_clips
 from bench.hand_free_real import (
     DWM,
     MIN_HAND_FRACTION,
@@ -455,7 +457,11 @@ def main() -> int:
                 rows.append(row)
                 print(_line(row), flush=True)
     if not args.skip_real and (args.data / DWM).is_dir():
-        for cid in ("00013", "00017"):
+        for clip in real_clips.dwm_dynamic_clips(args.data):  # every clip found there
+            cid = clip.clip_id
+            if not (clip.static and clip.hands):
+                print(f"dwm_{cid}: no videos_static or videos_hands twin: figures n/a")
+                continue
             runs = None if str(args.runs) == "none" else args.runs
             for row in dwm_rows(cid, configs, args.data, args.out, runs, args.starts):
                 rows.append(row)

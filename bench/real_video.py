@@ -3,7 +3,10 @@
 ``python -m bench.real_video [--data ../shared/data] [--out runs/real] [--only NAME]`` (or
 ``make eval-real``) runs ``workflows/dataset.yaml`` with default settings on every real video in
 ``../shared/data`` (DWM clips with ``ingest.preset=dwm``), then prints one table and writes
-``OUT/real_video.json``. Per video:
+``OUT/real_video.json``. The videos are found by layout (:func:`cases`, :mod:`bench.real_clips`:
+every clip file there, not a list of ids), named ``egodex_<stem>``, ``dwm_<id>`` (DWM dynamic
+clips), ``<stem>`` (DWM fixed-camera videos) and ``hot3d_rgb``; ``--only TEXT`` runs those whose
+name contains TEXT (``--only dwm``: the DWM dynamic clips only). Per video:
 
 - ``clips``: clips ingested and samples packed (the training clips the video gave);
 - ``posed``: frames posed by estimation (mapper, PnP tracking or rotation model) / all frames,
@@ -55,6 +58,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from bench import real_clips
 from egosim.pipeline import media
 from egosim.pipeline.geometry import invert_se3, rotation_angle_deg
 from egosim.pipeline.shards import open_shard
@@ -83,27 +87,40 @@ class RealCase:
     # side-by-side recording, written beside the run and ingested instead; () = the whole frame
 
 
-CASES = (
-    RealCase("egodex_sample", "egodex_sample/sample.mp4", "egosim"),
-    *(
-        RealCase(
-            f"dwm_{cid}",
-            f"dwm_realworld/realworld_dynamic/videos/{cid}.mp4",
-            "dwm",
-            f"dwm_realworld/realworld_dynamic/videos_static/{cid}.mp4",
-            f"dwm_realworld/realworld_dynamic/videos_hands/{cid}.mp4",
-            DWM_ARIA_FOCAL_PX,
-        )
-        for cid in ("00013", "00017")
-    ),
-    RealCase("pour_coke", "dwm_realworld/realworld_fixed/pour_coke.mp4", "dwm"),
-    RealCase("lift_tumbler", "dwm_realworld/realworld_fixed/lift_tumbler.mp4", "dwm"),
-    # HOT3D's Aria recording: the RGB view is the middle third (x 427-853 of 1280), a fisheye
-    # image the pipeline treats as a pinhole one; 438 frames at 30 fps, several windows.
-    RealCase(
-        "hot3d_rgb", "hot3d_video/ego_centric_aria.mp4", "egosim", crop_x=(427 / 1280, 853 / 1280)
-    ),
-)
+HOT3D_RGB_X = (427 / 1280, 853 / 1280)  # HOT3D's Aria recording: the RGB view's span of the width
+
+
+def cases(data: Path) -> tuple[RealCase, ...]:
+    """The real videos under ``data``, found by layout (:mod:`bench.real_clips`), sorted in
+    each: EgoDex-style clips (``egodex_<stem>``), DWM dynamic clips (``dwm_<id>``, with the
+    truth twins that exist: a clip without ``videos_static`` or ``videos_hands`` gets no scene
+    figures), DWM fixed-camera videos (``<stem>``), HOT3D recordings (``hot3d_rgb`` for
+    ``ego_centric_aria.mp4``, ``hot3d_rgb_<stem>`` for any other)."""
+    return (
+        *(RealCase(f"egodex_{Path(v).stem}", v, "egosim") for v in real_clips.egodex_videos(data)),
+        *(
+            RealCase(
+                f"dwm_{clip.clip_id}",
+                clip.video,
+                "dwm",
+                clip.static,
+                clip.hands,
+                DWM_ARIA_FOCAL_PX,
+            )
+            for clip in real_clips.dwm_dynamic_clips(data)
+        ),
+        *(RealCase(Path(v).stem, v, "dwm") for v in real_clips.dwm_fixed_videos(data)),
+        # HOT3D's Aria recording: the RGB view is the middle third (x 427-853 of 1280), a fisheye
+        # image the pipeline treats as a pinhole one; 438 frames at 30 fps, several windows.
+        *(
+            RealCase(_hot3d_name(Path(v).stem), v, "egosim", crop_x=HOT3D_RGB_X)
+            for v in real_clips.hot3d_videos(data)
+        ),
+    )
+
+
+def _hot3d_name(stem: str) -> str:
+    return "hot3d_rgb" if stem == "ego_centric_aria" else f"hot3d_rgb_{stem}"
 
 
 def read_step(run: Path, step: str, columns: list[str] | None = None) -> dict[str, dict]:
@@ -275,7 +292,7 @@ def scene_vs_truth(
 ) -> dict[str, float] | None:
     """Scene render vs the ground-truth static video, and the repeat-frame-0 baseline, from one
     clip's ``scene_render`` and ``ingest`` rows (None: absent)."""
-    if render is None or clip is None or not case.static_truth:
+    if render is None or clip is None or not (case.static_truth and case.hands_truth):
         return None
     h, w = int(render["height"]), int(render["width"])
     scene = media.decode_rgb_video(render["scene_video"], h, w, f"{cid} scene")
@@ -366,7 +383,7 @@ def summarise(case: RealCase, run: Path, data: Path, seconds: float) -> dict[str
     hands = read_step(run, "hands", ["clip_id", "hand_joints", "hand_lifted"])
     poses = read_step(run, "poses", ["clip_id", "world_from_cam"])
     renders = read_step(run, "scene_render")
-    videos = read_step(run, "ingest") if case.static_truth else {}
+    videos = read_step(run, "ingest") if case.static_truth and case.hands_truth else {}
     rejects: list[str] = []
     rej_path = run / "rejects.parquet"
     if rej_path.is_file():
@@ -489,12 +506,15 @@ def main() -> int:
     parser.add_argument("--no-run", action="store_true", help="only read existing run folders")
     args = parser.parse_args()
     rows = []
-    for case in CASES:
+    found = cases(args.data)
+    if not found:
+        print(f"no real videos found under {args.data}")
+    for case in found:
         if args.only and args.only not in case.name:
             continue
-        if not (args.data / case.video).is_file():
-            print(f"{case.name}: {args.data / case.video} not found, skipped")
-            continue
+        dynamic = case.video.startswith(real_clips.DWM_DYNAMIC)
+        if dynamic and not (case.static_truth and case.hands_truth):
+            print(f"{case.name}: no videos_static or no videos_hands twin: scene figures n/a")
         run = args.out / case.name
         seconds = 0.0 if args.no_run else run_case(case, args.data, run, args.workers)
         rows.append(summarise(case, run, args.data, seconds))

@@ -6,9 +6,11 @@
 t=0 | visible at t=0, hands in red | render at the end); with ``--cloud``/``--render`` settings
 both names carry them.
 
-- **Real with truth** (``dwm_0*``): the dataset workflow (``workflows/dataset.yaml``,
+- **Real with truth** (``dwm_<id>``): the dataset workflow (``workflows/dataset.yaml``,
   ``ingest.preset=dwm``, through :func:`bench.real_video.run_case`; finished steps are skipped;
-  ``--no-run`` reuses the run folder) on each DWM dynamic clip; then ``scene_cloud`` +
+  ``--no-run`` reuses the run folder) on each DWM dynamic clip found under ``--data``
+  (:func:`bench.real_video.cases`; a clip without both truth twins is measured as one without
+  truth, below); then ``scene_cloud`` +
   ``scene_render`` are run again with the current code (and ``--cloud``/``--render`` settings) on
   that run's ``ingest``, ``cameras``, ``poses`` and ``inpaint`` shards (:func:`rerender`;
   ``--workflow-render`` measures the run's own render instead), and the render is compared with
@@ -56,7 +58,6 @@ import numpy as np
 import yaml
 
 from bench.real_video import (
-    CASES,
     DEFAULT_DATA,
     HAND_DILATE_PX,
     HAND_RENDER_THRESHOLD,
@@ -66,6 +67,7 @@ from bench.real_video import (
     _psnr,
     _shift,
     _video_frames,
+    cases,
     read_step,
     run_case,
     truth_shift,
@@ -265,7 +267,8 @@ def real_case(
     else:
         renders = _rows(scene / "scene_render.parquet")
         cloud_rows = _rows(scene / "scene_cloud.parquet")
-    masks = {} if case.static_truth else read_step(run, "hand_mask")
+    truth_twins = bool(case.static_truth and case.hands_truth)  # both: videos_hands and dB
+    masks = {} if truth_twins else read_step(run, "hand_mask")
     out: list[tuple[dict[str, Any], np.ndarray | None]] = []
     for cid in sorted(renders):
         render, clip = renders[cid], clips[cid]
@@ -273,7 +276,7 @@ def real_case(
         video = media.decode_rgb_video(render["scene_video"], h, w, f"{cid} scene")
         visible = media.decode_lossless_video(render["visible"], f"{cid} visible") > 0
         real = media.decode_rgb_video(clip["video"], h, w, f"{cid} video")
-        if case.static_truth:
+        if truth_twins:
             indices = clip.get("source_frame_indices")
             indices = np.arange(len(video)) if indices is None else np.asarray(indices, np.int64)
             crop = clip.get("source_crop")
@@ -423,11 +426,8 @@ def main() -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     rows: list[dict[str, Any]] = []
     sheet: list[np.ndarray] = []
-    for case in CASES:
+    for case in cases(args.data):  # found by layout (bench.real_clips)
         if args.only and args.only not in case.name:
-            continue
-        if not (args.data / case.video).is_file():
-            print(f"{case.name}: {args.data / case.video} not found, skipped")
             continue
         run = (args.runs or args.out) / case.name
         start = time.perf_counter()

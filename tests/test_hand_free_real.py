@@ -65,3 +65,62 @@ def test_filled_region_is_the_region_the_inpaint_stage_replaces() -> None:
     assert float((mask > 0)[truth].mean()) < 0.8
     narrow = filled_region(mask, InpaintConfig(dilate_fraction=0.0))
     assert float(narrow[truth].mean()) < 1.0
+
+
+def _clip_files(data, cid: str, twins: tuple[str, ...], frames: int = 4) -> None:
+    """A tiny DWM dynamic clip ``cid`` under ``data``: grey frames with a skin square (the hand)
+    and, for each folder of ``twins``, its twin (hands: the square in green on black)."""
+    from egosim.pipeline import media
+
+    video = np.full((frames, 64, 96, 3), 90, np.uint8)
+    video[:, 30:50, 40:60] = SKIN
+    hands = np.zeros_like(video)
+    hands[:, 30:50, 40:60] = (0, 200, 0)
+    static = np.full_like(video, 90)
+    root = data / "dwm_realworld" / "realworld_dynamic"
+    for folder, frames_of in (
+        ("videos", video),
+        ("videos_hands", hands),
+        ("videos_static", static),
+    ):
+        if folder == "videos" or folder in twins:
+            (root / folder).mkdir(parents=True, exist_ok=True)
+            media.write_video_file(root / folder / f"{cid}.mp4", frames_of, 8.0)
+
+
+def test_dwm_truth_gives_none_for_a_missing_twin(tmp_path) -> None:
+    from bench.hand_free_real import dwm_truth
+
+    _clip_files(tmp_path, "90013", ("videos_hands",))
+    truth = dwm_truth("90013", tmp_path)
+    assert truth.static is None and truth.shift == (0.0, 0.0) and truth.inside.all()
+    assert (
+        truth.hands is not None and truth.hands[:, 40, 50].all() and not truth.hands[:, 5, 5].any()
+    )
+    _clip_files(tmp_path, "80013", ("videos_static",))
+    truth = dwm_truth("80013", tmp_path)
+    assert truth.hands is None and truth.static is not None
+
+
+def test_main_measures_every_clip_found_and_says_n_a_without_truth(
+    tmp_path, monkeypatch, capsys
+) -> None:
+    """A clip id nothing names (no 00013 / 00017 here) is measured; the figures its missing
+    twins would give print as n/a instead of crashing."""
+    import sys
+
+    from bench import hand_free_real
+
+    data = tmp_path / "data"
+    _clip_files(data, "90013", ())
+    _clip_files(data, "70017", ("videos_hands", "videos_static"))
+    argv = ["hand_free_real", "--world", "", "--data", str(data), "--out", str(tmp_path / "o")]
+    monkeypatch.setattr(sys, "argv", argv)
+    assert hand_free_real.main() == 0
+    lines = [x for x in capsys.readouterr().out.splitlines() if x.startswith("dwm ")]
+    rows = [x for x in lines if " recall " in x]
+    assert [x.split()[1] for x in rows] == ["70017", "90013"]
+    assert "no videos_hands twin" in "\n".join(lines)
+    assert rows[1].startswith("dwm 90013 recall n/a (3 px n/a; filled n/a")
+    assert "hand n/a vs Telea n/a dB, frame n/a vs n/a" in rows[1]
+    assert "recall n/a" not in rows[0]

@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from bench.inpaint_margin import (
     drifted_poses,
@@ -99,3 +100,22 @@ def test_scene_level_sees_a_moved_scene_round_the_hole_only() -> None:
     assert scene_level(frame, static, inside, hands, hands) > 100  # equal: the cap (148)
     frame[2:12, 60:100] = 0  # in the band: 28-38 px above the mask grown 10 px
     assert scene_level(frame, static, inside, hands, hands) < 20
+
+
+def test_main_takes_the_dwm_clips_found_and_says_n_a_without_truth(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The DWM clips are those under --data (no 00013 / 00017 here); one without its truth
+    twins gets a line saying its figures are n/a rather than a crash."""
+    import sys
+
+    from bench import inpaint_margin
+
+    videos = tmp_path / "data" / "dwm_realworld" / "realworld_dynamic" / "videos"
+    videos.mkdir(parents=True)
+    (videos / "90013.mp4").write_bytes(b"")  # no twin: never opened
+    argv = ["inpaint_margin", "--real-only", "--runs", "none", "--data", str(tmp_path / "data")]
+    monkeypatch.setattr(sys, "argv", [*argv, "--out", str(tmp_path / "out")])
+    assert inpaint_margin.main() == 0
+    out = capsys.readouterr().out
+    assert "dwm_90013: no videos_static or videos_hands twin: figures n/a" in out

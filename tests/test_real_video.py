@@ -1,6 +1,9 @@
-"""The real-video bench: registering a ground-truth video to the real one (bench/real_video)."""
+"""The real-video bench: registering a ground-truth video to the real one, and the videos it
+finds under a data folder (bench/real_video)."""
 
 from __future__ import annotations
+
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -30,3 +33,53 @@ def test_truth_shift_finds_a_principal_point_offset(shift: tuple[float, float]) 
     before = np.abs(truth.astype(float) - real)[inner].mean()
     after = np.abs(_shift(truth, dx, dy).astype(float) - real)[inner].mean()
     assert after < 0.2 * before
+
+
+def test_cases_are_every_clip_found_by_layout(tmp_path: Path) -> None:
+    from bench.real_video import DWM_ARIA_FOCAL_PX, HOT3D_RGB_X, cases
+
+    dyn = "dwm_realworld/realworld_dynamic"
+    for rel in (
+        f"{dyn}/videos/00013.mp4",
+        f"{dyn}/videos_hands/00013.mp4",
+        f"{dyn}/videos_static/00013.mp4",
+        f"{dyn}/videos/90013.mp4",  # a new clip with its hands truth only
+        f"{dyn}/videos_hands/90013.mp4",
+        "dwm_realworld/realworld_fixed/pour_coke.mp4",
+        "dwm_realworld/realworld_fixed/new_fixed.mp4",
+        "egodex_sample/sample.mp4",
+        "hot3d_video/ego_centric_aria.mp4",
+        "hot3d_video/another.mp4",
+    ):
+        (tmp_path / rel).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / rel).write_bytes(b"")
+    found = {c.name: c for c in cases(tmp_path)}
+    assert list(found) == [
+        "egodex_sample",
+        "dwm_00013",
+        "dwm_90013",
+        "new_fixed",
+        "pour_coke",
+        "hot3d_rgb_another",
+        "hot3d_rgb",
+    ]
+    assert found["dwm_00013"].static_truth == f"{dyn}/videos_static/00013.mp4"
+    assert found["dwm_00013"].hands_truth == f"{dyn}/videos_hands/00013.mp4"
+    new = found["dwm_90013"]
+    assert (new.video, new.preset, new.true_focal_px) == (
+        f"{dyn}/videos/90013.mp4",
+        "dwm",
+        DWM_ARIA_FOCAL_PX,
+    )
+    assert (new.static_truth, new.hands_truth) == ("", f"{dyn}/videos_hands/90013.mp4")
+    assert found["new_fixed"].preset == "dwm" and not found["new_fixed"].static_truth
+    assert found["hot3d_rgb"].crop_x == found["hot3d_rgb_another"].crop_x == HOT3D_RGB_X
+    assert cases(tmp_path / "absent") == ()
+
+
+def test_scene_vs_truth_is_n_a_without_both_twins(tmp_path: Path) -> None:
+    from bench.real_video import RealCase, scene_vs_truth
+
+    for static, hands in (("", "hands.mp4"), ("static.mp4", "")):  # files never opened
+        case = RealCase("dwm_90013", "v.mp4", "dwm", static, hands)
+        assert scene_vs_truth({"height": 4}, {"video": b""}, "90013", case, tmp_path) is None
