@@ -4,14 +4,14 @@
 [--skip-synthetic] [--skip-real] [--per-joint] [--misses] [--perturb [NAME ...]]`` prints,
 with the default :class:`~egosim.stages.hands.mediapipe_backend.MediaPipeParams`:
 
-- **DWM dynamic clips** (``dwm_realworld/realworld_dynamic/videos/*.mp4``, whose
-  ``videos_hands`` renders paint the true left hand green and the right hand red): per side, the
-  frames where the render shows that hand (at least ``MIN_RENDER_PIXELS`` pixels of its colour)
-  and the fraction of them with a detection of that side (recall; anywhere in the image), with
-  one of that side within ``FAR_PX`` of that hand's render (``recall_on_hand``: a hand found
-  and given its own side) and with a trusted 3D hand
-  (``coverage_3d``: the backend withholds the 3D of a palm turned off its track, keeping its 2D,
-  :attr:`~egosim.stages.hands.mediapipe_backend.MediaPipeResult.lifted`); false positives:
+- **DWM dynamic clips** (``dwm_realworld/realworld_dynamic/videos/*.mp4``, every clip found there
+  by :mod:`bench.real_clips` that has its ``videos_hands`` renders, which paint the true left
+  hand green and the right hand red): per side, the frames where the render shows that hand (at
+  least ``MIN_RENDER_PIXELS`` pixels of its colour) and the fraction of them with a detection of
+  that side (recall; anywhere in the image), with one of that side within ``FAR_PX`` of that
+  hand's render (``recall_on_hand``: a hand found and given its own side) and with a trusted 3D
+  hand (``coverage_3d``: the backend withholds the 3D of a palm turned off its track, keeping
+  its 2D, :attr:`~egosim.stages.hands.mediapipe_backend.MediaPipeResult.lifted`); false positives:
   detections whose keypoint centroid is further than ``FAR_PX`` from every rendered hand pixel of
   either side (the renders leave out a hand on some frames where it is in view: detections there,
   on the frames listed by eye in ``RENDER_GAPS``, count as ``on_unrendered``, not as false
@@ -19,7 +19,7 @@ with the default :class:`~egosim.stages.hands.mediapipe_backend.MediaPipeParams`
   whose side is that hand's colour; the mean distance from the keypoint centroid to the rendered
   hand's pixel centroid on frames where both exist. Each clip twice: as the file holds it, and
   "as ingested" (:func:`as_ingested`: the frames the ``hands`` stage of ``bench.real_video`` gets).
-- **Fixed-camera and EgoDex videos** (``realworld_fixed/*.mp4``, ``egodex_sample/sample.mp4``),
+- **Fixed-camera and EgoDex videos** (``realworld_fixed/*.mp4``, ``egodex_sample/*.mp4``),
   cut into clips by ingest's own windowing with its egosim preset (16 fps by nearest timestamp,
   scaled to cover 480x832 and centre-cropped; 61-frame windows, then a 1 + 4k tail of at least
   33 frames): per window, frames with 0 / 1 / 2 hands, the fraction
@@ -58,10 +58,11 @@ with the default :class:`~egosim.stages.hands.mediapipe_backend.MediaPipeParams`
   the EgoDex portrait clip from every real hand (docs/design.md, "Hands v12").
 - With ``--perturb [NAME ...]``, only the DWM dynamic clips, unperturbed and made to look like
   footage we do not have (:data:`PERTURBATIONS`: darker x0.5, gamma 1.8, a 15 px horizontal
-  motion blur, 360p scaled back up, 4 fps, JPEG quality 10; :func:`perturb_clip` keeps the
-  renders and render gaps aligned with the frames), each as the file holds it and as ingested:
-  recall and false-positive frames per side, side agreement and centroid distance against the
-  same renders.
+  motion blur, 360p scaled back up, 4 fps, JPEG quality 10, mirrored left-right, where a
+  correct pipeline gives the unperturbed figures with the sides swapped; :func:`perturb_clip`
+  keeps the renders and render gaps aligned with the frames), each as the file holds it and as
+  ingested: recall and false-positive frames per side, side agreement and centroid distance
+  against the same renders.
 - Seconds per clip of the whole backend (detection, tracking, sides, smoothing, lift): wall clock
   and this process's CPU time (``cpu_s``; the wall clock counts other work on a shared machine).
 """
@@ -75,6 +76,7 @@ from pathlib import Path
 
 import numpy as np
 
+from bench.real_clips import dwm_dynamic_clips, dwm_fixed_videos, egodex_videos, table_entry
 from egosim.pipeline import media
 from egosim.pipeline.geometry import intrinsics_from_fov, project_points
 from egosim.pipeline.media import read_video_file
@@ -103,6 +105,7 @@ SIDES = ("left", "right")
 # Frames whose render leaves out a hand that is plainly in view (checked by eye on the real frames;
 # 00013 frame 8 renders only the right hand): a detection there away from the rendered hands is
 # neither a false positive nor a find ("on_unrendered"); on any other frame, a false positive.
+# A clip not listed has none (a printed line says so: bench.real_clips.table_entry).
 RENDER_GAPS = {
     "00013": (7, 8, 21, 22, 35),
     "00017": (*range(20, 33), *range(36, 43), 47),
@@ -132,7 +135,8 @@ def dwm_figures(
     render, _ = read_video_file(render_path)
     t = min(len(frames), len(render))
     frames, render = frames[:t], render[:t]
-    gaps, fps = RENDER_GAPS.get(video.stem, ()), DWM.fps  # the files and ingest's dwm preset
+    gaps = table_entry(RENDER_GAPS, video.stem, (), "RENDER_GAPS")  # an unknown clip: none
+    fps = DWM.fps  # the files' rate and ingest's dwm preset's
     if perturb is not None:
         frames, render, gaps, fps = perturb_clip(frames, render, gaps, perturb)
         t = len(frames)
@@ -199,6 +203,7 @@ PERTURBATIONS = {  # name -> what perturb_clip does to a DWM clip (720x480, 8 fp
     "360p": "down to 540x360 (area), back to 720x480 (bilinear: ingest scales up to the preset)",
     "4fps": "every other frame, at 4 fps (truth and render gaps the same frames)",
     "jpeg": "each frame through JPEG at quality 10",
+    "mirror": "frames flipped left-right; the renders flipped with green and red swapped",
 }
 
 
@@ -238,6 +243,11 @@ def perturb_clip(
             return cv2.imdecode(data, cv2.IMREAD_COLOR)[..., ::-1]
 
         frames = np.stack([coded(f) for f in frames])
+    elif name == "mirror":  # the real left hand is now a right hand: red in the render
+        frames, render = (
+            frames[:, :, ::-1],
+            np.ascontiguousarray(render[:, :, ::-1][..., [1, 0, 2]]),
+        )
     else:
         raise ValueError(f"unknown perturbation {name!r}; known: {sorted(PERTURBATIONS)}")
     return np.ascontiguousarray(frames), render, gaps, fps
@@ -619,15 +629,26 @@ PERTURB_KEYS = (
 )  # the figures of dwm_figures the perturbation table shows (coverage_3d: what withheld 3D costs)
 
 
+def truth_clips(data: Path) -> list[tuple[Path, Path]]:
+    """``(video, hand render)`` of every DWM dynamic clip under ``data`` that has its hand
+    renders (:func:`~bench.real_clips.dwm_dynamic_clips`, sorted by id); a clip without them
+    is named in a printed line and left out (it has no hand truth)."""
+    out = []
+    for clip in dwm_dynamic_clips(data):
+        if clip.hands:
+            out.append((data / clip.video, data / clip.hands))
+        else:
+            print(f"DWM clip {clip.clip_id} has no hand renders (videos_hands): not measured")
+    return out
+
+
 def perturbed(data: Path, names: list[str]) -> None:
     """Print the DWM dynamic clips' figures (:func:`dwm_figures`) unperturbed and under each
     perturbation of ``names`` (:data:`PERTURBATIONS`), as the file holds them and as ingested."""
-    dyn = data / "dwm_realworld" / "realworld_dynamic"
     print("DWM dynamic clips perturbed (against the same hand renders):")
     for name in names:
         print(f"  {name}: {PERTURBATIONS[name]}")
-    for video in sorted((dyn / "videos").glob("*.mp4")):
-        render = dyn / "videos_hands" / video.name
+    for video, render in truth_clips(data):
         for name in (None, *names):
             for ingested in (False, True):
                 fig = dwm_figures(video, render, ingested, perturb=name)
@@ -638,10 +659,8 @@ def perturbed(data: Path, names: list[str]) -> None:
 def real(data: Path, tracks: bool = False) -> None:
     """Print the real-video tables (DWM dynamic clips, fixed-camera and EgoDex windows); with
     ``tracks``, each clip's :func:`track_rows` after its line."""
-    dyn = data / "dwm_realworld" / "realworld_dynamic"
     print("DWM dynamic clips (ground-truth hand renders; 'false_pos' = far from any render)")
-    for video in sorted((dyn / "videos").glob("*.mp4")):
-        render = dyn / "videos_hands" / video.name
+    for video, render in truth_clips(data):
         for ingested in (False, True):
             rows: list | None = [] if tracks else None
             name = f"{video.stem} (as ingested)" if ingested else video.stem
@@ -649,15 +668,12 @@ def real(data: Path, tracks: bool = False) -> None:
             for row in rows or []:
                 print(_line("  track", row))
     print("Fixed-camera and EgoDex videos (16 fps, 480x832, ingest's windows: NAME@START)")
-    others = sorted((data / "dwm_realworld" / "realworld_fixed").glob("*.mp4"))
-    others.append(data / "egodex_sample" / "sample.mp4")
-    for video in others:
-        if video.is_file():
-            rows = [] if tracks else None
-            for fig in count_figures(video, rows):
-                print(_line(f"{video.stem}@{fig['start']:.0f}", fig))
-            for row in rows or []:
-                print(_line("  track", row))
+    for video in [data / v for v in (*dwm_fixed_videos(data), *egodex_videos(data))]:
+        rows = [] if tracks else None
+        for fig in count_figures(video, rows):
+            print(_line(f"{video.stem}@{fig['start']:.0f}", fig))
+        for row in rows or []:
+            print(_line("  track", row))
 
 
 if __name__ == "__main__":

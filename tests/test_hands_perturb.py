@@ -30,6 +30,10 @@ def test_every_perturbation_keeps_the_truth_aligned() -> None:
             np.testing.assert_array_equal(out, frames[::2])  # frames 0, 2, 4
             np.testing.assert_array_equal(truth[:, 0, 0, 0], [10, 12, 14])  # their own renders
             assert gaps == (1, 2) and fps == 4.0  # gap frames 2 and 4 are now 1 and 2
+        elif name == "mirror":
+            np.testing.assert_array_equal(out, frames[:, :, ::-1])
+            np.testing.assert_array_equal(truth[:, 0, -1, 1], np.arange(6) + 10)  # G <- R
+            assert gaps == (1, 2, 4) and fps == 8.0
         else:
             np.testing.assert_array_equal(truth, render)
             assert gaps == (1, 2, 4) and fps == 8.0
@@ -65,6 +69,19 @@ def test_blur_is_horizontal() -> None:
     assert set(rows) == {20} and cols.min() == 23 and cols.max() == 37  # 15 px line
 
 
+def test_mirror_makes_the_left_hand_a_right_hand() -> None:
+    """Mirrored, a green (left) hand rendered on the image's left is a red (right) hand on its
+    right, where the flipped frame shows it; the frames' colours are kept."""
+    frames = np.zeros((1, 4, 10, 3), np.uint8)
+    frames[0, 1, 2] = (200, 150, 100)  # a skin pixel at u = 2
+    render = np.zeros((1, 4, 10, 3), np.uint8)
+    render[0, 1, 2] = (0, 255, 0)  # the left hand's green at u = 2
+    out, truth, _, _ = perturb_clip(frames, render, (), "mirror")
+    np.testing.assert_array_equal(out[0, 1, 7], (200, 150, 100))  # now at u = 7
+    np.testing.assert_array_equal(truth[0, 1, 7], (255, 0, 0))  # red: a right hand
+    assert not truth[0, 1, 2].any()
+
+
 def test_unknown_perturbation_is_named() -> None:
     frames, render = _clip()
     with pytest.raises(ValueError, match="unknown perturbation 'fog'"):
@@ -76,3 +93,27 @@ def test_the_perturbation_table_shows_each_sides_3d_coverage() -> None:
     clip's loss to the withheld-3D rules (turn test, spread test) can be read there (review11a)."""
     assert {"left_coverage_3d", "right_coverage_3d"} <= set(PERTURB_KEYS)
     assert {"left_recall", "right_recall"} <= set(PERTURB_KEYS)
+
+
+def test_the_dwm_clips_with_hand_renders_are_found_in_the_data_folder(tmp_path, capsys) -> None:
+    """``bench.hands_real`` measures every DWM dynamic clip the data folder holds with its hand
+    renders (found by ``bench.real_clips``, not a list of ids); one without renders is named and
+    left out, and a clip missing from ``RENDER_GAPS`` gets no gap frames, with a printed note."""
+    from bench.hands_real import RENDER_GAPS, truth_clips
+    from bench.real_clips import table_entry
+
+    dyn = tmp_path / "dwm_realworld" / "realworld_dynamic"
+    (dyn / "videos").mkdir(parents=True)
+    (dyn / "videos_hands").mkdir()
+    for clip in ("00013", "00099", "00100"):
+        (dyn / "videos" / f"{clip}.mp4").write_bytes(b"")
+    for clip in ("00013", "00099"):
+        (dyn / "videos_hands" / f"{clip}.mp4").write_bytes(b"")
+    found = truth_clips(tmp_path)
+    assert [(v.name, r.parent.name) for v, r in found] == [
+        ("00013.mp4", "videos_hands"),
+        ("00099.mp4", "videos_hands"),
+    ]
+    assert "00100 has no hand renders" in capsys.readouterr().out
+    assert table_entry(RENDER_GAPS, "00099", (), "RENDER_GAPS") == ()
+    assert "RENDER_GAPS has no entry for '00099'" in capsys.readouterr().out
