@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import itertools
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -52,6 +53,7 @@ from egosim.stages.hands.mediapipe_backend import (
     assign_sides,
     bridge_and_smooth,
     detect_landmarks,
+    forearm_entry,
     hand_centres,
     hand_size,
     lift_to_camera,
@@ -397,6 +399,54 @@ def test_sides_follow_tracks_and_image_position() -> None:
     acc = np.linalg.norm(lm.uv[2:] - 2 * lm.uv[1:-1] + lm.uv[:-2], axis=-1).mean()
     acc_raw = np.linalg.norm(np.diff(uv[:, 0], n=2, axis=0), axis=-1)
     assert acc < 0.6 * np.nanmean(acc_raw)
+
+
+def _turned_hand_uv(degrees: float, at: tuple[float, float]) -> np.ndarray:
+    """``(21, 2)`` pixels: :func:`_hand_shape`'s hand (fingers up, wrist below, about 60 px
+    across) turned ``degrees`` clockwise on screen about its centre, placed at ``at``."""
+    uv = _hand_shape()[:, :2] * 800  # (21, 2)
+    a = np.radians(degrees)
+    turn = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])  # (2, 2) v down
+    return uv @ turn.T + np.array(at)
+
+
+def test_forearm_entry_is_where_the_forearm_meets_the_bottom() -> None:
+    """Fingers up and to the right (a forearm from the bottom left): < 0; mirrored: the same
+    above 0; fingers straight down (an arm from above): 0; a forearm that leaves through the
+    left border before the bottom: -1."""
+    w, h = 720, 480
+    up_right = _turned_hand_uv(30.0, (360.0, 300.0))  # (21, 2)
+    mirrored = up_right * np.array([-1.0, 1.0]) + np.array([w, 0.0])  # (21, 2)
+    assert forearm_entry(up_right, w, h) < -0.1
+    assert forearm_entry(mirrored, w, h) == pytest.approx(-forearm_entry(up_right, w, h))
+    assert forearm_entry(_turned_hand_uv(180.0, (360.0, 300.0)), w, h) == 0.0
+    assert forearm_entry(_turned_hand_uv(80.0, (100.0, 200.0)), w, h) == -1.0
+    assert forearm_entry(np.full((21, 2), np.nan), w, h) == 0.0
+
+
+def test_a_track_whose_labels_are_mostly_wrong_takes_its_forearms_side() -> None:
+    """A right hand just right of the image's middle, fingers up and to the left (its forearm
+    from the bottom right), which MediaPipe's handedness calls left on 65% of its detections
+    (HOT3D frames 120-241, every other frame: a right hand reaching for a jug, called left):
+    the labels outvote the weak position vote; the forearm's entry says right, and the track
+    is the right hand. Without the forearm vote (``forearm_weight=0``, hands v15's rule), or
+    without the frame's height (landmarks made up without frames), it was called left."""
+    t, w, h = 20, 720, 480
+    rng = np.random.default_rng(1)
+    uv = np.full((t, 2, 21, 2), np.nan)
+    uv[:, 0] = _turned_hand_uv(-30.0, (400.0, 330.0)) + rng.normal(0, 2.0, (t, 21, 2))
+    present = np.zeros((t, 2), dtype=bool)
+    present[:, 0] = True
+    label = np.full((t, 2), 0.5)
+    label[:, 0] = np.where(rng.random(t) < 0.65, 0.2, 0.8)  # "left" on about 65%
+    assert np.mean(2 * label[:, 0] - 1) < 0  # the labels alone say left
+    assert (forearm_entry(uv[:, 0], w, h) > 0.2).all()
+    raw = RawLandmarks(
+        uv=uv, world=np.zeros((t, 2, 21, 3)), label_right=label, present=present, frame_height=h
+    )
+    assert (assign_sides(raw, w)[:, 0] == 1).all()
+    assert (assign_sides(raw, w, MediaPipeParams(forearm_weight=0.0))[:, 0] == 0).all()
+    assert (assign_sides(replace(raw, frame_height=None), w)[:, 0] == 0).all()
 
 
 def test_a_gap_between_two_hands_given_one_side_is_not_bridged() -> None:

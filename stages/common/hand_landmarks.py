@@ -93,6 +93,9 @@ class RawLandmarks:
     label_right: np.ndarray  # (T, K) float64 score that this is the real right hand, in [0, 1]
     present: np.ndarray  # (T, K) bool
     tracked: np.ndarray | None = None  # (T, K) bool found by following a hand (None: none were)
+    # rows of the frames searched (the sides' forearm-entry vote needs the bottom border); None:
+    # landmarks made up without frames (a test), which get no forearm vote
+    frame_height: int | None = None
 
 
 def import_mediapipe():
@@ -119,6 +122,7 @@ def detect_hand_landmarks(
         world=np.full((t, MAX_HANDS, NUM_JOINTS, 3), np.nan),
         label_right=np.full((t, MAX_HANDS), 0.5),
         present=np.zeros((t, MAX_HANDS), dtype=bool),
+        frame_height=int(frames.shape[1]),
     )
 
     def make(video: bool):

@@ -29,10 +29,13 @@ Steps, for one clip:
 3. **Sides** (:func:`assign_sides`): MediaPipe's labels assume a mirrored (selfie) image, so on
    egocentric video its "Left" is the real right hand, and the labels flip now and then. Detections
    are linked into tracks (nearest centroid frame to frame); each track takes one side from its
-   swapped labels' summed scores plus an image-position vote (left half = left hand); two tracks
-   at the same time never share a side (the one further right becomes the right hand). A track
-   shorter than ``min_track_frames`` whose vote wants a side a longer track holds at that time
-   is dropped rather than given the other side (an isolated false hand would otherwise take it).
+   swapped labels' summed scores plus an image-position vote (left half = left hand) and a
+   forearm vote (:func:`forearm_entry`: where the line through the middle knuckle and the wrist
+   meets the bottom of the image; egocentric, the left forearm comes in from the bottom left),
+   which does not use MediaPipe's handedness head; two tracks at the same time never share a
+   side (the one further right becomes the right hand). A track shorter than
+   ``min_track_frames`` whose vote wants a side a longer track holds at that time is dropped
+   rather than given the other side (an isolated false hand would otherwise take it).
 4. **Bridge and smooth** (:func:`bridge_and_smooth`): gaps of up to ``max_gap`` frames inside a
    track (ends no further apart than ``_tracks`` links) are filled by linear interpolation (lower
    confidence), then image and world landmarks
@@ -132,6 +135,9 @@ class MediaPipeParams(HandLandmarkParams):
     link_distance: float = 0.6  # max centroid jump between linked detections, in hand sizes
     # per frame of gap up to two (link_limit: tracks, and which gaps are bridged)
     position_weight: float = 0.5  # weight of the image-position side vote vs the labels
+    # weight of the forearm side vote (forearm_entry: where the forearm comes into the image)
+    # vs the labels; 0 = labels and position only (hands v15)
+    forearm_weight: float = 1.0
     lift: str = "palm_pnp"  # 3D lift: "palm_pnp" (template palm PnP) or "translation" (old)
     prefer_fingers_away: bool = True  # palm PnP: of its two poses take knuckles beyond the wrist
     min_track_frames: int = 3  # a shorter track wanting a side a longer one holds then is dropped
@@ -224,12 +230,37 @@ def _tracks(raw: RawLandmarks, params: MediaPipeParams) -> list[list[tuple[int, 
     return tracks
 
 
+def forearm_entry(uv: np.ndarray, width: int, height: int) -> np.ndarray:
+    """``(...)`` in [-1, 1]: where the forearm of landmarks ``uv (..., 21, 2)`` (pixels in a
+    ``width`` x ``height`` frame) comes into the image, -1 at the left border, +1 at the right:
+    the line from the middle knuckle through the wrist, followed on from the wrist, meets the
+    bottom row's level at this horizontal place (clipped: a line that leaves through a side
+    border first gives that side). A forearm pointing up from the wrist (an arm from above)
+    gives 0, as do absent landmarks. Head-mounted cameras see the left forearm come in from
+    the bottom left and the right one from the bottom right, wherever the hand is; unlike
+    MediaPipe's handedness it does not flip under heavy compression (docs/design.md, "Hands:
+    sides from the forearm")."""
+    wrist = uv[..., 0, :]  # (..., 2)
+    ray = wrist - uv[..., MIDDLE_MCP, :]  # (..., 2) from the knuckle, on past the wrist
+    with np.errstate(invalid="ignore", divide="ignore"):
+        reach = (height - wrist[..., 1]) / ray[..., 1]  # (...) steps to the bottom row's level
+        at_bottom = wrist[..., 0] + reach * ray[..., 0]  # (...) pixels, +-inf when level
+        vote = np.clip(2.0 * at_bottom / width - 1.0, -1.0, 1.0)  # (...)
+        down = ray[..., 1] > 0  # (...) a forearm going down from the wrist
+    level = (ray[..., 1] == 0) & (ray[..., 0] != 0)  # (...) a level forearm: its side
+    vote = np.where(level, np.sign(ray[..., 0]), np.where(down, vote, 0.0))
+    return np.nan_to_num(vote, nan=0.0)
+
+
 def assign_sides(
     raw: RawLandmarks, width: int, params: MediaPipeParams | None = None
 ) -> np.ndarray:
     """Side per detection ``(T, K)`` int (0 left, 1 right, -1 none); see the module docstring."""
     params = params or MediaPipeParams()
     centre_u = hand_centres(raw.uv)[..., 0]  # (T, K)
+    forearm = np.zeros(raw.present.shape)  # (T, K) > 0: a forearm from the bottom right
+    if raw.frame_height is not None:
+        forearm = forearm_entry(raw.uv, width, raw.frame_height)
     side = np.full(raw.present.shape, -1, dtype=int)
     tracks = _tracks(raw, params)
     votes = []
@@ -237,7 +268,12 @@ def assign_sides(
         f, k = np.array(tr).T
         label_vote = float(np.sum(2.0 * raw.label_right[f, k] - 1.0))  # > 0: right
         position_vote = float(np.sum(np.clip(2.0 * centre_u[f, k] / width - 1.0, -1, 1)))
-        votes.append(label_vote + params.position_weight * position_vote)
+        forearm_vote = float(np.sum(forearm[f, k]))
+        votes.append(
+            label_vote
+            + params.position_weight * position_vote
+            + params.forearm_weight * forearm_vote
+        )
     # Longest tracks choose first; a side already taken in any shared frame goes to the other.
     taken = np.zeros((raw.present.shape[0], 2), dtype=bool)  # (T, 2)
     for ti in sorted(range(len(tracks)), key=lambda i: -len(tracks[i])):

@@ -235,7 +235,11 @@ class HandsStage(ClipStage):
     # chromaticity (max_chromaticity_distance 2.0: a real hand resting in shadow is kept;
     # hands15, 1eab93d). And the palm detector also runs on contrast-stretched dim frames while
     # a side has no palm detection in the clip (hand_landmarks.stretch_gain, hands16, 21db71e).
-    version = 15
+    # 16: (mediapipe) a track's side vote also counts where its forearm comes into the image
+    # (mediapipe_backend.forearm_entry, forearm_weight 1.0: the line through the middle knuckle
+    # and the wrist at the bottom border), which does not use MediaPipe's handedness head
+    # (HOT3D frames 120-241: a right hand reaching for a jug was called left; hands18).
+    version = 16
     description = "3D hand joints per frame from the clip's labels, de-duplicated and de-spiked"
     config_class = HandsConfig
     inputs: ClassVar[Mapping[str, ShardSchema]] = {"clips": CLIPS}
