@@ -38,9 +38,10 @@ def _clip() -> tuple[np.ndarray, np.ndarray]:
     return frames[FIRST:LAST], left
 
 
-def _hands(frames: np.ndarray, gain: float):
-    """The palm detector's hands alone (no ROI tracking), with or without the stretched pass."""
-    params = HandLandmarkParams(track_misses=False, stretch_gain=gain)
+def _hands(frames: np.ndarray, gain: float, probe: int = HandLandmarkParams.stretch_probe):
+    """The palm detector's hands alone (no ROI tracking), with or without the stretched pass
+    (``probe``: its probe's step, 0 = none)."""
+    params = HandLandmarkParams(track_misses=False, stretch_gain=gain, stretch_probe=probe)
     return detect_hand_landmarks(frames, params)
 
 
@@ -86,7 +87,7 @@ def test_well_exposed_frames_are_not_searched_again(monkeypatch) -> None:
         return real_pass(*args, **kwargs)
 
     monkeypatch.setattr(hand_landmarks, "_stretched_pass", counted_pass)
-    stretched = _hands(bright, 4.0)
+    stretched = _hands(bright, 4.0, probe=0)  # no probe: the pass's own gate is tested
     assert entered == [1]  # the pass ran ...
     assert len(calls) == 2 * n_plain  # ... and searched no frame a second time
     np.testing.assert_array_equal(stretched.present, plain.present)
@@ -94,6 +95,34 @@ def test_well_exposed_frames_are_not_searched_again(monkeypatch) -> None:
     calls.clear()
     _hands(dark, 4.0)  # the dark frames are searched again (a side is missing on them)
     assert len(calls) > n_plain
+
+
+def test_a_one_hand_clip_is_probed_and_not_searched(monkeypatch) -> None:
+    """DWM 00017 frames 2-7: one real hand (the left) on dim frames. The right side is
+    "missing", so the stretched pass searched every frame for a hand that is not there
+    (review11d: +47% detection CPU on 00017). The probe searches every second one, finds no
+    right hand, and the pass does not run; the hands are those the pass gives (it adds none)."""
+    pytest.importorskip("mediapipe")
+    from egosim.pipeline.media import read_video_file
+
+    folder = shared_data("dwm_realworld", "realworld_dynamic")
+    frames = read_video_file(folder / "videos" / "00017.mp4")[0][2:8]  # (6, 480, 720, 3)
+    assert all(stretched_frame(f, 4.0) is not None for f in frames)  # all dim
+    entered = []
+    real_pass = hand_landmarks._stretched_pass
+
+    def counted_pass(*args, **kwargs):
+        entered.append(1)
+        return real_pass(*args, **kwargs)
+
+    monkeypatch.setattr(hand_landmarks, "_stretched_pass", counted_pass)
+    probed = _hands(frames, 4.0)
+    assert entered == []  # the probe found nothing: no pass
+    full = _hands(frames, 4.0, probe=0)
+    assert entered == [1]  # without the probe the pass runs (a side is missing) ...
+    np.testing.assert_array_equal(probed.present, full.present)  # ... and adds nothing
+    np.testing.assert_array_equal(probed.uv, full.uv)
+    assert probed.present.any() and (probed.label_right[probed.present] < 0.5).all()
 
 
 def test_stretched_frame_is_stretch_contrast_on_uint8() -> None:

@@ -66,6 +66,11 @@ class HandLandmarkParams:
     # again on the dim frames contrast-stretched (stretched_frame, gain up to this; 1 = never),
     # and hands of the missing side are added where the first pass left a slot free
     stretch_gain: float = 4.0
+    # the stretched pass runs only if a probe finds a hand of the missing side first, searching
+    # every this-many-th of the frames the pass would search, in per-image mode (_stretch_probe:
+    # a one-hand clip always has a "missing" side, and the pass searched it for nothing; 4 lost
+    # DWM 00013 darkened x0.5 as ingested its left hand); 0 = no probe
+    stretch_probe: int = 2
     track_misses: bool = True  # follow found hands through detector misses, forwards and
     # backwards (the landmark model on flow-carried ROIs, :mod:`.roi_landmarks`; ai-edge-litert)
     track: TrackParams = TrackParams()  # noqa: RUF009 (frozen) how hands are followed
@@ -78,6 +83,8 @@ class HandLandmarkParams:
                 problems.append(f"{name} must be in [0, 1], got {value!r}")
         if self.stretch_gain < 1.0:
             problems.append(f"stretch_gain must be >= 1, got {self.stretch_gain!r}")
+        if self.stretch_probe < 0:
+            problems.append(f"stretch_probe must be >= 0, got {self.stretch_probe!r}")
         if self.model_complexity not in (0, 1):
             problems.append(f"model_complexity must be 0 or 1, got {self.model_complexity!r}")
         if problems:
@@ -145,7 +152,11 @@ def detect_hand_landmarks(
         for hands in (full, *tiled):
             hands.close()
     missing = {False, True} - _sides(per_frame)
-    if params.stretch_gain > 1.0 and missing:
+    if (
+        params.stretch_gain > 1.0
+        and missing
+        and _stretch_probe(frames, per_frame, missing, params, make)
+    ):
         per_frame = _stretched_pass(frames, per_frame, missing, params, make)
     for i, found in enumerate(per_frame):
         for k, (uv, world, right) in enumerate(found[:MAX_HANDS]):
@@ -198,6 +209,44 @@ def _search(
 def _sides(per_frame: list[list[Detection]]) -> set[bool]:
     """The sides (True: right, by the label) of the clip's detections ``per_frame``."""
     return {det[2] > 0.5 for found in per_frame for det in found}
+
+
+def _stretch_probe(
+    frames: np.ndarray,
+    per_frame: list[list[Detection]],
+    missing: set[bool],
+    params: HandLandmarkParams,
+    make,
+) -> bool:
+    """Whether :func:`_stretched_pass` is worth running: True when the palm detector, in
+    per-image mode, finds a hand of a ``missing`` side on every ``params.stretch_probe``-th of
+    the frames that pass would search (dim ones holding fewer than two hands; the whole frame,
+    then the tiles), or when there is no probe (``stretch_probe`` 0). On ordinary one-hand
+    footage the pass searched up to every frame for a second hand that is not there (DWM
+    00017: 20 of 49 frames, +47% detection CPU); the probe searches half of them, and where it
+    finds a hand the pass then searches them all as before (docs/design.md, "Hands: a probe
+    before the stretched pass")."""
+    if params.stretch_probe == 0:
+        return True
+    hands = make(False)
+    tiled = [make(False) for _ in params.tiles]
+    dim = 0  # dim frames with a free slot seen so far: the frames the pass would search
+    try:
+        for frame, found in zip(frames, per_frame, strict=True):
+            if len(found) >= MAX_HANDS:
+                continue
+            image = stretched_frame(frame, params.stretch_gain)
+            if image is None:
+                continue
+            dim += 1
+            if (dim - 1) % params.stretch_probe:  # probed: the 1st, the (1 + probe)th, ...
+                continue
+            if len(_search(hands, tiled, image, found, params, missing)) > len(found):
+                return True
+    finally:
+        for one in (hands, *tiled):
+            one.close()
+    return False
 
 
 def _stretched_pass(

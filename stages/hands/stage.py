@@ -238,7 +238,10 @@ class HandsStage(ClipStage):
     # 16: (mediapipe) a track's side vote also counts where its forearm comes into the image
     # (mediapipe_backend.forearm_entry, forearm_weight 1.0: the line through the middle knuckle
     # and the wrist at the bottom border), which does not use MediaPipe's handedness head
-    # (HOT3D frames 120-241: a right hand reaching for a jug was called left; hands18).
+    # (HOT3D frames 120-241: a right hand reaching for a jug was called left; hands18). Also
+    # the stretched palm pass runs only after a probe of every second frame it would search
+    # finds a hand of the missing side (hand_landmarks.stretch_probe 2; one-hand clips skip it;
+    # detections identical on every clip measured).
     version = 16
     description = "3D hand joints per frame from the clip's labels, de-duplicated and de-spiked"
     config_class = HandsConfig
