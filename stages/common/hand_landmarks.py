@@ -224,8 +224,8 @@ def _stretch_probe(
     then the tiles), or when there is no probe (``stretch_probe`` 0). On ordinary one-hand
     footage the pass searched up to every frame for a second hand that is not there (DWM
     00017: 20 of 49 frames, +47% detection CPU); the probe searches half of them, and where it
-    finds a hand the pass then searches them all as before (docs/design.md, "Hands: a probe
-    before the stretched pass")."""
+    finds a hand the pass then searches them all as before (docs/design.md, "Hands v16: sides
+    from the forearm, the mirror, a probe before the stretched pass")."""
     if params.stretch_probe == 0:
         return True
     hands = make(False)

@@ -238,8 +238,8 @@ def forearm_entry(uv: np.ndarray, width: int, height: int) -> np.ndarray:
     border first gives that side). A forearm pointing up from the wrist (an arm from above)
     gives 0, as do absent landmarks. Head-mounted cameras see the left forearm come in from
     the bottom left and the right one from the bottom right, wherever the hand is; unlike
-    MediaPipe's handedness it does not flip under heavy compression (docs/design.md, "Hands:
-    sides from the forearm")."""
+    MediaPipe's handedness it does not flip under heavy compression (docs/design.md, "Hands
+    v16: sides from the forearm, the mirror, a probe before the stretched pass")."""
     wrist = uv[..., 0, :]  # (..., 2)
     ray = wrist - uv[..., MIDDLE_MCP, :]  # (..., 2) from the knuckle, on past the wrist
     with np.errstate(invalid="ignore", divide="ignore"):
