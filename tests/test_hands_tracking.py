@@ -251,13 +251,15 @@ def test_isolated_detection_contradicting_a_track_is_dropped() -> None:
     assert kept[12, 1] == 1 and kept[12, 0] == 0  # the old behaviour: sides swapped in frame 12
 
 
-def _dwm_recall(name: str, ingested: bool = False) -> dict[str, float]:
+def _dwm_recall(name: str, ingested: bool = False, mirror: bool = False) -> dict[str, float]:
     """Per-side recall, false-positive frames and wrong-side frames of the default backend on one
     real DWM clip against its hand render (green = left, red = right; a side is shown on a frame
     with >= 150 pixels of its colour; a detection is on a hand when its keypoint centroid is
     within 40 px of that colour: ``bench/hands_real.py``'s masks and thresholds). Frames whose
     render leaves out a visible hand (its ``RENDER_GAPS``, by eye) are left out of the false
-    positives. ``ingested``: on the frames the stage gets (``bench.hands_real.as_ingested``)."""
+    positives. ``ingested``: on the frames the stage gets (``bench.hands_real.as_ingested``).
+    ``mirror``: the clip and its render flipped left to right (the left hand becomes a right one:
+    ``recall_1`` is then the real left hand's)."""
     pytest.importorskip("mediapipe")
     pytest.importorskip("ai_edge_litert")
     from bench.hands_real import FAR_PX, MIN_RENDER_PIXELS, RENDER_GAPS, as_ingested, render_masks
@@ -272,6 +274,9 @@ def _dwm_recall(name: str, ingested: bool = False) -> dict[str, float]:
         frames = as_ingested(frames)
     render, _ = read_video_file(folder / "videos_hands" / f"{name}.mp4")
     masks = render_masks(render)  # (T, 2, H, W) left, right
+    if mirror:
+        frames = np.ascontiguousarray(frames[:, :, ::-1])
+        masks = np.ascontiguousarray(masks[:, ::-1, :, ::-1])  # flipped, sides swapped
     shown = masks.sum(axis=(2, 3)) >= MIN_RENDER_PIXELS  # (T, 2)
     k = np.array([360.0, 360.0, frames.shape[2] / 2, frames.shape[1] / 2])
     res = mediapipe_hands(frames, k, fps=(len(times) - 1) / float(times[-1] - times[0]))
@@ -326,6 +331,50 @@ def test_real_dwm_00013_as_ingested_both_hands_kept_mid_clip() -> None:
     assert fig["wrong_side_0"] == fig["wrong_side_1"] == 0, fig
     assert fig["false_0"] + fig["false_1"] <= 1, fig
     assert fig["rotation_spikes"] == 0, fig  # measured 3 with the translation fallback
+
+
+def test_real_dwm_00013_mirrored_left_hand_followed_through_misses() -> None:
+    """00013 flipped left to right: the real left hand, now a right one, was lost at frames 12-20
+    (recall 0.625: the landmark model reads the mirrored hand there below ``min_presence``),
+    which the unflipped clip follows throughout. With the mirrored read of the predicted ROI
+    (``TrackParams.mirror_retry``) both sides measured 1.0, as unflipped."""
+    fig = _dwm_recall("00013", mirror=True)
+    assert fig["recall_0"] >= 0.9 and fig["recall_1"] >= 0.9, fig
+    assert fig["wrong_side_0"] == fig["wrong_side_1"] == 0, fig
+    assert fig["false_0"] + fig["false_1"] <= 1, fig
+
+
+def test_tracker_reads_the_predicted_roi_mirrored_when_no_roi_holds_the_hand() -> None:
+    """A model that sees the hand only in a mirrored crop: the tracker keeps the hand through
+    frames 1-3 with ``mirror_retry`` (its mirrored answer, refined mirrored too) and loses it
+    without."""
+    from egosim.stages.common.roi_landmarks import RoiLandmarks
+
+    shape = np.array([[np.cos(a), np.sin(a)] for a in np.linspace(0, 2 * np.pi, 21)]) * 30.0
+    calls: list[bool] = []
+
+    class Model:
+        def run(self, frame, roi, max_gain=1.0, mirror=False):
+            calls.append(mirror)
+            uv = shape + roi.centre  # (21, 2) the hand where the ROI is
+            return RoiLandmarks(uv, np.zeros((21, 3)), 0.9 if mirror else 0.05, 0.7)
+
+    t = 4
+    frames = np.zeros((t, 240, 320, 3), dtype=np.uint8)
+    results = {}
+    for retry in (True, False):
+        uv = np.zeros((t, 2, 21, 2))
+        uv[0, 0] = shape + np.array([160.0, 120.0])
+        present = np.zeros((t, 2), dtype=bool)
+        present[0, 0] = True
+        label = np.full((t, 2), 0.5)
+        params = TrackParams(flow=False, mirror_retry=retry, max_coast=0, carry_to_edge=False)
+        tracked = track_through_misses(
+            frames, uv, np.zeros((t, 2, 21, 3)), label, present, Model(), params
+        )
+        results[retry] = tracked[:, 0].copy()
+    assert results[True][1:].all() and not results[False].any(), results
+    assert True in calls
 
 
 def test_real_dwm_00017_left_hand() -> None:

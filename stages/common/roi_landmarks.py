@@ -275,6 +275,8 @@ class TrackParams:
     max_gain: float = 4.0  # dark, flat crops get their contrast stretched by up to this gain
     carry_to_edge: bool = True  # a hand lost at the clip's first/last frame, found next to it,
     # is carried there by the optical flow (no later frame could take it up again)
+    mirror_retry: bool = True  # when no ROI holds the hand, read the predicted ROI once more
+    # mirrored (the landmark model is not mirror-symmetric; see :func:`_search`)
 
 
 def flow_shift(prev_gray: np.ndarray, next_gray: np.ndarray, points: np.ndarray) -> np.ndarray:
@@ -400,8 +402,13 @@ def _search(
     downward shift of ``params`` (head-mounted cameras tilt up and down, so hands move mostly
     vertically in the image), and unmoved (when ``params.unmoved`` and there is a move); when
     none holds a hand, the ``wider`` set (larger and sideways-shifted ROIs: fast hands). The
-    search stops at the first answer with ``good_presence``. The best answer is refined once on
-    its own ROI.
+    search stops at the first answer with ``good_presence``. When no ROI holds a hand
+    (``min_presence``) and ``params.mirror_retry``, the predicted ROI is read once more with the
+    crop mirrored (answer mirrored back): the landmark model is not mirror-symmetric, and on DWM
+    00013 mirrored left to right the real left hand (then a right one) was lost at frames 12-20
+    that the unmirrored clip follows throughout (recall 0.625 -> 1, the unmirrored clips'
+    figures unchanged; design.md, "Hands v17"). The best answer is refined once on its own ROI
+    (mirrored again if it came from the mirrored read).
     """
     base = roi_from_landmarks(src)
     moves = [move] + ([np.zeros(2)] if params.unmoved and np.any(move != 0) else [])
@@ -425,8 +432,13 @@ def _search(
             best = res
         if best.presence >= params.good_presence:
             break  # clearly found: the remaining ROIs cannot matter much
+    mirrored = False
+    if params.mirror_retry and best.presence < params.min_presence:
+        res = model.run(frame, rois[0], params.max_gain, mirror=True)
+        if res.presence > best.presence:
+            best, mirrored = res, True
     if params.refine and best.presence >= params.min_presence:
-        again = model.run(frame, roi_from_landmarks(best.uv), params.max_gain)
+        again = model.run(frame, roi_from_landmarks(best.uv), params.max_gain, mirror=mirrored)
         if again.presence >= best.presence:
             best = again
     return best
