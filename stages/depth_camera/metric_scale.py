@@ -533,6 +533,7 @@ def estimate_metric_scale(
     depth0: np.ndarray | None,
     confidence0: np.ndarray | None,
     params: MetricScaleParams | None = None,
+    found: RawLandmarks | None = None,
 ) -> ScaleEstimate:
     """Metres per reconstruction unit of a clip, from the hands' metric size prior.
 
@@ -542,11 +543,13 @@ def estimate_metric_scale(
     Raises :class:`~egosim.stages.common.hand_landmarks.MediaPipeUnavailableError` without
     MediaPipe, and :class:`~egosim.stages.common.roi_landmarks.LandmarkRuntimeUnavailableError`
     without ai-edge-litert when ``params.detector.track_misses`` (the default) and a hand is found.
+    ``found``: the clip's detections by ``params.detector`` when the caller already has them.
     """
     params = params or MetricScaleParams()
     if depth0 is None:  # no detection needed
         return ScaleEstimate(None, None, 0, reason="no frame-0 depth (static camera?)")
-    found = detect_hand_landmarks(frames, params.detector)
+    if found is None:
+        found = detect_hand_landmarks(frames, params.detector)
     landmarks = drop_overlapping(found, params.detector.duplicate_distance)  # as the hands stage
     return scale_from_landmarks(
         landmarks, frames, intrinsics, world_from_cam, depth0, confidence0, params

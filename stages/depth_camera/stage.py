@@ -66,13 +66,24 @@ from egosim.schemas.depth_camera import (
     POSED_BY_MOTION_MODEL,
     POSED_BY_SOURCE,
 )
+from egosim.stages.common.hand_landmarks import (
+    MediaPipeUnavailableError,
+    RawLandmarks,
+    detect_hand_landmarks,
+)
 from egosim.stages.common.plane_sweep import (
     PlaneSweepParams,
     first_frame_depth,
     select_sources,
 )
+from egosim.stages.common.roi_landmarks import LandmarkRuntimeUnavailableError
 from egosim.stages.depth_camera import da3, given
-from egosim.stages.depth_camera.metric_scale import estimate_metric_scale, pooled_metric_scale
+from egosim.stages.depth_camera.hand_region import landmark_hand_mask
+from egosim.stages.depth_camera.metric_scale import (
+    MetricScaleParams,
+    estimate_metric_scale,
+    pooled_metric_scale,
+)
 from egosim.stages.depth_camera.rotation_model import (
     RotationEstimate,
     RotationParams,
@@ -109,6 +120,10 @@ class DepthCameraConfig(StageConfig):
         "sfm"  # sfm, given (source poses), da3, or auto (given if the clip has poses)
     )
     hand_dilate_px: int = 8  # hand mask grows by this many pixels before excluding features
+    # a clip with no hand_mask input (the dataset workflow's cameras step): hands and forearms
+    # are masked from MediaPipe's landmarks before SfM and the plane sweep (hand_region; the
+    # detections are the metric scale's); False: every pixel is used
+    mask_hands: bool = True
     min_corners: int = 50  # fewer Shi-Tomasi corners in frame 0 than this = textureless reject
     static_motion_px: float = 1.0  # background's median motion never above this = static camera
     sfm_max_image_size: int = 640  # SIFT runs on frames downscaled to this longest side
@@ -344,20 +359,37 @@ class CameraEstimate:
         )
 
 
-def with_hand_size_scale(est: CameraEstimate, frames: np.ndarray) -> CameraEstimate:
+def with_hand_size_scale(
+    est: CameraEstimate, frames: np.ndarray, found: RawLandmarks | None = None
+) -> CameraEstimate:
     """``est`` in metres by :func:`.metric_scale.estimate_metric_scale`, when it finds a scale.
 
     Static and rotation-only estimates (no depth, no translation) and clips where the hands give
-    no usable estimate are returned unchanged (``scale_source`` ``none``).
+    no usable estimate are returned unchanged (``scale_source`` ``none``). ``found``: the
+    clip's detections when already made (:func:`hand_mask_from_landmarks`), else detected here.
     """
     if est.depth0 is None or est.metric_scale is not None:
         return est
     scale = estimate_metric_scale(
-        frames, est.intrinsics, est.world_from_cam, est.depth0, est.confidence0
+        frames, est.intrinsics, est.world_from_cam, est.depth0, est.confidence0, found=found
     )
     if scale.scale is None:
         return est
     return est.with_scale(scale.scale, scale.source, scale.spread)
+
+
+def hand_mask_from_landmarks(
+    clip_id: str, frames: np.ndarray
+) -> tuple[np.ndarray | None, RawLandmarks | None]:
+    """``(mask (T, H, W) uint8 or None, detections)``: the clip's hands and forearms from the
+    metric scale's detector (:func:`.hand_region.landmark_hand_mask`); ``(None, None)`` without
+    MediaPipe or its TFLite runtime (logged: SfM then uses every pixel, as before v15)."""
+    try:
+        found = detect_hand_landmarks(frames, MetricScaleParams().detector)
+    except (MediaPipeUnavailableError, LandmarkRuntimeUnavailableError) as exc:
+        log.warning("clip %s: hands not masked before SfM (%s)", clip_id, exc)
+        return None, None
+    return landmark_hand_mask(found, frames.shape[1:3]), found
 
 
 def usable_pixels(hand_mask: np.ndarray | None, dilate_px: int) -> np.ndarray | None:
@@ -996,7 +1028,9 @@ class DepthCameraStage(ClipStage):
     # 14: the scale's hand detector also runs the palm detector on contrast-stretched dim frames
     # while a side has no palm detection in the clip (hand_landmarks.stretch_gain, hands16): a
     # dim clip may give the scale more detections; well-exposed clips are unchanged
-    version = 14
+    # 15: the scale's hand tracker reads a lost hand's predicted ROI once more mirrored
+    # (roi_landmarks.TrackParams.mirror_retry, hands v17): more tracked hand-frames on some clips
+    version = 15
     config_class = DepthCameraConfig
     inputs: ClassVar[Mapping[str, ShardSchema]] = {"clips": CLIPS}
     output = DEPTH_CAMERA
@@ -1049,6 +1083,9 @@ class DepthCameraStage(ClipStage):
             return estimate_given(clip_id, frames, hand_mask, row, self.config)
         if backend == "da3":
             return estimate_da3(clip_id, frames, self.config)
+        found = None
+        if hand_mask is None and self.config.mask_hands:
+            hand_mask, found = hand_mask_from_landmarks(clip_id, frames)
         checked = False
         req = track_request(row) if self.config.source_track == "auto" else None
         if req is not None:
@@ -1062,7 +1099,7 @@ class DepthCameraStage(ClipStage):
                 return est
         est = estimate_sfm(clip_id, frames, hand_mask, row.intrinsics, self.config, checked=checked)
         if self.config.metric_scale == "hand_size":
-            est = with_hand_size_scale(est, frames)
+            est = with_hand_size_scale(est, frames, found)
         return est
 
     def _from_track(
