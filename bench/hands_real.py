@@ -581,13 +581,18 @@ def main(argv: list[str] | None = None) -> None:
         return
     if not args.skip_real:
         real(args.data, args.tracks)
-        print("InterHand real hands, lifted depth / true depth (landmarks on the true hand's ROI)")
-        figures = interhand_depth_figures(args.data / "interhand_fixture")
+        interhand = args.data / "interhand_fixture"
+        if not (interhand / "test_interhand2.6m_camera.json").is_file():
+            print(f"InterHand: no fixture in {interhand}, skipped")  # e.g. a kept-aside folder
+            figures = []
+        else:
+            print("InterHand real hands, lifted depth / true depth (landmarks on the true ROI)")
+            figures = interhand_depth_figures(interhand)
         for i, fig in enumerate(figures):
             print(_line(f"hand {i}", fig))
-        for lift in ("palm_pnp", "palm_pnp_ippe", "translation"):
+        for lift in ("palm_pnp", "palm_pnp_ippe", "translation") if figures else ():
             print(f"median {lift}: {np.nanmedian([f[lift] for f in figures]):.3f}")
-        for name in ("palm_pnp", "palm_pnp_ippe"):
+        for name in ("palm_pnp", "palm_pnp_ippe") if figures else ():
             for key in (f"{name}_mpjpe_mm", f"{name}_orientation_deg"):
                 print(f"mean {key}: {np.nanmean([f[key] for f in figures]):.1f}")
     if not args.skip_synthetic:

@@ -117,3 +117,12 @@ def test_the_dwm_clips_with_hand_renders_are_found_in_the_data_folder(tmp_path, 
     assert "00100 has no hand renders" in capsys.readouterr().out
     assert table_entry(RENDER_GAPS, "00099", (), "RENDER_GAPS") == ()
     assert "RENDER_GAPS has no entry for '00099'" in capsys.readouterr().out
+
+
+def test_real_part_skips_a_data_folder_without_interhand(tmp_path, capsys) -> None:
+    """A kept-aside data folder may hold only DWM clips: the InterHand part says it is skipped
+    instead of crashing (FileNotFoundError before)."""
+    from bench.hands_real import main
+
+    main(["--skip-synthetic", "--data", str(tmp_path)])
+    assert "InterHand: no fixture" in capsys.readouterr().out
