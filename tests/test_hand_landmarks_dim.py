@@ -79,14 +79,7 @@ def test_well_exposed_frames_are_not_searched_again(monkeypatch) -> None:
     # so the pass would not run at all: make the right side count as missing, and count the
     # pass's entries, so that only the gain gate can keep the frames from a second search.
     monkeypatch.setattr(hand_landmarks, "_sides", lambda per_frame: {False})
-    entered = []
-    real_pass = hand_landmarks._stretched_pass
-
-    def counted_pass(*args, **kwargs):
-        entered.append(1)
-        return real_pass(*args, **kwargs)
-
-    monkeypatch.setattr(hand_landmarks, "_stretched_pass", counted_pass)
+    entered = _count_pass_entries(monkeypatch)
     stretched = _hands(bright, 4.0, probe=0)  # no probe: the pass's own gate is tested
     assert entered == [1]  # the pass ran ...
     assert len(calls) == 2 * n_plain  # ... and searched no frame a second time
@@ -95,6 +88,19 @@ def test_well_exposed_frames_are_not_searched_again(monkeypatch) -> None:
     calls.clear()
     _hands(dark, 4.0)  # the dark frames are searched again (a side is missing on them)
     assert len(calls) > n_plain
+
+
+def _count_pass_entries(monkeypatch) -> list[int]:
+    """A list that gets one item each time ``hand_landmarks._stretched_pass`` is entered."""
+    entered: list[int] = []
+    real_pass = hand_landmarks._stretched_pass
+
+    def counted_pass(*args, **kwargs):
+        entered.append(1)
+        return real_pass(*args, **kwargs)
+
+    monkeypatch.setattr(hand_landmarks, "_stretched_pass", counted_pass)
+    return entered
 
 
 def test_a_one_hand_clip_is_probed_and_not_searched(monkeypatch) -> None:
@@ -108,14 +114,7 @@ def test_a_one_hand_clip_is_probed_and_not_searched(monkeypatch) -> None:
     folder = shared_data("dwm_realworld", "realworld_dynamic")
     frames = read_video_file(folder / "videos" / "00017.mp4")[0][2:8]  # (6, 480, 720, 3)
     assert all(stretched_frame(f, 4.0) is not None for f in frames)  # all dim
-    entered = []
-    real_pass = hand_landmarks._stretched_pass
-
-    def counted_pass(*args, **kwargs):
-        entered.append(1)
-        return real_pass(*args, **kwargs)
-
-    monkeypatch.setattr(hand_landmarks, "_stretched_pass", counted_pass)
+    entered = _count_pass_entries(monkeypatch)
     probed = _hands(frames, 4.0)
     assert entered == []  # the probe found nothing: no pass
     full = _hands(frames, 4.0, probe=0)
