@@ -428,8 +428,10 @@ def test_hand_lost_at_the_first_frame_is_carried_onto_it(egodex) -> None:
         def __init__(self) -> None:
             self.model = LandmarkModel()
 
-        def run(self, frame: np.ndarray, roi: Roi, max_gain: float = 1.0) -> RoiLandmarks:
-            res = self.model.run(frame, roi, max_gain)
+        def run(
+            self, frame: np.ndarray, roi: Roi, max_gain: float = 1.0, mirror: bool = False
+        ) -> RoiLandmarks:
+            res = self.model.run(frame, roi, max_gain, mirror)
             if np.shares_memory(frame, frames[0]):
                 res.presence = 0.0
             return res
