@@ -120,10 +120,11 @@ class DepthCameraConfig(StageConfig):
         "sfm"  # sfm, given (source poses), da3, or auto (given if the clip has poses)
     )
     hand_dilate_px: int = 8  # hand mask grows by this many pixels before excluding features
-    # a clip with no hand_mask input (the dataset workflow's cameras step): hands and forearms
-    # are masked from MediaPipe's landmarks before SfM and the plane sweep (hand_region; the
-    # detections are the metric scale's); False: every pixel is used
-    mask_hands: bool = True
+    # a clip with no hand_mask input (the dataset workflow's cameras step): True masks hands and
+    # forearms from MediaPipe's landmarks before SfM and the plane sweep (hand_region; the
+    # detections are the metric scale's). Off by default: it mends clips that start with the
+    # arms in view, but moved the hand-size scale of DWM 00017 (hand/surf 0.91 -> 0.53)
+    mask_hands: bool = False
     min_corners: int = 50  # fewer Shi-Tomasi corners in frame 0 than this = textureless reject
     static_motion_px: float = 1.0  # background's median motion never above this = static camera
     sfm_max_image_size: int = 640  # SIFT runs on frames downscaled to this longest side
@@ -1029,7 +1030,8 @@ class DepthCameraStage(ClipStage):
     # while a side has no palm detection in the clip (hand_landmarks.stretch_gain, hands16): a
     # dim clip may give the scale more detections; well-exposed clips are unchanged
     # 15: the scale's hand tracker reads a lost hand's predicted ROI once more mirrored
-    # (roi_landmarks.TrackParams.mirror_retry, hands v17): more tracked hand-frames on some clips
+    # (roi_landmarks.TrackParams.mirror_retry, hands v17): more tracked hand-frames on some clips;
+    # mask_hands (off by default) masks hands from landmarks before SfM
     version = 15
     config_class = DepthCameraConfig
     inputs: ClassVar[Mapping[str, ShardSchema]] = {"clips": CLIPS}
