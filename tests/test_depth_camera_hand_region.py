@@ -80,7 +80,7 @@ def test_a_clip_starting_with_both_arms_in_view_gets_confident_depth() -> None:
     folder = shared_data("dwm_realworld", "realworld_dynamic")
     frames = read_video_file(folder / "videos" / "00013.mp4")[0][8:]  # (41, 480, 720, 3)
     k = np.array([300.0, 300.0, 360.0, 240.0])  # the DWM Aria focal (bench.real_video)
-    mask, _ = hand_mask_from_landmarks("00013@8", frames)
+    mask, _ = hand_mask_from_landmarks(frames)
     assert mask is not None and 0.03 < mask.mean() < 0.15  # measured 0.075
     config = DepthCameraConfig(mask_hands=False)
     masked = estimate_sfm("00013@8", frames, mask, k, config)

@@ -67,7 +67,6 @@ from egosim.schemas.depth_camera import (
     POSED_BY_SOURCE,
 )
 from egosim.stages.common.hand_landmarks import (
-    MediaPipeUnavailableError,
     RawLandmarks,
     detect_hand_landmarks,
 )
@@ -76,7 +75,6 @@ from egosim.stages.common.plane_sweep import (
     first_frame_depth,
     select_sources,
 )
-from egosim.stages.common.roi_landmarks import LandmarkRuntimeUnavailableError
 from egosim.stages.depth_camera import da3, given
 from egosim.stages.depth_camera.hand_region import landmark_hand_mask
 from egosim.stages.depth_camera.metric_scale import (
@@ -379,17 +377,12 @@ def with_hand_size_scale(
     return est.with_scale(scale.scale, scale.source, scale.spread)
 
 
-def hand_mask_from_landmarks(
-    clip_id: str, frames: np.ndarray
-) -> tuple[np.ndarray | None, RawLandmarks | None]:
-    """``(mask (T, H, W) uint8 or None, detections)``: the clip's hands and forearms from the
-    metric scale's detector (:func:`.hand_region.landmark_hand_mask`); ``(None, None)`` without
-    MediaPipe or its TFLite runtime (logged: SfM then uses every pixel, as before v15)."""
-    try:
-        found = detect_hand_landmarks(frames, MetricScaleParams().detector)
-    except (MediaPipeUnavailableError, LandmarkRuntimeUnavailableError) as exc:
-        log.warning("clip %s: hands not masked before SfM (%s)", clip_id, exc)
-        return None, None
+def hand_mask_from_landmarks(frames: np.ndarray) -> tuple[np.ndarray, RawLandmarks]:
+    """``(mask (T, H, W) uint8, detections)``: the clip's hands and forearms from the metric
+    scale's detector (:func:`.hand_region.landmark_hand_mask`). Asked for by ``mask_hands``, so
+    a missing MediaPipe or TFLite runtime raises (naming the install) rather than silently
+    leaving the arms in SfM."""
+    found = detect_hand_landmarks(frames, MetricScaleParams().detector)
     return landmark_hand_mask(found, frames.shape[1:3]), found
 
 
@@ -1087,7 +1080,7 @@ class DepthCameraStage(ClipStage):
             return estimate_da3(clip_id, frames, self.config)
         found = None
         if hand_mask is None and self.config.mask_hands:
-            hand_mask, found = hand_mask_from_landmarks(clip_id, frames)
+            hand_mask, found = hand_mask_from_landmarks(frames)
         checked = False
         req = track_request(row) if self.config.source_track == "auto" else None
         if req is not None:
