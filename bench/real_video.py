@@ -51,6 +51,7 @@ import argparse
 import itertools
 import json
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -148,11 +149,14 @@ def source_video(case: RealCase, data: Path, out: Path) -> Path:
     return path
 
 
-def run_case(case: RealCase, data: Path, out: Path, workers: int) -> float:
-    """Run the dataset workflow on one video; returns wall-clock seconds."""
+def run_case(
+    case: RealCase, data: Path, out: Path, workers: int, overrides: Sequence[str] = ()
+) -> float:
+    """Run the dataset workflow on one video, with ``overrides`` (``step.key=value``, as
+    ``egosim run --set``) after the case's preset; returns wall-clock seconds."""
     from egosim.pipeline.runner import run_workflow
 
-    workflow = load_workflow(WORKFLOW, [f"ingest.preset={case.preset}"])
+    workflow = load_workflow(WORKFLOW, [f"ingest.preset={case.preset}", *overrides])
     source = source_video(case, data, out)
     start = time.perf_counter()
     run_workflow(workflow, out, source=str(source), n_workers=workers)
@@ -504,6 +508,13 @@ def main() -> int:
     parser.add_argument("--only", default="", help="run the cases whose name contains this")
     parser.add_argument("--workers", type=int, default=2, help="local Dask workers")
     parser.add_argument("--no-run", action="store_true", help="only read existing run folders")
+    parser.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="STEP.KEY=VALUE",
+        help="a workflow parameter, as egosim run --set (repeat)",
+    )
     args = parser.parse_args()
     rows = []
     found = cases(args.data)
@@ -516,7 +527,7 @@ def main() -> int:
         if dynamic and not (case.static_truth and case.hands_truth):
             print(f"{case.name}: no videos_static or no videos_hands twin: scene figures n/a")
         run = args.out / case.name
-        seconds = 0.0 if args.no_run else run_case(case, args.data, run, args.workers)
+        seconds = 0.0 if args.no_run else run_case(case, args.data, run, args.workers, args.set)
         rows.append(summarise(case, run, args.data, seconds))
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "real_video.json").write_text(json.dumps(rows, indent=1))

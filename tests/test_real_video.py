@@ -83,3 +83,29 @@ def test_scene_vs_truth_is_n_a_without_both_twins(tmp_path: Path) -> None:
     for static, hands in (("", "hands.mp4"), ("static.mp4", "")):  # files never opened
         case = RealCase("dwm_90013", "v.mp4", "dwm", static, hands)
         assert scene_vs_truth({"height": 4}, {"video": b""}, "90013", case, tmp_path) is None
+
+
+def test_run_case_passes_set_overrides_to_the_workflow(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``--set`` reaches the workflow the case runs (after the case's preset), so a stage option
+    such as ``cameras.mask_hands`` can be measured on the real clips without editing files."""
+    import egosim.pipeline.runner as runner
+    from bench import real_video
+
+    seen = {}
+
+    def fake_run(workflow, out, source, n_workers):
+        seen.update({s.name: s.params for s in workflow.steps})
+
+    monkeypatch.setattr(runner, "run_workflow", fake_run)
+    from egosim.stages.depth_camera.stage import DepthCameraConfig
+
+    default = DepthCameraConfig().mask_hands
+    case = real_video.RealCase("x", "clip.mp4", "dwm")
+    flip = f"cameras.mask_hands={str(not default).lower()}"
+    real_video.run_case(case, tmp_path, tmp_path / "run", 1, [flip])
+    assert seen["ingest"]["preset"] == "dwm"
+    assert seen["cameras"]["mask_hands"] is (not default)
+    real_video.run_case(case, tmp_path, tmp_path / "run", 1)
+    assert seen["cameras"]["mask_hands"] is default
