@@ -18,6 +18,8 @@ Figures measured here (MediaPipe 0.10.21 models, ai-edge-litert 2.3.0, CPU):
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -249,6 +251,84 @@ def test_isolated_detection_contradicting_a_track_is_dropped() -> None:
     assert (side[:, 0] == 1).all() and side[12, 1] == -1
     kept = assign_sides(raw, w, MediaPipeParams(min_track_frames=1))
     assert kept[12, 1] == 1 and kept[12, 0] == 0  # the old behaviour: sides swapped in frame 12
+
+
+@pytest.mark.parametrize("left_slot", [0, 1])
+def test_two_entering_hands_of_one_frame_each_keep_both_sides(left_slot: int) -> None:
+    """Both hands enter at frame 0, each too fast to link to its track from frame 1 on, so each
+    is a one-frame track; the left one's label says right (0.89, as DWM 00013 re-encoded by 2
+    levels read it at frame 8). Neither one-frame track is longer than the other: both keep a
+    hand, sides by position, whatever the slot order. Before hands v18 the slot-0 track took
+    the right side and the other one, wanting it too, was dropped as if a longer track held it:
+    with the left hand in slot 0 the real right hand was lost at that frame."""
+    from egosim.stages.hands.mediapipe_backend import (
+        MediaPipeParams,
+        RawLandmarks,
+        _tracks,
+        assign_sides,
+    )
+
+    t, w = 12, 720
+    rng = np.random.default_rng(3)
+    shape = rng.normal(0.0, 20.0, (21, 2))  # (21, 2) landmarks about 80 px across
+    uv = np.full((t, 2, 21, 2), np.nan)
+    present = np.zeros((t, 2), dtype=bool)
+    label = np.full((t, 2), 0.5)
+    ls, rs = left_slot, 1 - left_slot
+    # the left hand, labelled right
+    uv[0, ls], label[0, ls] = shape + np.array([250.0, 380.0]), 0.89
+    uv[0, rs], label[0, rs] = shape + np.array([530.0, 345.0]), 0.94
+    for f in range(1, t):  # 120 px up at frame 1 (beyond a link), then slowly
+        uv[f, ls], label[f, ls] = shape + np.array([270.0 + f, 260.0]), 0.3
+        uv[f, rs], label[f, rs] = shape + np.array([515.0 - f, 225.0]), 0.9
+    present[:] = True
+    raw = RawLandmarks(uv=uv, world=np.zeros((t, 2, 21, 3)), label_right=label, present=present)
+    side = assign_sides(raw, w)
+    assert [len(tr) for tr in _tracks(raw, MediaPipeParams())] == [1, 1, t - 1, t - 1]
+    assert side[0, ls] == 0 and side[0, rs] == 1, side[0]
+    assert (side[1:, ls] == 0).all() and (side[1:, rs] == 1).all()
+
+
+def test_real_dwm_00013_entering_hands_keep_their_sides_in_either_slot_order() -> None:
+    """DWM 00013 from frame 8, where both hands enter: each frame-8 hand moves too far by frame 9
+    to link, so each is a one-frame track. Re-encoded by at most 2 levels (the rehearsal's 60013)
+    the palm detector found the left hand there, in slot 0, labelled right (0.89), and the real
+    right hand was dropped (the hand-free fill at frame 8 fell from 25.0 to 16.1 dB). The same
+    detections in that slot order and with that label keep both hands on their sides."""
+    pytest.importorskip("mediapipe")
+    pytest.importorskip("ai_edge_litert")
+    from egosim.pipeline.media import read_video_file
+    from egosim.stages.hands.mediapipe_backend import (
+        MediaPipeParams,
+        _tracks,
+        assign_sides,
+        detect_landmarks,
+        drop_overlapping,
+    )
+
+    frames, _ = read_video_file(
+        shared_data("dwm_realworld", "realworld_dynamic", "videos", "00013.mp4")
+    )
+    params = MediaPipeParams()
+    raw = drop_overlapping(detect_landmarks(frames[8:15], params), params.duplicate_distance)
+    assert raw.present[0].all() and [len(tr) for tr in _tracks(raw, params)][:2] == [1, 1]
+    u = hand_centres(raw.uv)[0, :, 0]  # (2,)
+    order = [int(np.argmin(u)), int(np.argmax(u))]  # the left hand first, as in 60013
+    swapped = replace(
+        raw,
+        uv=raw.uv.copy(),
+        world=raw.world.copy(),
+        label_right=raw.label_right.copy(),
+        present=raw.present.copy(),
+    )
+    for name in ("uv", "world", "label_right", "present"):
+        getattr(swapped, name)[0] = getattr(raw, name)[0, order]
+    swapped.label_right[0, 0] = 0.89  # the left hand read as a right one
+    for case in (raw, swapped):
+        side = assign_sides(case, frames.shape[2], params)
+        cu = hand_centres(case.uv)[0, :, 0]  # (2,)
+        assert sorted(side[0]) == [0, 1], side[0]
+        assert cu[side[0] == 1][0] > cu[side[0] == 0][0]  # the right hand on the right
 
 
 def _dwm_recall(name: str, ingested: bool = False, mirror: bool = False) -> dict[str, float]:

@@ -35,7 +35,9 @@ Steps, for one clip:
    which does not use MediaPipe's handedness head; two tracks at the same time never share a
    side (the one further right becomes the right hand). A track shorter than
    ``min_track_frames`` whose vote wants a side a longer track holds at that time is dropped
-   rather than given the other side (an isolated false hand would otherwise take it).
+   rather than given the other side (an isolated false hand would otherwise take it); one of
+   the same length does not drop it (two hands entering in one frame, each too fast to link to
+   its later track: both keep a side, by position; hands v18).
 4. **Bridge and smooth** (:func:`bridge_and_smooth`): gaps of up to ``max_gap`` frames inside a
    track (ends no further apart than ``_tracks`` links) are filled by linear interpolation (lower
    confidence), then image and world landmarks
@@ -275,24 +277,27 @@ def assign_sides(
             + params.forearm_weight * forearm_vote
         )
     # Longest tracks choose first; a side already taken in any shared frame goes to the other.
-    taken = np.zeros((raw.present.shape[0], 2), dtype=bool)  # (T, 2)
+    held = np.zeros((raw.present.shape[0], 2), dtype=int)  # (T, 2) holding track's length; 0: free
     for ti in sorted(range(len(tracks)), key=lambda i: -len(tracks[i])):
         f, k = np.array(tracks[ti]).T
+        n = len(tracks[ti])
         want = RIGHT if votes[ti] > 0 else LEFT
         other = 1 - want
-        if len(tracks[ti]) < params.min_track_frames and taken[f, want].any():
+        if n < params.min_track_frames and (held[f, want] > n).any():
             continue  # an isolated detection contradicting a longer track of its side: dropped
+        # (a track of the same length is no more established: the two then share the frames'
+        # sides, and the position rule below orders them; hands v18)
         for s in (want, other):
-            if not taken[f, s].any():
+            if not held[f, s].any():
                 side[f, k] = s
-                taken[f, s] = True
+                held[f, s] = n
                 break
         else:  # both sides taken somewhere: per frame, the free side nearest its preference
             for fi, ki in zip(f, k, strict=True):
                 for s in (want, other):
-                    if not taken[fi, s]:
+                    if not held[fi, s]:
                         side[fi, ki] = s
-                        taken[fi, s] = True
+                        held[fi, s] = n
                         break
     # Two hands in a frame: the one further right in the image is the right hand.
     both = (side == LEFT).any(axis=1) & (side == RIGHT).any(axis=1)

@@ -245,7 +245,13 @@ class HandsStage(ClipStage):
     # 17: a hand the tracker cannot find in any ROI is read once more in the predicted ROI
     # mirrored (roi_landmarks.TrackParams.mirror_retry): DWM 00013 flipped left to right lost
     # its real left hand at frames 12-20 (recall 0.625 -> 1); the unflipped real clips identical.
-    version = 17
+    # 18: (mediapipe, sides) a short track is dropped for wanting a side only when a longer
+    # track holds that side then (as documented), not one of the same length: two hands entering
+    # in one frame, each too fast to link to its later track, are two one-frame tracks, and the
+    # one in the later slot was dropped when the earlier one's vote wanted its side (DWM 00013
+    # re-encoded by 2 levels lost its right hand at frame 8, the hand-free fill's start: the left
+    # hand came first, labelled right; reenc1). Now both keep a side, ordered by position.
+    version = 18
     description = "3D hand joints per frame from the clip's labels, de-duplicated and de-spiked"
     config_class = HandsConfig
     inputs: ClassVar[Mapping[str, ShardSchema]] = {"clips": CLIPS}
