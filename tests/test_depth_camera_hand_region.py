@@ -65,7 +65,8 @@ def test_a_clip_starting_with_both_arms_in_view_gets_confident_depth() -> None:
     in SfM and the plane sweep no frame-0 pixel reached confidence 0.5 and the camera's steps
     were about 9x too long for the depth; with the hands masked from their landmarks
     (``DepthCameraConfig.mask_hands``) 15%. On these frames as decoded here the unmasked sweep
-    reads 7%, so only the masked path is checked (measured 15%; the whole clip: 44%)."""
+    reads 7%, so only the masked path is checked: since depth_camera v16 the mask keeps the
+    arms out of SfM only (``pose_mask``), the sweep runs on every pixel (the whole clip: 44%)."""
     pytest.importorskip("mediapipe")
     pytest.importorskip("ai_edge_litert")
     pytest.importorskip("pycolmap")
@@ -83,6 +84,6 @@ def test_a_clip_starting_with_both_arms_in_view_gets_confident_depth() -> None:
     mask, _ = hand_mask_from_landmarks(frames)
     assert mask is not None and 0.03 < mask.mean() < 0.15  # measured 0.075
     config = DepthCameraConfig(mask_hands=False)
-    masked = estimate_sfm("00013@8", frames, mask, k, config)
+    masked = estimate_sfm("00013@8", frames, None, k, config, pose_mask=mask)
     assert masked.confidence0 is not None
     assert (masked.confidence0 > 0.5).mean() > 0.08, (masked.confidence0 > 0.5).mean()

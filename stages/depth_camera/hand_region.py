@@ -1,4 +1,4 @@
-"""Hands and forearms masked from MediaPipe's landmarks before SfM and the plane sweep.
+"""Hands and forearms masked from MediaPipe's landmarks before SfM.
 
 In the dataset workflow the ``cameras`` step runs before ``hands`` and ``hand_mask``, so it gets
 no hand mask. Where the clip starts with the arms in view, their features then enter SfM and
@@ -8,6 +8,11 @@ heldout1): no plane-sweep pixel over confidence 0.5 in frame 0, and camera steps
 long for the depth, so the scene render emptied along the clip (46% of it covered on average,
 1.5% at the last frame). With the hands masked (the truth renders grown and joined to the bottom
 border) the same clip gave confident depth on 14% of frame 0 and steps in scale with it.
+
+Since depth_camera v16 (``DepthCameraConfig.mask_hands``, on by default) the mask is used only
+where frame 0 shows a hand, and only for what poses the camera (SfM's features, PnP tracking,
+the static and rotation checks), not for the plane sweep, whose frame-0 depth beside the hands
+the metric scale compares them with.
 
 :func:`landmark_hand_mask` draws each detected hand's convex hull joined to a band along its
 forearm (from the wrist away from the middle knuckle, as wide as the palm, to the image's

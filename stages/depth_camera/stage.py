@@ -118,11 +118,12 @@ class DepthCameraConfig(StageConfig):
         "sfm"  # sfm, given (source poses), da3, or auto (given if the clip has poses)
     )
     hand_dilate_px: int = 8  # hand mask grows by this many pixels before excluding features
-    # a clip with no hand_mask input (the dataset workflow's cameras step): True masks hands and
-    # forearms from MediaPipe's landmarks before SfM and the plane sweep (hand_region; the
-    # detections are the metric scale's). Off by default: it mends clips that start with the
-    # arms in view, but moved the hand-size scale of DWM 00017 (hand/surf 0.91 -> 0.53)
-    mask_hands: bool = False
+    # a clip with no hand_mask input (the dataset workflow's cameras step) whose frame 0 shows a
+    # hand: True keeps hands and forearms, masked from MediaPipe's landmarks (hand_region; the
+    # detections are the metric scale's), out of SfM's features, PnP tracking and the static and
+    # rotation checks, not out of the plane sweep. Mends clips that start with the arms in view
+    # (DWM 00013 from frame 8); clips whose hands come in later are posed as with it off
+    mask_hands: bool = True
     min_corners: int = 50  # fewer Shi-Tomasi corners in frame 0 than this = textureless reject
     static_motion_px: float = 1.0  # background's median motion never above this = static camera
     sfm_max_image_size: int = 640  # SIFT runs on frames downscaled to this longest side
@@ -501,8 +502,14 @@ def sfm_camera(
     sfm: SfmResult,
     config: DepthCameraConfig,
     focal_prior_px: float,
+    sweep_usable: np.ndarray | bool | None = True,
 ) -> tuple[CameraEstimate | None, str]:
-    """SfM + PnP tracking + frame-0 depth, or ``(None, why not)`` when the model falls short."""
+    """SfM + PnP tracking + frame-0 depth, or ``(None, why not)`` when the model falls short.
+
+    ``usable (T, H, W)`` bool (False on hands) keeps the PnP tracking off the hands;
+    ``sweep_usable`` does so for the plane sweep (True: the same as ``usable``)."""
+    if sweep_usable is True:
+        sweep_usable = usable
     t = frames.shape[0]
     reg = np.asarray(sfm.registered, dtype=bool)
     posed_by = np.where(reg, POSED_BY_MAPPER, NOT_POSED).astype(np.int8)
@@ -527,7 +534,9 @@ def sfm_camera(
         return None, f"{what}; only {len(points0)} model points seen in frame 0, need 20"
     cam_from_world = fill_unregistered(cam_from_world, posed)  # (T, 4, 4)
     posed_by[~posed] = POSED_BY_INTERPOLATION
-    depth = window_depth(frames, usable, sfm.intrinsics, cam_from_world, posed, points0, config)
+    depth = window_depth(
+        frames, sweep_usable, sfm.intrinsics, cam_from_world, posed, points0, config
+    )
     if isinstance(depth, str):
         return None, f"{what}{depth}"
     est = sfm_estimate(sfm.intrinsics, cam_from_world, posed, posed_by, depth, sfm, focal_prior_px)
@@ -618,16 +627,25 @@ def estimate_sfm(
     config: DepthCameraConfig,
     worker_command: list[str] | None = None,
     checked: bool = False,
+    pose_mask: np.ndarray | None = None,
 ) -> CameraEstimate:
     """The ``sfm`` backend on decoded ``frames (T, H, W, 3)``; raises :class:`ClipRejected`.
 
     ``intrinsics`` (the clip's, from metadata or a field-of-view guess) are the focal prior and
     the camera of a static or rotation-only clip. See the module docstring for the model choice.
     ``checked``: :func:`static_check` already ran (and found a textured, moving camera).
+    ``hand_mask (T, H, W)`` (1 = hand) is kept out of everything: the static check, SfM's
+    features, PnP tracking, the rotation model and the plane sweep. ``pose_mask (T, H, W)``
+    (1 = hand, joined to ``hand_mask``) is kept out of what poses the camera only, not out of
+    the plane sweep: the frame-0 depth, which the metric scale compares the hands with, stays
+    as without it (``mask_hands``' landmark mask: depth_camera v16).
     """
     t, w = frames.shape[0], frames.shape[2]
     intrinsics = np.asarray(intrinsics, dtype=np.float64)
     prior = float(intrinsics[0])
+    sweep_usable = usable_pixels(hand_mask, config.hand_dilate_px)  # the plane sweep's pixels
+    if pose_mask is not None:  # below, hand_mask is what the pose estimation keeps out
+        hand_mask = pose_mask if hand_mask is None else np.maximum(hand_mask, pose_mask)
     if not checked:
         static = static_check(clip_id, frames, hand_mask, intrinsics, config)
         if static is not None:
@@ -647,7 +665,7 @@ def estimate_sfm(
     except SfmError as exc:
         sfm_why = str(exc)
     else:
-        est, sfm_why = sfm_camera(frames, usable, sfm, config, prior)
+        est, sfm_why = sfm_camera(frames, usable, sfm, config, prior, sweep_usable)
         undetermined = focal_undetermined(sfm, config.sfm_focal_min_rise)
         if est is not None and undetermined is None:
             rise = ", ".join(f"{r:+.0%}" for r in sfm.focal_rise)
@@ -1025,7 +1043,10 @@ class DepthCameraStage(ClipStage):
     # 15: the scale's hand tracker reads a lost hand's predicted ROI once more mirrored
     # (roi_landmarks.TrackParams.mirror_retry, hands v17): more tracked hand-frames on some clips;
     # mask_hands (off by default) masks hands from landmarks before SfM
-    version = 15
+    # 16: mask_hands on by default, and its landmark mask only where frame 0 shows a hand and
+    # only for what poses the camera (SfM features, PnP tracking, static and rotation checks),
+    # not the plane sweep: clips without a hand in frame 0 are as in 15 with it off
+    version = 16
     config_class = DepthCameraConfig
     inputs: ClassVar[Mapping[str, ShardSchema]] = {"clips": CLIPS}
     output = DEPTH_CAMERA
@@ -1078,13 +1099,19 @@ class DepthCameraStage(ClipStage):
             return estimate_given(clip_id, frames, hand_mask, row, self.config)
         if backend == "da3":
             return estimate_da3(clip_id, frames, self.config)
-        found = None
+        # mask_hands: where frame 0 shows a hand, the landmark mask keeps the hands out of what
+        # poses the camera (not out of the plane sweep, whose frame-0 depth the metric scale
+        # compares the hands with); a clip whose hands come in later is posed as without it
+        found = pose_mask = None
         if hand_mask is None and self.config.mask_hands:
-            hand_mask, found = hand_mask_from_landmarks(frames)
+            landmark_mask, found = hand_mask_from_landmarks(frames)
+            if landmark_mask[0].any():
+                pose_mask = landmark_mask
         checked = False
         req = track_request(row) if self.config.source_track == "auto" else None
         if req is not None:
-            static = static_check(clip_id, frames, hand_mask, row.intrinsics, self.config)
+            static_mask = hand_mask if pose_mask is None else pose_mask
+            static = static_check(clip_id, frames, static_mask, row.intrinsics, self.config)
             if static is not None:
                 return static
             checked = True
@@ -1092,7 +1119,15 @@ class DepthCameraStage(ClipStage):
             log.info("clip %s: %s", clip_id, why)
             if est is not None:
                 return est
-        est = estimate_sfm(clip_id, frames, hand_mask, row.intrinsics, self.config, checked=checked)
+        est = estimate_sfm(
+            clip_id,
+            frames,
+            hand_mask,
+            row.intrinsics,
+            self.config,
+            checked=checked,
+            pose_mask=pose_mask,
+        )
         if self.config.metric_scale == "hand_size":
             est = with_hand_size_scale(est, frames, found)
         return est
