@@ -18,7 +18,7 @@ from egosim.pipeline import media
 from egosim.pipeline.clip_io import row_from_clip
 from egosim.stages.common.hand_landmarks import RawLandmarks
 from egosim.stages.depth_camera import stage as dc
-from egosim.stages.depth_camera.sfm import SfmResult
+from egosim.stages.depth_camera.sfm import SfmError, SfmResult
 from tests.conftest import make_clip
 
 T, H, W = 8, 96, 160
@@ -94,9 +94,21 @@ def _record(monkeypatch: pytest.MonkeyPatch, first: int = 0) -> dict[str, Any]:
         seen["sweep"] = usable
         return np.full((H, W), 2.0, np.float32), np.zeros((H, W), np.float32), [2, 5]
 
+    check_motion, estimate_rotations = dc.check_motion, dc.estimate_rotations
+
+    def static_check(frames: np.ndarray, hand_mask: Any, *args: Any) -> Any:
+        seen["static"] = hand_mask
+        return check_motion(frames, hand_mask, *args)
+
+    def rotations(frames: np.ndarray, usable: Any, *args: Any) -> Any:
+        seen["rotation"] = usable
+        return estimate_rotations(frames, usable, *args)
+
     monkeypatch.setattr(dc, "hand_mask_from_landmarks", detect)
     monkeypatch.setattr(dc, "run_sfm", run_sfm)
     monkeypatch.setattr(dc, "window_depth", window_depth)
+    monkeypatch.setattr(dc, "check_motion", static_check)
+    monkeypatch.setattr(dc, "estimate_rotations", rotations)
     return seen
 
 
@@ -122,6 +134,26 @@ def test_mask_hands_masks_sfm_features_but_not_the_plane_sweep(
     assert seen.get("detected") and est.camera_model == "sfm"
     np.testing.assert_array_equal(seen["sfm"], _landmark_mask())
     assert seen["sweep"] is None
+
+
+def test_mask_hands_leaves_the_static_check_and_the_rotation_model_unmasked(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """SfM finds no model: the rotation model poses the clip, on every pixel, as does the static
+    check (with the landmark mask there the EgoDex sample's rotation-model focal went from +7.4%
+    to +15.4% of its true one)."""
+    seen = _record(monkeypatch)
+
+    def no_model(frames: np.ndarray, hand_mask: Any, options: Any, worker: Any = None) -> Any:
+        seen["sfm"] = hand_mask
+        raise SfmError("no model")
+
+    monkeypatch.setattr(dc, "run_sfm", no_model)
+    config = dc.DepthCameraConfig(mask_hands=True, **CONFIG)
+    est = dc.DepthCameraStage(config).estimate(_row(None))
+    assert est.camera_model == "rotation"
+    np.testing.assert_array_equal(seen["sfm"], _landmark_mask())
+    assert seen["static"] is None and seen["rotation"] is None
 
 
 def test_mask_hands_leaves_a_clip_whose_hands_come_in_later_unmasked(

@@ -10,9 +10,9 @@ long for the depth, so the scene render emptied along the clip (46% of it covere
 border) the same clip gave confident depth on 14% of frame 0 and steps in scale with it.
 
 Since depth_camera v16 (``DepthCameraConfig.mask_hands``, on by default) the mask is used only
-where frame 0 shows a hand, and only for what poses the camera (SfM's features, PnP tracking,
-the static and rotation checks), not for the plane sweep, whose frame-0 depth beside the hands
-the metric scale compares them with.
+where frame 0 shows a hand, and only for SfM's features and its PnP tracking: not for the plane
+sweep, whose frame-0 depth beside the hands the metric scale compares them with, nor for the
+static check and the rotation model.
 
 :func:`landmark_hand_mask` draws each detected hand's convex hull joined to a band along its
 forearm (from the wrist away from the middle knuckle, as wide as the palm, to the image's
