@@ -213,3 +213,15 @@ def test_default_config_without_mediapipe_raises_naming_the_install(
     with pytest.raises(MediaPipeUnavailableError, match=r"mediapipe==0\.10\.21"):
         dc.DepthCameraStage(dc.DepthCameraConfig(**CONFIG)).estimate(_row(None))
     assert "sfm" not in seen
+
+
+def test_a_static_clip_runs_no_hand_detection(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A fixed camera is found before the hands are looked for: no detection (it would be
+    unused; it cost DWM's fixed-camera videos 6-11 s each) and no SfM."""
+    seen = _record(monkeypatch)
+    row = _row(None)
+    row["video"] = media.encode_rgb_video(np.repeat(_moving_frames()[:1], T, axis=0), 16.0)
+    config = dc.DepthCameraConfig(mask_hands=True, **CONFIG)
+    est = dc.DepthCameraStage(config).estimate(row)
+    assert est.camera_model == "static"
+    assert "detected" not in seen and "sfm" not in seen

@@ -1102,32 +1102,32 @@ class DepthCameraStage(ClipStage):
             return estimate_given(clip_id, frames, hand_mask, row, self.config)
         if backend == "da3":
             return estimate_da3(clip_id, frames, self.config)
+        static = static_check(clip_id, frames, hand_mask, row.intrinsics, self.config)
+        if static is not None:
+            return static
+        req = track_request(row) if self.config.source_track == "auto" else None
+        if req is not None:
+            est, why = self._from_track(req, row.num_frames, frames, hand_mask)
+            log.info("clip %s: %s", clip_id, why)
+            if est is not None:
+                return est
         # mask_hands: where frame 0 shows a hand, the landmark mask keeps the hands out of SfM's
         # features and PnP tracking (not the plane sweep, whose frame-0 depth the metric scale
-        # compares the hands with); a clip whose hands come in later is posed as without it
+        # compares the hands with); a clip whose hands come in later is posed as without it.
+        # Detected only here, where SfM runs: a static clip or a window posed from its source's
+        # track does not use it (the detections are the metric scale's, so no second detection)
         found = pose_mask = None
         if hand_mask is None and self.config.mask_hands:
             landmark_mask, found = hand_mask_from_landmarks(frames)
             if landmark_mask[0].any():
                 pose_mask = landmark_mask
-        checked = False
-        req = track_request(row) if self.config.source_track == "auto" else None
-        if req is not None:
-            static = static_check(clip_id, frames, hand_mask, row.intrinsics, self.config)
-            if static is not None:
-                return static
-            checked = True
-            est, why = self._from_track(req, row.num_frames, frames, hand_mask)
-            log.info("clip %s: %s", clip_id, why)
-            if est is not None:
-                return est
         est = estimate_sfm(
             clip_id,
             frames,
             hand_mask,
             row.intrinsics,
             self.config,
-            checked=checked,
+            checked=True,
             pose_mask=pose_mask,
         )
         if self.config.metric_scale == "hand_size":
