@@ -768,3 +768,48 @@ def test_seed_candidates_spread_over_each_track() -> None:
     assert asked[:, 0].sum() == 12 and asked[0, 0] and asked[60, 0]
     np.testing.assert_array_equal(np.flatnonzero(asked[:, 0]), np.round(np.linspace(0, 60, 12)))
     np.testing.assert_array_equal(np.flatnonzero(asked[:, 1]), [10, 11, 12])
+
+
+def test_readings_spreading_step_by_step_are_refused_and_the_hand_searched_from_trust() -> None:
+    """A model that, on dark frames 1-3, reads any ROI as a hand 1.4 times the one the ROI was
+    built for at presence 0.3 (as the landmark model's readings of DWM 00013's right hand spread
+    over its dark sleeve, window 70013 as ingested: 95 -> 122 -> 181 -> 187 -> 220 px, each step
+    under ``max_size_change``), and on lit frames 4-7 finds the real 60 px hand (presence 0.9)
+    only on an ROI built for a hand of about its size. Without ``max_drift`` the readings grow
+    to 2.7 times the detected hand and the hand is lost on frames 4-7; with it no kept reading
+    is more than ``max_drift`` off the detection's size, and the hand, searched for again from
+    the detection's landmarks, is found on frames 4-7."""
+    from egosim.stages.common.roi_landmarks import RoiLandmarks, _size
+
+    a = np.linspace(0, 2 * np.pi, 21, endpoint=False)
+    shape = np.stack([np.cos(a), np.sin(a)], axis=1) * 30.0  # (21, 2) a 60 px "hand"
+    shape[0] = [0.0, 30.0]  # wrist below the centre, knuckles above: the ROI is upright
+    size = _size(shape)
+    per_size = roi_from_landmarks(shape).side / size  # ROI side per px of hand
+    where = np.array([160.0, 120.0])
+
+    class Model:
+        def run(self, frame, roi, max_gain=1.0, mirror=False):
+            built_for = roi.side / per_size  # hand size the ROI was built for
+            if int(frame[0, 0, 0]) <= 3:  # dark: a spreading reading where the ROI is
+                uv = shape * (1.4 * built_for / size) + roi.centre
+                return RoiLandmarks(uv, np.zeros((21, 3)), 0.3, 0.7)
+            found = 0.8 <= built_for / size <= 1.25 and np.linalg.norm(roi.centre - where) < 30
+            return RoiLandmarks(shape + where, np.zeros((21, 3)), 0.9 if found else 0.05, 0.7)
+
+    t = 8
+    frames = np.repeat(np.arange(t, dtype=np.uint8), 120 * 160 * 3).reshape(t, 120, 160, 3)
+    one = {"scales": (1.0,), "shifts": (0.0,), "wider": (), "refine": False}
+    sizes = {}
+    for drift in (1.6, None):
+        uv = np.full((t, 2, 21, 2), np.nan)
+        uv[0, 0] = shape + where
+        present = np.zeros((t, 2), dtype=bool)
+        present[0, 0] = True
+        params = TrackParams(flow=False, mirror_retry=False, max_drift=drift, **one)
+        track_through_misses(
+            frames, uv, np.zeros((t, 2, 21, 3)), np.full((t, 2), 0.5), present, Model(), params
+        )
+        sizes[drift] = [_size(uv[f, 0]) / size if present[f, 0] else 0.0 for f in range(t)]
+    assert max(sizes[None]) > 2.5 and not any(sizes[None][4:]), sizes
+    assert max(sizes[1.6]) <= 1.6 and all(s == pytest.approx(1.0) for s in sizes[1.6][4:]), sizes

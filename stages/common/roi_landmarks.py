@@ -266,6 +266,12 @@ class TrackParams:
         (1.0, 0.0, -0.15),
     )
     max_size_change: float = 1.6  # a tracked hand's size may change at most this factor per frame
+    # ... and at most max_drift from its last trusted reading (a palm detection, or a tracked
+    # one of presence >= trust_presence), so that steps under that presence cannot add up (a
+    # hand's readings spreading over its dark sleeve); a reading refused for it is searched for
+    # again from the trusted landmarks, carried by the flow. None: no such test.
+    max_drift: float | None = 1.6
+    trust_presence: float = 0.5
     max_jump: float = 1.0  # ... and its centre move at most this many hand sizes per frame
     duplicate_distance: float = 0.5  # a hand this near (in hand sizes) one already there is it
     flow: bool = True  # carry the ROI by the optical flow of the landmarks between frames
@@ -321,24 +327,36 @@ def track_through_misses(
     orientation error 13.5 -> 22.5 degrees), and the frames crossed stay empty (the sides step
     bridges them). A hand lost at the clip's first or last frame, found on the frame next to it,
     is carried onto it by the flow (``carry_to_edge``: no frame beyond could take it up again,
-    and no bridge reaches an end). A hand already in a frame that is a fit to the followed
-    hand's fingers alone (:func:`_partial_fits`) does not stop it: the whole hand replaces it.
+    and no bridge reaches an end). Each step may change the size by ``max_size_change``, but
+    the reading must also stay within ``max_drift`` of the size of the track's last trusted
+    reading (a detection, or one of presence ``trust_presence`` or more), so that steps of low
+    presence cannot add up: on DWM 00013 from frame 8 as ingested (window 70013) the right
+    hand's readings, 0.12-0.51 present, spread over its dark sleeve 95 -> 122 -> 181 -> 220 px
+    in four frames and the hand was lost. A reading refused for that is searched for again, as
+    a lost hand, from the trusted landmarks carried on by the flow (there the real hand came
+    back in view two frames later and was found). A hand already in a frame that is a fit to
+    the followed hand's fingers alone (:func:`_partial_fits`) does not stop it: the whole hand
+    replaces it.
     Returns ``tracked (T, K)`` bool: the slots filled here.
     """
     params = params or TrackParams()
     t = present.shape[0]
     tracked = np.zeros_like(present)
     steps = np.where(present, 0, -1)  # (T, K) frames since a detection, -1 = empty
+    anchor = np.array(uv, dtype=np.float64)  # (T, K, 21, 2) last trusted landmarks, carried
     grey = [cv2.cvtColor(f, cv2.COLOR_RGB2GRAY) if params.flow else None for f in frames]
     for direction in (1, -1):
         order = range(t) if direction > 0 else range(t - 1, -1, -1)
-        coasting: dict[int, list[tuple[np.ndarray, int, int]]] = {}  # frame -> (uv, coast, steps)
+        # frame -> (uv, coast, steps, slot, trusted landmarks)
+        coasting: dict[int, list[tuple[np.ndarray, int, int, int, np.ndarray]]] = {}
         for f in order:
             g = f + direction
             if not 0 <= g < t:
                 continue
-            sources = [(uv[f, k], 0, int(steps[f, k]), k) for k in np.flatnonzero(present[f])]
-            for src, coast, step, k in sources + coasting.pop(f, []):
+            sources = [
+                (uv[f, k], 0, int(steps[f, k]), k, anchor[f, k]) for k in np.flatnonzero(present[f])
+            ]
+            for src, coast, step, k, trusted in sources + coasting.pop(f, []):
                 if step >= params.max_steps:
                     continue
                 size = _size(src)
@@ -352,11 +370,21 @@ def track_through_misses(
                 need = params.min_presence if coast == 0 else params.reacquire_presence
                 partial = present[g] & _partial_fits(res.uv, uv[g], present[g], params)  # (K,)
                 whole = present[g] & ~partial
-                if not _plausible(res, src, need, params) or _near_any(
-                    res.uv.mean(axis=0), _size(res.uv), uv[g], whole, params.duplicate_distance
+                plausible = _plausible(res, src, need, params)
+                drifted = plausible and _drifted(res, trusted, params)
+                if (
+                    not plausible
+                    or drifted
+                    or _near_any(
+                        res.uv.mean(axis=0), _size(res.uv), uv[g], whole, params.duplicate_distance
+                    )
                 ):  # lost here (or it slid onto a hand already there)
                     if coast < params.max_coast and 0 <= g + direction < t:
-                        coasting.setdefault(g, []).append((src + move, coast + 1, step + 1, -1))
+                        # a reading that drifted off the trusted one: search again from that
+                        last = trusted if drifted else src
+                        coasting.setdefault(g, []).append(
+                            (last + move, coast + 1, step + 1, -1, trusted + move)
+                        )
                     elif params.carry_to_edge and coast == 0 and g in (0, t - 1):
                         # g is the clip's first or last frame: no later frame can take the hand
                         # up again, so the flow carries the hand found next to it onto it
@@ -369,6 +397,7 @@ def track_through_misses(
                         uv[g, s], world[g, s] = carried, world[f, k]
                         label_right[g, s] = label_right[f, k]
                         present[g, s], tracked[g, s], steps[g, s] = True, True, step + 1
+                        anchor[g, s] = trusted + move
                     continue
                 free = np.flatnonzero(partial | ~present[g])  # a partial fit of it is replaced
                 if not free.size:
@@ -377,6 +406,8 @@ def track_through_misses(
                 uv[g, s], world[g, s], label_right[g, s] = res.uv, res.world, res.right
                 present[g, s], tracked[g, s] = True, True
                 steps[g, s] = step + 1
+                trust = res.presence >= params.trust_presence
+                anchor[g, s] = res.uv if trust else trusted + move
     return tracked
 
 
@@ -391,6 +422,15 @@ def _plausible(res: RoiLandmarks, src: np.ndarray, presence: float, params: Trac
         return False
     jump = float(np.linalg.norm(res.uv.mean(axis=0) - src.mean(axis=0)))
     return jump <= params.max_jump * max(size, new_size)
+
+
+def _drifted(res: RoiLandmarks, trusted: np.ndarray, params: TrackParams) -> bool:
+    """Whether the answer ``res`` has a size more than ``params.max_drift`` off the track's
+    last trusted landmarks ``trusted (21, 2)``."""
+    if params.max_drift is None:
+        return False
+    ratio = _size(res.uv) / max(_size(trusted), 1e-6)
+    return not 1 / params.max_drift <= ratio <= params.max_drift
 
 
 def _search(

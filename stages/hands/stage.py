@@ -251,7 +251,14 @@ class HandsStage(ClipStage):
     # one in the later slot was dropped when the earlier one's vote wanted its side (DWM 00013
     # re-encoded by 2 levels lost its right hand at frame 8, the hand-free fill's start: the left
     # hand came first, labelled right; reenc1). Now both keep a side, ordered by position.
-    version = 18
+    # 19: (mediapipe) a tracked reading may be at most roi_landmarks.TrackParams.max_drift (1.6)
+    # times off the size of the track's last trusted one (a palm detection, or a reading of
+    # presence >= trust_presence 0.5), not only 1.6 per frame: DWM 00013 from frame 8
+    # re-encoded (rehearsal 70013, as ingested) had the right hand's low-presence readings
+    # spread over its dark sleeve, 95 -> 122 -> 181 -> 220 px, until it was lost (right recall
+    # 0.708). A refused reading is searched for again from the trusted landmarks carried by the
+    # flow: the hand is found on the frames after it (0.958); drift1.
+    version = 19
     description = "3D hand joints per frame from the clip's labels, de-duplicated and de-spiked"
     config_class = HandsConfig
     inputs: ClassVar[Mapping[str, ShardSchema]] = {"clips": CLIPS}
