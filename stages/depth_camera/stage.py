@@ -1049,7 +1049,10 @@ class DepthCameraStage(ClipStage):
     # 16: mask_hands on by default, and its landmark mask only where frame 0 shows a hand and
     # only for SfM's features and PnP tracking (not the plane sweep, static check or rotation
     # model): clips without a hand in frame 0 are as in 15 with it off
-    version = 16
+    # 17: the scale's hand tracker refuses a reading more than TrackParams.max_drift (1.6) off the
+    # size of its last trusted reading (roi_landmarks, hands v19): a hand whose low-presence
+    # readings spread over its sleeve step by step is searched for again; detections can change
+    version = 17
     config_class = DepthCameraConfig
     inputs: ClassVar[Mapping[str, ShardSchema]] = {"clips": CLIPS}
     output = DEPTH_CAMERA
