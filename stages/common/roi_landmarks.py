@@ -271,7 +271,7 @@ class TrackParams:
     # hand's readings spreading over its dark sleeve); a reading refused for it is searched for
     # again from the trusted landmarks, carried by the flow. None: no such test.
     max_drift: float | None = 1.6
-    trust_presence: float = 0.5
+    trust_presence: float = 0.5  # a tracked reading this present (or more) is trusted
     max_jump: float = 1.0  # ... and its centre move at most this many hand sizes per frame
     duplicate_distance: float = 0.5  # a hand this near (in hand sizes) one already there is it
     flow: bool = True  # carry the ROI by the optical flow of the landmarks between frames
