@@ -238,7 +238,7 @@ def fixed_focal_sfm(clip: Clip, focal: float) -> dict:
         result = sfm_mod.run_sfm(clip.frames, None, cfg.sfm_options(focal))
     finally:
         sfm_mod.WORKER = saved
-    est, why = st.sfm_camera(clip.frames, None, result, cfg, focal)
+    est, why = st.sfm_camera(clip.frames, None, result, cfg, focal, None)
     out = {"focal": focal, "reprojection_px": result.reprojection_error_px}
     out["points"] = result.num_points3d
     out["registered"] = float(result.registered.mean())

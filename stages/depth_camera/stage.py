@@ -502,14 +502,12 @@ def sfm_camera(
     sfm: SfmResult,
     config: DepthCameraConfig,
     focal_prior_px: float,
-    sweep_usable: np.ndarray | bool | None = True,
+    sweep_usable: np.ndarray | None,
 ) -> tuple[CameraEstimate | None, str]:
     """SfM + PnP tracking + frame-0 depth, or ``(None, why not)`` when the model falls short.
 
     ``usable (T, H, W)`` bool (False on hands) keeps the PnP tracking off the hands;
-    ``sweep_usable`` does so for the plane sweep (True: the same as ``usable``)."""
-    if sweep_usable is True:
-        sweep_usable = usable
+    ``sweep_usable`` does so for the plane sweep (None: every pixel)."""
     t = frames.shape[0]
     reg = np.asarray(sfm.registered, dtype=bool)
     posed_by = np.where(reg, POSED_BY_MAPPER, NOT_POSED).astype(np.int8)
