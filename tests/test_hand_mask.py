@@ -1062,11 +1062,12 @@ def test_track_starts_are_the_first_frames_of_each_hand(monkeypatch: pytest.Monk
         image: np.ndarray, keypoints: np.ndarray, valid: np.ndarray, capsule: CapsuleParams,
         arm: object, directions: np.ndarray | None = None, starts: np.ndarray | None = None,
         no_region: np.ndarray | None = None, allow_top: np.ndarray | None = None,
-    ) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
         assert starts is not None
         seen[len(seen)] = [bool(v) for v in starts]
         h, w = image.shape[:2]
-        return np.zeros((len(keypoints), h, w), np.uint8), np.full((len(keypoints), 2), np.nan)
+        k = len(keypoints)
+        return np.zeros((k, h, w), np.uint8), np.full((k, 2), np.nan), np.ones(k, bool)
 
     monkeypatch.setattr(stage, "hand_labels", recording)
     valid = np.array([[True, False], [True, True], [False, True], [True, True], [True, False]])
@@ -1179,7 +1180,7 @@ def test_guessed_direction_drawn_without_its_colour_region() -> None:
     far = floor & (axis_px > 30.0)  # floor well off the band
     counts = []
     for no_region in (None, np.array([True])):
-        own, drawn = hand_labels(
+        own, drawn, _ = hand_labels(
             image, kp[None], np.array([True]), CapsuleParams(), ArmParams(), d, None, no_region
         )
         np.testing.assert_allclose(drawn, d)  # drawn as given either way
@@ -1210,7 +1211,7 @@ def test_only_runs_the_off_side_mark_adds_lose_their_colour_region(
         image: np.ndarray, keypoints: np.ndarray, valid: np.ndarray, capsule: CapsuleParams,
         arm: object, directions: np.ndarray | None = None, starts: np.ndarray | None = None,
         no_region: np.ndarray | None = None, allow_top: np.ndarray | None = None,
-    ) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
         h, w = image.shape[:2]
         t = int(image[0, 0, 0])  # the frame's index, written into its first pixel
         calls["n"] += 1
@@ -1219,7 +1220,7 @@ def test_only_runs_the_off_side_mark_adds_lose_their_colour_region(
             got = np.degrees(np.arctan2(directions[:, 1], directions[:, 0]))
             seen.append((t, [float(v) for v in got], [bool(v) for v in no_region]))
         drawn = np.array([unit(left[t]), unit(right[t])])  # (2, 2)
-        return np.zeros((len(keypoints), h, w), np.uint8), drawn
+        return np.zeros((len(keypoints), h, w), np.uint8), drawn, np.ones(2, bool)
 
     monkeypatch.setattr(stage, "hand_labels", recording)
     frames = np.zeros((5, 100, 200, 3), np.uint8)
@@ -1520,3 +1521,104 @@ def test_true_runs_gives_each_run_of_true_frames() -> None:
     assert true_runs(np.array([1, 1, 1], bool)) == [(0, 3)]
     assert true_runs(np.zeros(4, bool)) == []
     assert true_runs(np.zeros(0, bool)) == []
+
+
+def test_weak_arm_runs_open_short_runs_reached_while_the_hand_barely_moves() -> None:
+    """hand_mask v24: frames whose arm found no colour region are opened to their neighbours'
+    masks only in runs of at most ``max_run`` frames next to a frame of the hand that found one
+    and shows at least its hand's area of arm, as far as the wrist moves at most ``max_move``
+    hand lengths per frame from there and the frame's own arm is under ``max_share`` of it."""
+    from egosim.stages.hand_mask.arm_region import hand_length_px
+    from egosim.stages.hand_mask.stage import weak_arm_runs
+
+    up = np.array([0.0, -1.0])  # knuckles above the wrist: the arm below
+    hand = _hand_keypoints(np.array([60.5, 50.5]), up, 30.0, 20.0)  # (21, 2)
+    size = hand_length_px(hand)
+    assert 25.0 < size < 60.0, size
+    keypoints = np.repeat(hand[None, None], 12, axis=0).repeat(4, axis=1)  # (12, 4, 21, 2)
+    keypoints[9:, 0] += [0.0, 0.8 * size]  # hand 0 jumps 0.8 hand lengths at t=9
+    keypoints[10:, 0] += [0.1 * size, 0.0]  # ... then barely moves
+    weak = np.zeros((12, 4), bool)
+    valid = np.ones((12, 4), bool)
+    arm_px = np.full((12, 4), 5000)  # every found frame shows an arm
+    hand_px = np.full((12, 4), 1000)
+    weak[3:5, 0] = True  # two frames between found arms: opened
+    arm_px[3:5, 0] = [100, 2600]  # ... t=4's own arm holds from t=5 (over half of it), not t=3's
+    weak[8:12, 0] = True  # to the track's end from t=7; the hand jumps at t=9: only t=8
+    arm_px[8:12, 0] = 0
+    weak[:, 1] = True  # the whole track: no frame found its arm, nothing to carry
+    weak[2:7, 2] = True  # five frames, longer than max_run 4
+    arm_px[2:7, 2] = 0
+    weak[4:6, 3] = True  # next to found frames whose arm is out of view (a hand entering)
+    arm_px[:, 3] = 500
+    out = weak_arm_runs(weak, valid, keypoints, arm_px, hand_px, 4, 0.5, 0.5)
+    expected = np.zeros_like(weak)
+    expected[3, 0] = True  # reached from t=2; from t=5, t=4 holds and the walk stops there
+    expected[8, 0] = True
+    np.testing.assert_array_equal(out, expected)
+    assert weak_arm_runs(weak, valid, keypoints, arm_px, hand_px, 5, 0.5, 0.5)[2:7, 2].all()
+    jump = weak_arm_runs(weak, valid, keypoints, arm_px, hand_px, 4, 1.0, 0.5)
+    assert jump[8:12, 0].all()  # the jump allowed
+    assert weak_arm_runs(weak, valid, keypoints, arm_px, hand_px, 4, 0.5, 0.6)[3:5, 0].all()
+    gone = valid.copy()
+    gone[2, 0] = gone[5, 0] = False  # the neighbours missed the hand: no source
+    assert not weak_arm_runs(weak, gone, keypoints, arm_px, hand_px, 4, 0.5, 0.5)[3:5, 0].any()
+
+
+def test_frames_whose_arm_found_no_colour_receive_their_neighbours_mask(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """hand_mask v24 in the stage: a still hand whose arm search finds a colour region at t=0-1
+    and t=4, and whose mask then holds a 22 px wide arm to the bottom border, but at t=2-3 no
+    region and no arm (DWM 00013 t=31-32: a navy sleeve on a dark floor, found or not by a 1 px
+    shift of the keypoints), has t=2-3 opened to propagation, joined to their own mask (v23
+    opened none); with ``weak_arm_frames`` 0 none is, nor when t=2-3 keep their arm."""
+    import egosim.stages.hand_mask.stage as stage
+
+    found = [True, True, False, False, True]
+    keep = {"arm": False}
+
+    def fake_labels(
+        image: np.ndarray, keypoints: np.ndarray, valid: np.ndarray, capsule: CapsuleParams,
+        arm: object, directions: np.ndarray | None = None, starts: np.ndarray | None = None,
+        no_region: np.ndarray | None = None, allow_top: np.ndarray | None = None,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
+        h, w = image.shape[:2]
+        t = int(image[0, 0, 0])  # the frame's index, written into its first pixel
+        own = np.zeros((1, h, w), np.uint8)
+        own[0, 0, 0] = t  # the frame's index again, for fake_masks
+        return own, np.array([[0.0, 1.0]]), np.array([found[t]])  # straight down
+
+    def fake_masks(image: np.ndarray, own: np.ndarray, *args: object) -> tuple:
+        t = int(own[0, 0, 0])
+        h, w = image.shape[:2]
+        per_hand = stage.draw_hand(hand, 0, h, w, CapsuleParams(forearm=False))[0][None]
+        if found[t] or keep["arm"]:
+            per_hand[0, 50:, 50:72] = 1  # the arm, from the wrist down to the border
+        return per_hand[0].copy(), per_hand, per_hand.copy()
+
+    opened: list[np.ndarray] = []
+
+    def spy(frames: np.ndarray, masks: np.ndarray, per_hand: np.ndarray, certain: np.ndarray,
+            params: object, open_frames: np.ndarray) -> np.ndarray:  # fmt: skip
+        opened.append(open_frames.copy())
+        return masks
+
+    monkeypatch.setattr(stage, "hand_labels", fake_labels)
+    monkeypatch.setattr(stage, "masks_from_labels", fake_masks)
+    monkeypatch.setattr(stage, "propagate_hands", spy)
+    frames = np.zeros((5, 200, 120, 3), np.uint8)
+    frames[:, 0, 0, 0] = np.arange(5)
+    hand = _hand_keypoints(np.array([60.5, 50.5]), np.array([0.0, -1.0]), 30.0, 20.0)
+    keypoints = np.repeat(hand[None, None], 5, axis=0)  # (5, 1, 21, 2) a still hand
+    valid = np.ones((5, 1), bool)
+    config = HandMaskConfig(carry_frames=0, grow_margin_m=0.0)
+    stage.masks_from_keypoints(frames, keypoints, valid, config)
+    stage.masks_from_keypoints(
+        frames, keypoints, valid, dataclasses.replace(config, weak_arm_frames=0)
+    )
+    keep["arm"] = True
+    stage.masks_from_keypoints(frames, keypoints, valid, config)
+    assert opened[0][:, 0].tolist() == [False, False, True, True, False]
+    assert not opened[1].any()
+    assert not opened[2].any()

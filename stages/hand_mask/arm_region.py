@@ -208,6 +208,17 @@ def hand_direction(keypoints: np.ndarray) -> tuple[np.ndarray, np.ndarray, float
     return wrist, d / length, length
 
 
+def hand_length_px(keypoints: np.ndarray, radius_scale: float = 1.0) -> float:
+    """Length in pixels of one hand ``(21, 2)`` as the arm search measures along the arm:
+    wrist to middle knuckle, at least the palm's average length at the hand's scale (NaN
+    without a wrist, a knuckle or a scale)."""
+    found = hand_direction(keypoints)
+    scale = hand_scale_px(keypoints)
+    if found is None or not np.isfinite(scale) or scale <= 0:
+        return float("nan")
+    return max(found[2], PALM_LENGTH_M * scale * radius_scale)
+
+
 def _sample(lab: np.ndarray, exclude: np.ndarray, points: np.ndarray) -> np.ndarray:
     """Colours ``(N, 3)`` of ``lab (H, W, 3)`` at ``points (N, 2)`` (pixel centres).
 
@@ -479,11 +490,13 @@ def draw_arm_labels(
     other: np.ndarray | None = None,
     direction: np.ndarray | None = None,
     nearer_side: bool = False,
-) -> np.ndarray | None:
+) -> tuple[np.ndarray | None, bool]:
     """Paint one hand's GrabCut labels into ``labels (H, W)`` uint8 in place (see module doc).
 
     Returns the arm's unit image direction ``(2,)`` from the wrist that was drawn (None when the
-    hand has no arm start: no scale, no direction or no forearm). ``direction (2,)``, when
+    hand has no arm start: no scale, no direction or no forearm) and whether the arm drawn has a
+    colour region (a strip that stands out from its sides, :func:`arm_extent`; False: no arm
+    colour found, only the band and the thin seed strip). ``direction (2,)``, when
     given, is drawn as it is: no search and no re-aim (a direction the neighbouring frames
     agree on, see :func:`steady_directions`). With ``nearer_side`` the search is run again
     asking the strip to stand out from both sides (:func:`arm_search`), and that direction is
@@ -500,13 +513,14 @@ def draw_arm_labels(
     h, w = labels.shape
     scale = hand_scale_px(keypoints)
     if not np.isfinite(scale) or scale <= 0:
-        return None
+        return None, False
     mask, core = draw_hand(keypoints, 0, h, w, CapsuleParams(capsule.radius_scale, forearm=False))
     fan = np.zeros((h, w), np.uint8)
     band = np.zeros((h, w), np.uint8)
     seed = np.zeros((h, w), np.uint8)
     start = _arm_start(keypoints, capsule, arm, h, w)
     drawn = None
+    region = None
     if start is not None and direction is not None:
         _, wrist, _, hand_len, _, _ = start
         drawn = np.asarray(direction, np.float64)
@@ -545,6 +559,7 @@ def draw_arm_labels(
         if region is not None and arm.region_probable:
             band = band | region  # the arm's colour wherever it runs: GrabCut decides
         drawn = d
+    coloured = region is not None
     if (
         start is not None
         and drawn is not None
@@ -552,6 +567,7 @@ def draw_arm_labels(
         and leaves_through_top(start[1], drawn, w, h)
     ):
         fan, band, seed = np.zeros_like(fan), np.zeros_like(band), np.zeros_like(seed)
+        coloured = False
     # A probably-background ring round the hand lets the colour model trim fat capsules.
     grow = max(1, round(arm.hand_ring * scale)) if arm.hand_ring > 0 else 0
     ring = cv2.dilate(mask, np.ones((3, 3), np.uint8), iterations=grow) if grow > 0 else mask
@@ -561,7 +577,7 @@ def draw_arm_labels(
         (seed | core, cv2.GC_FGD),
     ):
         _raise_labels(labels, region > 0, label)
-    return drawn
+    return drawn, coloured
 
 
 def other_arm_colours(
@@ -777,9 +793,11 @@ def hand_labels(
     starts: np.ndarray | None = None,
     no_region: np.ndarray | None = None,
     allow_top: np.ndarray | None = None,
-) -> tuple[np.ndarray, np.ndarray]:
-    """``(labels (K, H, W) uint8, drawn (K, 2))``: each hand's GrabCut labels of ``image (H, W,
-    3)`` (``cv2.GC_*``; see :func:`draw_arm_labels`) and the arm direction drawn (NaN: none).
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(labels (K, H, W) uint8, drawn (K, 2), coloured (K,) bool)``: each hand's GrabCut
+    labels of ``image (H, W, 3)`` (``cv2.GC_*``; see :func:`draw_arm_labels`), the arm direction
+    drawn (NaN: none) and whether that arm has a colour region (a strip standing out from its
+    sides; False for a hand not drawn or drawn without one).
 
     ``keypoints (K, 21, 2)`` pixels, ``valid (K,)`` selects the hands; ``directions (K, 2)``:
     per hand a direction to draw as it is (no search, no re-aim), NaN to search; ``starts
@@ -792,6 +810,7 @@ def hand_labels(
     h, w = image.shape[:2]
     own = np.full((len(keypoints), h, w), cv2.GC_BGD, np.uint8)
     drawn = np.full((len(keypoints), 2), np.nan)
+    coloured = np.zeros(len(keypoints), bool)
     lab = None  # (H, W, 3) the image in Lab, converted once for every hand's arm search
     if capsule.forearm and np.any(valid):
         lab = cv2.cvtColor(image, cv2.COLOR_RGB2LAB).astype(np.float32)
@@ -811,10 +830,11 @@ def hand_labels(
         if allow_top is not None and not allow_top[k]:
             arm_k = replace(arm_k, no_arm_from_top=False)
         points = np.asarray(hand, dtype=np.float64)  # (21, 2)
-        d = draw_arm_labels(own[k], points, capsule, arm_k, lab, others[k], fixed, nearer)
+        d, coloured[k] = draw_arm_labels(own[k], points, capsule, arm_k, lab, others[k], fixed,
+                                         nearer)  # fmt: skip
         if d is not None:
             drawn[k] = d
-    return own, drawn
+    return own, drawn, coloured
 
 
 def crosses_other_wrist(
@@ -1018,7 +1038,7 @@ def hand_arm_masks(
     with confidence (see ``propagate``). Without ``colour`` the mask is the probable-hand labels
     (capsules and the forearm band along the hand's direction).
     """
-    own, _ = hand_labels(image, keypoints, valid, capsule, arm)
+    own, _, _ = hand_labels(image, keypoints, valid, capsule, arm)
     return masks_from_labels(image, own, colour, iterations, max_side)
 
 

@@ -25,7 +25,9 @@ Backends:
   that found it (at most ``carry_frames`` away) by tracking its pixels (see ``carry``); then
   each hand's mask is carried by optical flow up to ``propagate_frames`` frames backwards and
   forwards into the frames that missed that hand, and into those it was carried into by
-  tracking, joined to their own mask (see ``propagate``): a hand still missed, an arm that
+  tracking, joined to their own mask (see ``propagate``), and into a short run of frames whose
+  arm search found no colour region while a neighbour's did and the hand barely moved (a dark
+  sleeve on a dark floor, found in one frame and not the next): a hand still missed, an arm that
   enters later or the arm of a carried hand is masked there too; only the certain seeds
   (keypoint skeleton, arm strip) travel with confidence, so a background patch wrongly joined
   to a hand in one frame is not carried into frames without a hand. Last, each hand's mask
@@ -49,6 +51,7 @@ A clip without hand joints or poses is rejected; frames where no hand is valid g
 from __future__ import annotations
 
 import dataclasses
+import itertools
 from collections.abc import Mapping
 from typing import Any, ClassVar, Literal
 
@@ -79,13 +82,14 @@ from egosim.stages.hand_mask.arm_region import (
     arms_through_top,
     crosses_other_wrist,
     hand_labels,
+    hand_length_px,
     masks_from_labels,
     off_side_runs,
     steady_directions,
     true_runs,
 )
 from egosim.stages.hand_mask.border import BorderParams, not_image
-from egosim.stages.hand_mask.capsules import CapsuleParams, draw_hands
+from egosim.stages.hand_mask.capsules import CapsuleParams, draw_hand, draw_hands
 from egosim.stages.hand_mask.carry import CarryParams, carry_keypoints
 from egosim.stages.hand_mask.grow import GrowParams, grow_masks
 from egosim.stages.hand_mask.propagate import PropagationParams, propagate_hands
@@ -116,6 +120,15 @@ class HandMaskConfig(StageConfig):
     border: bool = True  # the clip's black border (pixels black in every frame: a letterbox
     # bar, the outside of a fisheye circle; see border) is never masked by the keypoints
     # backend (False: border pixels are masked like any other)
+    weak_arm_frames: int = 8  # a run of at most this many frames of a hand whose arm has no
+    # colour region (no strip stands out from its sides: a dark sleeve on a dark floor), next
+    # to a frame of that hand with one, receives that hand's mask from its neighbours by
+    # propagation, joined to its own (weak_arm_runs; 0 or propagate_frames 0: off)
+    weak_arm_move: float = 0.5  # ... only while the wrist moves at most this many hand lengths
+    # per frame from that neighbour through the run (the hand barely moved)
+    weak_arm_share: float = 0.5  # ... and only frames whose own arm (the hand's mask outside
+    # its capsules) is under this share of that neighbour's, which must show at least the
+    # capsules' area of arm (the arm was lost, not found by GrabCut without the region)
     no_arm_from_top: bool = True  # an arm whose ray from the wrist leaves through the top
     # border is not drawn (forearms enter a head-worn view from the bottom or the sides; see
     # arm_region.leaves_through_top). Off for fixed or third-person cameras: an arm may enter
@@ -137,6 +150,12 @@ class HandMaskConfig(StageConfig):
             problems.append(f"propagate_frames must be in [0, 1000], got {self.propagate_frames}")
         if not 0.0 <= self.grow_margin_m <= 0.025:
             problems.append(f"grow_margin_m must be in [0, 0.025], got {self.grow_margin_m}")
+        if not 0 <= self.weak_arm_frames <= 1000:
+            problems.append(f"weak_arm_frames must be in [0, 1000], got {self.weak_arm_frames}")
+        if not 0.0 <= self.weak_arm_share <= 1.0:
+            problems.append(f"weak_arm_share must be in [0, 1], got {self.weak_arm_share}")
+        if not 0.0 <= self.weak_arm_move <= 10.0:
+            problems.append(f"weak_arm_move must be in [0, 10], got {self.weak_arm_move}")
         if self.grabcut_max_side < 16:
             problems.append(f"grabcut_max_side must be >= 16, got {self.grabcut_max_side}")
         if not 0.0 <= self.min_joint_confidence <= 1.0:
@@ -186,6 +205,84 @@ def short_top_runs(top: np.ndarray, valid: np.ndarray, max_run: int) -> np.ndarr
     return out
 
 
+def arm_areas(
+    per_hand: np.ndarray, keypoints: np.ndarray, valid: np.ndarray, capsule: CapsuleParams
+) -> tuple[np.ndarray, np.ndarray]:
+    """``(arm_px (T, K), hand_px (T, K))``: pixels of each hand's mask ``per_hand (T, K, H,
+    W)`` outside its own capsules (drawn round ``keypoints (T, K, 21, 2)`` without a forearm),
+    and the capsules' own pixels; 0 where ``valid (T, K)`` is False."""
+    t_count, k_count, h, w = per_hand.shape
+    arm_px = np.zeros((t_count, k_count), np.int64)
+    hand_px = np.zeros((t_count, k_count), np.int64)
+    params = CapsuleParams(capsule.radius_scale, forearm=False)
+    for t, k in zip(*np.nonzero(valid), strict=True):
+        hand = draw_hand(np.asarray(keypoints[t, k], np.float64), 0, h, w, params)[0] > 0
+        hand_px[t, k] = int(hand.sum())
+        arm_px[t, k] = int((per_hand[t, k].astype(bool) & ~hand).sum())
+    return arm_px, hand_px
+
+
+def weak_arm_runs(
+    weak: np.ndarray,
+    valid: np.ndarray,
+    keypoints: np.ndarray,
+    arm_px: np.ndarray,
+    hand_px: np.ndarray,
+    max_run: int,
+    max_move: float,
+    max_share: float,
+) -> np.ndarray:
+    """``(T, K)`` bool: the frames of ``weak (T, K)`` (hands whose arm has no colour region)
+    that lost their arm, to be opened to their neighbours' masks of that hand.
+
+    A run of at most ``max_run`` consecutive weak frames of a hand, next to a frame of the same
+    hand that is ``valid (T, K)``, not weak and shows an arm (the source: its mask of the hand
+    outside the hand's capsules, ``arm_px (T, K)``, at least the capsules' own ``hand_px (T,
+    K)``), is walked from the source into the run; each frame reached is opened while the wrist
+    of ``keypoints (T, K, 21, 2)`` moved at most ``max_move`` hand lengths
+    (:func:`arm_region.hand_length_px`) since the frame before and its own arm (``arm_px``) is
+    under ``max_share`` of the source's; the walk stops at the first frame that fails. Such a
+    frame found no arm where its neighbour did, while the hand barely moved: the arm is still
+    there (DWM 00013 t=31-32, a navy sleeve on a dark floor whose search and colour test flip
+    with a 1 px shift of the keypoints), and propagation carries the neighbour's mask in,
+    checked against the frame's own colours. A weak frame whose own arm holds (GrabCut found
+    it without the region), or a hand whose arm is out of view in the source too (a hand
+    entering at the border), is left as it is.
+    """
+    out = np.zeros(weak.shape, bool)
+    n = len(weak)
+
+    def step_ok(a: int, b: int, k: int) -> bool:
+        """Whether hand ``k``'s wrist moves at most ``max_move`` hand lengths, a to b."""
+        wa, wb = keypoints[a, k, 0], keypoints[b, k, 0]  # (2,) wrists
+        sizes = [hand_length_px(keypoints[a, k]), hand_length_px(keypoints[b, k])]
+        sizes = [v for v in sizes if np.isfinite(v)]
+        if not (np.all(np.isfinite(wa)) and np.all(np.isfinite(wb)) and sizes):
+            return False
+        return bool(np.hypot(*(wa - wb)) <= max_move * max(sizes))
+
+    def source_ok(t: int, k: int) -> bool:
+        """Whether frame ``t`` of hand ``k`` found its arm and shows it."""
+        return bool(valid[t, k] and not weak[t, k] and 0 < hand_px[t, k] <= arm_px[t, k])
+
+    for k in range(weak.shape[1]):
+        for t, end in true_runs(weak[:, k] & valid[:, k]):
+            if end - t > max_run:
+                continue
+            chains = []
+            if t > 0 and source_ok(t - 1, k):
+                chains.append(range(t - 1, end))  # from the frame before, forwards
+            if end < n and source_ok(end, k):
+                chains.append(range(end, t - 1, -1))  # from the frame after, backwards
+            for chain in chains:
+                source = chain[0]
+                for a, b in itertools.pairwise(chain):  # from the source into the run
+                    if not step_ok(a, b, k) or arm_px[b, k] >= max_share * arm_px[source, k]:
+                        break  # the hand moved, or its own arm holds: not reached from here
+                    out[b, k] = True
+    return out
+
+
 def masks_from_keypoints(
     frames: np.ndarray, keypoints: np.ndarray, valid: np.ndarray, config: HandMaskConfig
 ) -> np.ndarray:
@@ -216,8 +313,9 @@ def masks_from_keypoints(
         directions: np.ndarray | None = None,
         no_region: np.ndarray | None = None,
         allow_top: np.ndarray | None = None,
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """Frame ``t``'s GrabCut labels ``(K, H, W)`` and arm directions ``(K, 2)``."""
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Frame ``t``'s GrabCut labels ``(K, H, W)``, arm directions ``(K, 2)`` and whether
+        each arm has a colour region ``(K,)``."""
         return hand_labels(
             frames[t], keypoints[t], valid[t], capsule, arm, directions, starts[t], no_region,
             allow_top,
@@ -225,9 +323,10 @@ def masks_from_keypoints(
 
     # Labels first (arm searches), GrabCut once per frame after: an arm that swung away for a
     # few frames and back is drawn between its neighbours (steady_directions) before the cut.
-    own, drawn = zip(*(labels(t) for t in range(len(frames))), strict=True)
+    own, drawn, coloured = zip(*(labels(t) for t in range(len(frames))), strict=True)
     own = list(own)  # T of (K, H, W) uint8
     drawn = np.stack(drawn)  # (T, K, 2)
+    coloured = np.stack(coloured)  # (T, K) the arm drawn has a colour region
     off_side = None
     if arm.steady_off_side:
         off_side = crosses_other_wrist(
@@ -243,7 +342,7 @@ def masks_from_keypoints(
         )  # (T, K, 2) the runs found by angle alone keep their colour region
         guessed = off_side_runs(steady, off_side) & ~np.all(np.isfinite(plain), axis=2)
     for t in np.nonzero(np.any(np.isfinite(steady[..., 0]), axis=1))[0]:
-        own[t] = labels(int(t), steady[t], guessed[t])[0]
+        own[t], _, coloured[t] = labels(int(t), steady[t], guessed[t])
     # Arms that would run up to the top border (not drawn, see no_arm_from_top): only a short
     # run of them next to a frame of the same hand that is not is taken for a hand turned over
     # on its own forearm (HOT3D window 1, t=56-60 flagged) and opened to its neighbours' masks
@@ -256,10 +355,10 @@ def masks_from_keypoints(
         opened_top = short_top_runs(top, valid, config.carry_frames)
         for t in np.nonzero(np.any(top & ~opened_top, axis=1))[0]:
             again = np.any(np.isfinite(steady[t]))  # as drawn above: steady, else searched
-            own[t] = labels(
+            own[t], _, coloured[t] = labels(
                 int(t), steady[t] if again else None, guessed[t] if again else None,
                 opened_top[t] | ~top[t],
-            )[0]  # fmt: skip
+            )  # fmt: skip
     found = [
         masks_from_labels(
             frames[t], own[t], config.colour_refine, config.grabcut_iterations,
@@ -274,11 +373,25 @@ def masks_from_keypoints(
         )
         per_hand = np.stack([f[1] for f in found])  # (T, K, H, W)
         certain = np.stack([f[2] for f in found])  # (T, K, H, W)
+        # A short run of frames whose arm found no colour region and whose own mask of the hand
+        # shrank, next to a frame of that hand that found one while the hand barely moved
+        # (DWM 00013 t=31-32: a navy sleeve on a dark floor, found or not by a 1 px shift).
+        weak = np.zeros(valid.shape, bool)  # (T, K)
+        if config.weak_arm_frames > 0 and config.forearm:
+            arm_px, hand_px = arm_areas(per_hand, keypoints, valid, capsule)  # (T, K) each
+            weak = weak_arm_runs(
+                valid & ~coloured, valid, keypoints, arm_px, hand_px, config.weak_arm_frames,
+                config.weak_arm_move, config.weak_arm_share,
+            ) & ~opened_top  # fmt: skip
         # A frame whose hand was carried there still receives that hand's mask from its
         # neighbours (its arm, from frames where the search found it), joined to its own; so
         # does a short run whose arm would run up to the top border (not drawn: the hand's
         # keypoints are doubtful, HOT3D window 1 t=56-60 a hand turned over on its own forearm).
-        masks = propagate_hands(frames, masks, per_hand, certain, params, carried | opened_top)
+        # ... and so does a short run of frames whose arm found no colour region while a
+        # neighbour's did (weak_arm_runs).
+        masks = propagate_hands(
+            frames, masks, per_hand, certain, params, carried | opened_top | weak
+        )
     if config.grow_margin_m > 0 and config.colour_refine:
         grow = GrowParams(config.grow_margin_m, radius_scale=config.radius_scale)
         masks = grow_masks(frames, masks, keypoints, valid, grow)
@@ -364,7 +477,7 @@ class HandMaskStage(ClipStage):
     # cleaned joints and a replacement camera (see the module docstring)
     optional_inputs: ClassVar[Mapping[str, ShardSchema]] = {**CAMERA_ROLES, "hands": HANDS}
     output = HAND_MASK
-    version = 23  # 2: image-space arm masks (no world axis). 3: arm found by a colour walk, masks
+    version = 24  # 2: image-space arm masks (no world axis). 3: arm found by a colour walk, masks
     # carried into frames whose hands were missed. 4: arm re-aimed along its colour region.
     # 5: that region is probably arm wherever it runs. 6: each hand carried into the frames that
     # missed it, and only its certain seeds (skeleton, arm strip) carried with confidence.
@@ -409,6 +522,13 @@ class HandMaskStage(ClipStage):
     # and the rule can be turned off (HandMaskConfig.no_arm_from_top) and is never applied to a
     # clip whose cameras row says the camera is static (static_camera; review11b finding 2);
     # and a clip under BorderParams.min_frames (5) frames has no border (review11d)
+    # 24: a run of at most weak_arm_frames (8) frames of a hand whose arm found no colour region
+    # (no strip standing out from its sides), next to a frame of that hand that found one and
+    # reached from it with the wrist moving at most weak_arm_move (0.5) hand lengths a frame,
+    # receives that hand's mask from its neighbours by propagation, joined to its own
+    # (weak_arm_runs): DWM 00013's navy sleeve on a dark floor was masked or not from frame to
+    # frame (t=31 10k px, 27k with the keypoints shifted 1 px), the search and the colour test
+    # flipping on a 1 px change; now 30k / 27k
     backends = ("keypoints", "sam")
     # What process reads (the executor decodes nothing else): the frames, joints and camera
     # of the clip, the robot arm's mask, the cleaned joints.
