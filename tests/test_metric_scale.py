@@ -33,7 +33,9 @@ from egosim.stages.depth_camera.metric_scale import (
     MetricScaleInputError,
     MetricScaleParams,
     MetricScaleParamsError,
+    drop_depth_outliers,
     estimate_metric_scale,
+    on_main_surface,
     pooled_metric_scale,
     scale_from_landmarks,
     scale_from_samples,
@@ -254,9 +256,23 @@ def test_estimates_without_spread_are_not_cut() -> None:
 
 def test_params_name_every_bad_field() -> None:
     with pytest.raises(MetricScaleParamsError) as err:
-        MetricScaleParams(joint_quantile=1.5, min_detections=0, joints=(3, 25), proximal_ratio=0.0)
+        MetricScaleParams(
+            joint_quantile=1.5,
+            min_detections=0,
+            joints=(3, 25),
+            proximal_ratio=0.0,
+            wide_outlier_rel=0.0,
+            wide_joint_rel=float("nan"),
+        )
     message = str(err.value)
-    for name in ("joint_quantile", "min_detections", "joints", "proximal_ratio"):
+    for name in (
+        "joint_quantile",
+        "min_detections",
+        "joints",
+        "proximal_ratio",
+        "wide_outlier_rel",
+        "wide_joint_rel",
+    ):
         assert name in message
 
 
@@ -354,6 +370,104 @@ def test_wide_window_skips_windows_across_a_depth_edge() -> None:
     # Strict window at the same pixels: 2 px finds no known depth off the grid.
     strict = surface_depth(depth, uv + 1.0, MetricScaleParams(window_px=0))
     assert np.isnan(strict).all()
+
+
+def test_isolated_depth_outliers_are_dropped() -> None:
+    """A short line of confident depths at 0.55 x the plane around it (the plane sweep matching a
+    drawer's edge at the wrong plane, DWM 00017) is left out; the sparse plane and a large nearer
+    box (a real object: the majority of its own neighbourhood) are kept."""
+    depth = np.zeros((150, 200))
+    depth[::4, ::4] = 30.0  # a plain surface with confident depth on a sparse grid
+    depth[80:82, 60:100] = 16.5  # the outlier line
+    depth[10:60, 120:190] = 12.0  # a box nearer than the plane, dense
+    out = drop_depth_outliers(depth, 25, 0.2)
+    assert (out[80:82, 60:100] == 0).all()
+    plane = depth == 30.0  # (H, W)
+    plane[:, 75:] = False  # left of the box's neighbourhood
+    assert (out[plane] == 30.0).all()
+    assert (out[10:60, 120:190] == 12.0).all()  # the whole box
+    # The price: sparse plane depths beside the dense box, a minority of their neighbourhood,
+    # go too (fewer samples there, not wrong ones).
+    assert 0 < ((out == 0) & (depth == 30.0)).sum() < 0.3 * (depth == 30.0).sum()
+    assert np.isnan(depth).sum() == 0 and (drop_depth_outliers(depth * np.nan, 25, 0.2) == 0).all()
+
+
+def test_joints_off_the_main_surface_are_left_out() -> None:
+    """Wide window, per detection: joints whose surface depth is more than wide_joint_rel off
+    the median of the detection's surface depths lie over another surface."""
+    z_s = np.array([20.0, 20.4, 19.8, 21.0, 15.0, 14.9, np.nan, 20.2])
+    ok = np.isfinite(z_s)
+    np.testing.assert_array_equal(
+        on_main_surface(z_s, ok, 0.15), [True, True, True, True, False, False, False, True]
+    )
+
+
+def plane_with_an_outlier_line(
+    near: float | None,
+) -> tuple[RawLandmarks, np.ndarray, np.ndarray, np.ndarray, np.ndarray, float]:
+    """A flat hand 1 cm above a plain table seen from 12 poses (as the hand-resting test); the
+    table's frame-0 depth is known on a 5 px grid except within 12 px of the hand's footprint
+    (a plain surface), and a 2 px line across the footprint holds depths at ``near`` x the
+    table's (None: no line). Returns (landmarks, frames, intrinsics, poses in units, depth0 in
+    units, scale)."""
+    h, w = 240, 320
+    k = intrinsics_from_fov(w, h, 70.0)
+    scale = 0.25  # metres per unit
+    rng = np.random.default_rng(1)
+    hand = np.zeros((21, 3))
+    hand[:, :2] = rng.uniform(-0.05, 0.05, (21, 2))
+    hand[list(PALM_JOINTS), :2] = PALM_TEMPLATE[:, :2] - [0.05, 0.0]
+    hand[:, 2] = 0.01
+    poses = np.stack(
+        [look_at([-0.35 + 0.012 * i, 0.006 * i, 0.4], [0.0, 0.0, 0.0]) for i in range(12)]
+    )  # (T, 4, 4) metric
+    rays = np.concatenate(
+        [(np.mgrid[0:h, 0:w][::-1].transpose(1, 2, 0) + 0.5 - k[2:]) / k[:2], np.ones((h, w, 1))],
+        axis=-1,
+    )  # (H, W, 3)
+    depth_m = -poses[0, 2, 3] / (rays @ poses[0, :3, :3].T)[..., 2]  # (H, W) to z = 0
+    t = len(poses)
+    uv = np.full((t, 2, 21, 2), np.nan)
+    world = np.full((t, 2, 21, 3), np.nan)
+    present = np.zeros((t, 2), dtype=bool)
+    for f in range(1, t):
+        points_cam = transform_points(invert_se3(poses[f]), hand)  # (21, 3)
+        uv[f, 0] = project_points(points_cam, k)[0]
+        world[f, 0] = points_cam - points_cam.mean(axis=0)
+        present[f, 0] = True
+    foot = project_points(transform_points(invert_se3(poses[0]), hand), k)[0]  # (21, 2)
+    lo, hi = np.floor(foot.min(axis=0)).astype(int), np.ceil(foot.max(axis=0)).astype(int)
+    known = np.zeros((h, w), dtype=bool)
+    known[::5, ::5] = True
+    known[lo[1] - 12 : hi[1] + 12, lo[0] - 12 : hi[0] + 12] = False
+    depth = np.where(known, depth_m, 0.0)  # (H, W) metres
+    if near is not None:
+        mid = (lo[1] + hi[1]) // 2
+        depth[mid : mid + 2, lo[0] : hi[0]] = near * depth_m[mid : mid + 2, lo[0] : hi[0]]
+    units = poses.copy()
+    units[:, :3, 3] /= scale
+    frames = np.zeros((t, h, w, 3), np.uint8)
+    frames[1:] = 200  # the hand is in front of the table wherever it is
+    lm = RawLandmarks(uv, world, np.ones((t, 2)), present)
+    return lm, frames, k, units, depth / scale, scale
+
+
+def test_wide_window_is_not_taken_by_a_line_of_outliers() -> None:
+    """The defect of depth_camera v17 on DWM 00017 (issues 9, 17): on a plain surface a few
+    confident depths at 0.55 x the surface's were all the wide window held under the hand, and
+    the scale came out 1.9x. The outliers are left out before the splat (v18); without the
+    line the two agree."""
+    params = MetricScaleParams(contact_offset_m=0.01, proximal_ratio=1.0)
+    lm, frames, k, units, depth0, scale = plane_with_an_outlier_line(0.55)
+    v17 = dataclasses.replace(params, wide_outlier_rel=None, wide_joint_rel=None)
+    before = scale_from_landmarks(lm, frames, k, units, depth0, None, v17)
+    assert before.source == "hand_size_wide" and before.scale / scale > 1.5  # the defect
+    est = scale_from_landmarks(lm, frames, k, units, depth0, None, params)
+    assert est.source == "hand_size_wide" and est.num_samples >= 10
+    assert est.scale == pytest.approx(scale, rel=0.06)
+    # No outliers: the same figure.
+    clean = scale_from_landmarks(*plane_with_an_outlier_line(None)[:5], None, params)
+    assert est.scale == pytest.approx(clean.scale, rel=0.03)
 
 
 def test_depth_camera_puts_sfm_units_in_metres(

@@ -65,6 +65,20 @@ Method, for one clip (:func:`estimate_metric_scale`):
    sweep confident on 19% of frame 0, 2 usable detections of 47), which now gets 0.018 m/unit
    from 15 detections; held out, MediaPipe: default tabletop 4 (strict: no scale) -9.1%, wild 1
    still none (0 usable detections in either window).
+   **Outliers** (depth_camera v18): before the splat, a frame-0 depth more than
+   ``wide_outlier_rel`` (0.2, as a ratio) off the median of the known depths in its
+   ``wide_window_px`` block and the 8 around it is left out (:func:`drop_depth_outliers`), and
+   per detection, joints whose wide-window depth is more than ``wide_joint_rel`` (0.15) off the
+   median of its joints' depths are left out (:func:`on_main_surface`: the hand rests on the
+   surface most of it lies over). Why: on DWM 00017 the plane sweep is confident on a handful of
+   pixels just under a gap line between two drawers at 0.55 x the depth of the drawer front
+   around them (a horizontal edge matched at the wrong plane); the drawer front has almost no
+   other confident depth, so those pixels were all the 25 px window held under the hand at
+   frames 17-20 (and half of it at 10-12 in another SfM), and which of them the sweep kept
+   confident changed with any change to the SfM: v17 gave 0.0297, 0.0441 or 0.0522 m/unit on
+   three SfM results of the same frames (v18: 0.0297, 0.0298, 0.0315). Limit: outliers that are
+   the majority of their 75 px neighbourhood are kept (a thicker line on a plainer surface);
+   sparse depths beside a dense nearer object go too (fewer samples there, not wrong ones).
 
 ``contact_offset_m`` (3 cm), ``joint_quantile`` and ``contact_quantile`` were tuned on the
 synthetic world, tabletop seeds 0-1 (61 frames, 480x832, poses and depth scaled by 0.37 and 2.9,
@@ -196,6 +210,14 @@ class MetricScaleParams:
     wide_max_spread_rel: float = 0.3  # fallback: window's depth 75th/25th percentile above
     # 1 + this = a depth edge, no sample (the strict max/min test fails on noisy wide windows)
     wide_min_window_pixels: int = 10  # fallback: fewer known depths in the window = no sample
+    wide_outlier_rel: float | None = 0.2  # fallback: a frame-0 depth more than this off (as a
+    # ratio) the median of the known depths around it (3 x 3 blocks of wide_window_px) is left
+    # out before splatting: an isolated confident outlier of the plane sweep (DWM 00017: a
+    # drawer's edge line at 0.55 x its front's depth) would otherwise be the wide window's only
+    # depth under a hand; None keeps all (v17). Set on DWM 00017 (depth_camera v18)
+    wide_joint_rel: float | None = 0.15  # fallback: a detection's joints whose surface depth is
+    # more than this off (as a ratio) the median of its joints' surface depths are left out:
+    # the hand rests on the surface most of its joints lie over; None keeps all (v17)
 
     def __post_init__(self) -> None:
         problems: list[str] = []
@@ -217,6 +239,10 @@ class MetricScaleParams:
             value = getattr(self, name)
             if not (np.isfinite(value) and value >= 0):
                 problems.append(f"{name} must be finite and >= 0, got {value!r}")
+        for name in ("wide_outlier_rel", "wide_joint_rel"):
+            value = getattr(self, name)
+            if value is not None and not (np.isfinite(value) and value > 0):
+                problems.append(f"{name} must be None or finite and > 0, got {value!r}")
         if self.outlier_mads is not None and not (
             np.isfinite(self.outlier_mads) and self.outlier_mads > 0
         ):
@@ -287,6 +313,34 @@ def splat_depth(
     source = np.full(h * w, -1, dtype=np.int64)
     source[uniq] = src[order][first]
     return depth.reshape(h, w), source.reshape(h, w)
+
+
+def drop_depth_outliers(depth: np.ndarray, block_px: int, rel: float) -> np.ndarray:
+    """``depth (H, W)`` (0 or NaN = unknown) with its isolated outliers set to 0.
+
+    The image is cut into square blocks of ``block_px``; a known depth more than ``rel`` off (as
+    a ratio, either way) the median of the known depths in its block and the 8 around it is left
+    out. A confident plane-sweep depth that disagrees with most of its neighbourhood is an
+    outlier (a thin line matched at the wrong plane) or a thin object; either way not the
+    surface a hand rests on (step 6 of the module docstring).
+    """
+    h, w = depth.shape
+    known = np.isfinite(depth) & (depth > 0)  # (H, W)
+    rows, cols = -(-h // block_px), -(-w // block_px)
+    median = np.full((rows, cols), np.nan)
+    for i in range(rows):
+        for j in range(cols):
+            win = (
+                slice(max(0, (i - 1) * block_px), (i + 2) * block_px),
+                slice(max(0, (j - 1) * block_px), (j + 2) * block_px),
+            )
+            values = depth[win][known[win]]
+            if values.size:
+                median[i, j] = np.median(values)
+    around = np.repeat(np.repeat(median, block_px, axis=0), block_px, axis=1)[:h, :w]  # (H, W)
+    ratio = np.where(known, depth, 1.0) / np.where(known, around, 1.0)  # (H, W)
+    bad = known & ((ratio > 1.0 + rel) | (ratio < 1.0 / (1.0 + rel)))
+    return np.where(known & ~bad, depth, 0.0)
 
 
 def surface_depth(
@@ -393,6 +447,8 @@ def detection_samples(
     joints = np.asarray(params.joints)
     out: list[tuple[np.ndarray, np.ndarray]] = []
     t_count = landmarks.present.shape[0]
+    if wide and params.wide_outlier_rel is not None and params.wide_window_px > 0:
+        depth0 = drop_depth_outliers(depth0, params.wide_window_px, params.wide_outlier_rel)
     for t in range(t_count):
         slots = [k for k in np.flatnonzero(landmarks.present[t])]
         if not slots:
@@ -422,10 +478,22 @@ def detection_samples(
             if scene_t is not None:
                 seen = source >= 0  # (H, W) a known frame-0 pixel landed here
                 ok &= ~scene_visible(frames[t], scene_t, seen, uv[joints], params)
+            if wide and params.wide_joint_rel is not None and ok.any():
+                ok &= on_main_surface(z_s, ok, params.wide_joint_rel)
             if ok.sum() < params.min_joint_samples:
                 continue
             out.append((z_m[ok], z_s[ok]))
     return out
+
+
+def on_main_surface(z_s: np.ndarray, ok: np.ndarray, rel: float) -> np.ndarray:
+    """``(J,)`` bool: the joints whose surface depth ``z_s (J,)`` lies within ``rel`` (as a ratio,
+    either way) of the median of the ``ok (J,)`` joints' depths (step 6 of the module
+    docstring): a wide window that reached another surface than the one most of the hand lies
+    over gives no sample."""
+    median = float(np.median(z_s[ok]))
+    with np.errstate(invalid="ignore"):
+        return ok & (z_s <= (1.0 + rel) * median) & (z_s >= median / (1.0 + rel))
 
 
 def without_outliers(estimates: np.ndarray, outlier_mads: float | None) -> np.ndarray:

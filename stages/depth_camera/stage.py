@@ -1050,7 +1050,11 @@ class DepthCameraStage(ClipStage):
     # 17: the scale's hand tracker refuses a reading more than TrackParams.max_drift (1.6) off the
     # size of its last trusted reading (roi_landmarks, hands v19): a hand whose low-presence
     # readings spread over its sleeve step by step is searched for again; detections can change
-    version = 17
+    # 18: the scale's wide-window fallback leaves out frame-0 depths far off their neighbourhood
+    # (metric_scale.drop_depth_outliers) and a detection's joints off its main surface
+    # (on_main_surface): DWM 00017's wide-window scale no longer follows a few wrong sweep
+    # depths under the hand; clips whose scale comes from the strict window are unchanged
+    version = 18
     config_class = DepthCameraConfig
     inputs: ClassVar[Mapping[str, ShardSchema]] = {"clips": CLIPS}
     output = DEPTH_CAMERA
