@@ -72,6 +72,7 @@ FINGERTIPS = (4, 8, 12, 16, 20)  # MANO order
 HAND_DILATE_PX = 15  # ground-truth hand renders grow by this before leaving pixels out
 HAND_RENDER_THRESHOLD = 30  # a videos_hands pixel brighter than this (any channel) is hand
 DWM_ARIA_FOCAL_PX = 300.0  # DWM Aria clips (720x480): linear camera focal (module docstring)
+DWM_ARIA_WIDTH_PX = 720  # ... at this width; a DWM-layout clip resized from it scales the focal
 
 
 @dataclass(frozen=True)
@@ -84,6 +85,8 @@ class RealCase:
     static_truth: str = ""  # ground-truth static-scene video (DWM dynamic clips)
     hands_truth: str = ""  # ground-truth hand renders on black (DWM dynamic clips)
     true_focal_px: float = 0.0  # true focal in pixels of the source video; 0 = unknown
+    true_focal_width: int = 0  # the width true_focal_px is stated at: a source of another width
+    # (resized, same field of view) scales it; 0 = the source's own width
     crop_x: tuple[float, float] = ()  # keep this span of the width (fractions): one view of a
     # side-by-side recording, written beside the run and ingested instead; () = the whole frame
 
@@ -107,6 +110,7 @@ def cases(data: Path) -> tuple[RealCase, ...]:
                 clip.static,
                 clip.hands,
                 DWM_ARIA_FOCAL_PX,
+                true_focal_width=DWM_ARIA_WIDTH_PX,
             )
             for clip in real_clips.dwm_dynamic_clips(data)
         ),
@@ -344,6 +348,18 @@ def _clip_scale(case: RealCase, data: Path, clip: dict[str, Any]) -> float:
     return plan_resize(info.width, info.height, int(clip["width"]), int(clip["height"])).scale
 
 
+def true_focal_clip_px(case: RealCase, data: Path, clip: dict[str, Any]) -> float:
+    """The true focal in pixels of the ingested ``clip`` (0 when unknown): the source's, scaled
+    from ``true_focal_width`` to the source's width (a resized copy keeps its field of view),
+    then by ingest's resize (:func:`_clip_scale`)."""
+    if case.true_focal_px <= 0:
+        return 0.0
+    focal = case.true_focal_px
+    if case.true_focal_width > 0:
+        focal *= media.probe_video_file(data / case.video).width / case.true_focal_width
+    return focal * _clip_scale(case, data, clip)
+
+
 def window_seams(windows: list[tuple[np.ndarray, np.ndarray]]) -> list[dict[str, float]]:
     """Where consecutive windows of one source meet: ``windows`` is ``[(source_frame_indices (T,),
     world_from_cam (T, 4, 4)), ...]`` in source order. Per seam, the camera's jump from the last
@@ -403,8 +419,8 @@ def summarise(case: RealCase, run: Path, data: Path, seconds: float) -> dict[str
         models.append(cam.get("camera_model") or ("static" if cam["static_camera"] else "sfm"))
         fovs.append(_fov_deg(cam["intrinsics"][0], int(cam["width"])))
         nominal.append(_fov_deg(clips[cid]["intrinsics"][0], int(clips[cid]["width"])))
-        if case.true_focal_px > 0:
-            true_f = case.true_focal_px * _clip_scale(case, data, clips[cid])
+        true_f = true_focal_clip_px(case, data, clips[cid])
+        if true_f > 0:
             focal_err.append(float(cam["intrinsics"][0]) / true_f - 1.0)
         if cam.get("metric_scale") is not None:
             scales.append(f"{cam['metric_scale']:.3g} ({cam.get('scale_source')})")

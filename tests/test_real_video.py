@@ -109,3 +109,23 @@ def test_run_case_passes_set_overrides_to_the_workflow(
     assert seen["cameras"]["mask_hands"] is (not default)
     real_video.run_case(case, tmp_path, tmp_path / "run", 1)
     assert seen["cameras"]["mask_hands"] is default
+
+
+@pytest.mark.parametrize("width", [720, 540])
+def test_dwm_true_focal_keeps_the_field_of_view_of_a_resized_copy(
+    tmp_path: Path, width: int
+) -> None:
+    from bench.real_video import DWM_ARIA_FOCAL_PX, cases, true_focal_clip_px
+    from egosim.pipeline import media
+
+    rel = "dwm_realworld/realworld_dynamic/videos/00013.mp4"
+    (tmp_path / rel).parent.mkdir(parents=True)
+    frames = np.zeros((3, width * 2 // 3, width, 3), np.uint8)
+    media.write_video_file(tmp_path / rel, frames, 8.0)
+    (case,) = cases(tmp_path)
+    # ingest's dwm preset stores 720x480: the true focal there is 300 px whatever the file's size
+    clip = {"width": 720, "height": 480}
+    assert true_focal_clip_px(case, tmp_path, clip) == pytest.approx(DWM_ARIA_FOCAL_PX)
+    # a clip stored at half that size has half the focal
+    half = {"width": 360, "height": 240}
+    assert true_focal_clip_px(case, tmp_path, half) == pytest.approx(DWM_ARIA_FOCAL_PX / 2)
