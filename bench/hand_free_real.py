@@ -2,9 +2,10 @@
 
 ``python -m bench.hand_free_real [--data ../shared/data] [--out runs/hand_free]
 [--world tabletop:2,wild:5,alt:tabletop:0,...] [--size 240x416] [--frames 25]
-[--skip-real] [--fixed-only] [--selfie] [--runs runs/real]`` prints one line per case, writes
-``OUT/hand_free_real.json`` and contact sheets ``OUT/*.png`` (real | mask | inpainted | truth
-[| Telea]). About 4 minutes on 2 shared cores; each line gives the seconds of masks + fill.
+[--skip-real] [--fixed-only] [--selfie] [--runs runs/real] [--shift 1]`` prints one line per
+case, writes ``OUT/hand_free_real.json`` and contact sheets ``OUT/*.png`` (real | mask |
+inpainted | truth [| Telea]). About 5 minutes on 2 shared cores; each line gives the seconds
+of masks + fill.
 
 Synthetic world (``egosim.world``; ``[variant:]mode:seed``). Tuned on: the default
 variant (tabletop seeds 0-3 and tabletop 2 / wild 5 were looked at while the arm search was
@@ -58,6 +59,11 @@ figures.
   real arm or hand: t=8's (3,785 px) is the left hand and forearm, which the render leaves out
   of that frame, and t=19's (395 px) the right sleeve at the bottom-right corner, flatter than
   the 45-degree cone;
+- ``shift_iou_mean`` / ``shift_iou_min``: per-frame mask IoU between the masks from the
+  keypoints as found and from the same keypoints moved by ``--shift`` px (default 1) in x and
+  y (:func:`shift_stability`): how much the masks flicker with a change no real hand makes
+  (hand_mask v23 on 00013: mean 0.853, min 0.285 at t=31, its dark sleeve on and off; v24:
+  0.877 / 0.716, over t=8-35 with the keypoints of 37f660e's day);
 - frame 0 of both clips shows no hand, so the inpainting is measured on the sub-clip that starts
   at the first frame with a visible hand (``start``; what a clip cut there would get as its
   frame 0): ``psnr_hand`` in the hand truth dilated by 15 px and ``psnr_frame`` over the frame,
@@ -338,15 +344,39 @@ def _num(value: float | None, spec: str) -> str:
     return "n/a" if value is None or not np.isfinite(value) else format(value, spec)
 
 
-def dwm_case(cid: str, data: Path, out: Path) -> dict:
+def shift_stability(
+    video: np.ndarray, uv: np.ndarray, present: np.ndarray, masks: np.ndarray, shift_px: float
+) -> tuple[float, float, int]:
+    """``(mean, min, frame of the min)`` per-frame IoU between ``masks (T, H, W)`` (from the
+    keypoints ``uv (T, K, 21, 2)`` as found) and the masks from the same keypoints moved by
+    ``shift_px`` in x and y, over the frames where either mask covers at least
+    :data:`MIN_HAND_FRACTION` of the image (NaN, NaN, -1 when none does, or ``shift_px`` is 0;
+    a few stray pixels in a frame without a hand would score 0). A mask that holds on the image
+    does not move much with a 1 px change of its keypoints; DWM 00013's dark sleeve (hand_mask
+    v23) switched on and off with one (t=31 10,306 -> 26,671 px)."""
+    if shift_px <= 0:
+        return float("nan"), float("nan"), -1
+    moved = masks_from_keypoints(video, uv + shift_px, present, HandMaskConfig()) > 0
+    least = MIN_HAND_FRACTION * masks[0].size  # pixels
+    pairs = [(t, iou(a, b)) for t, (a, b) in enumerate(zip(masks, moved, strict=True))
+             if max(a.sum(), b.sum()) >= least]  # fmt: skip
+    if not pairs:
+        return float("nan"), float("nan"), -1
+    worst = min(pairs, key=lambda p: p[1])
+    return float(np.mean([p[1] for p in pairs])), float(worst[1]), int(worst[0])
+
+
+def dwm_case(cid: str, data: Path, out: Path, shift_px: float = 1.0) -> dict:
     """Figures of one real DWM clip (see the module docstring). Without ``videos_hands`` the
     mask figures are NaN (no truth) and the fill is measured from frame 0; without
-    ``videos_static`` the fill figures are NaN."""
+    ``videos_static`` the fill figures are NaN. ``shift_px``: see :func:`shift_stability`
+    (0: not measured)."""
     video, static, inside, hands, (dx, dy) = dwm_truth(cid, data)
     start = time.perf_counter()
     uv, present = mediapipe_keypoints(video)
     masks = masks_from_keypoints(video, uv, present, HandMaskConfig()) > 0  # (T, H, W)
     mask_s = time.perf_counter() - start
+    shift_mean, shift_min, shift_frame = shift_stability(video, uv, present, masks, shift_px)
     truth = hands is not None
     if hands is None:
         print(f"dwm {cid}: no videos_hands twin: mask figures n/a", flush=True)
@@ -406,6 +436,9 @@ def dwm_case(cid: str, data: Path, out: Path) -> dict:
         "psnr_frame": nan if static is None else _psnr(result.image, static[s], whole),
         "telea_frame": nan if static is None else _psnr(telea, static[s], whole),
         "truth_shift_px": [dx, dy],
+        "shift_iou_mean": shift_mean,
+        "shift_iou_min": shift_min,
+        "shift_iou_frame": shift_frame,
         "mask_s": mask_s,
         "fill_s": fill_s,
     }
@@ -535,6 +568,10 @@ def main() -> int:
     parser.add_argument(
         "--runs", type=Path, default=None, help="only read bench.real_video's run folders here"
     )
+    parser.add_argument(
+        "--shift", type=float, default=1.0,
+        help="DWM: also mask with the keypoints moved this many px (stability; 0: off)",
+    )  # fmt: skip
     args = parser.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
     size = tuple(int(v) for v in args.size.split("x"))
@@ -575,7 +612,7 @@ def main() -> int:
             )
     if not args.skip_real and not args.fixed_only and (args.data / DWM).is_dir():
         for cid in real_clips.dwm_dynamic_ids(args.data):
-            r = dwm_case(cid, args.data, args.out)
+            r = dwm_case(cid, args.data, args.out, args.shift)
             rows["dwm"].append(r)
             print(
                 f"dwm {cid} recall {_num(r['recall'], '.3f')} (3 px {_num(r['recall_3px'], '.3f')}"
@@ -587,7 +624,9 @@ def main() -> int:
                 f"(max {_num(r['far_px_max'], '.0f')} at t={r['far_px_frame']}) | start "
                 f"{r['start']}: hand {_num(r['psnr_hand'], '.2f')} vs Telea "
                 f"{_num(r['telea_hand'], '.2f')} dB, frame {_num(r['psnr_frame'], '.2f')} vs "
-                f"{_num(r['telea_frame'], '.2f')} | {r['mask_s']:.1f}+{r['fill_s']:.1f} s",
+                f"{_num(r['telea_frame'], '.2f')} | {args.shift:g} px shift: mask IoU mean "
+                f"{_num(r['shift_iou_mean'], '.3f')} min {_num(r['shift_iou_min'], '.3f')} at "
+                f"t={r['shift_iou_frame']} | {r['mask_s']:.1f}+{r['fill_s']:.1f} s",
                 flush=True,
             )
     fixed = args.data / "dwm_realworld" / "realworld_fixed"
