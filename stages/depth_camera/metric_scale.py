@@ -68,7 +68,7 @@ Method, for one clip (:func:`estimate_metric_scale`):
    **Outliers** (depth_camera v18): before the splat, a frame-0 depth more than
    ``wide_outlier_rel`` (0.2, as a ratio) off the median of the known depths in its
    ``wide_window_px`` block and the 8 around it is left out (:func:`drop_depth_outliers`), and
-   per detection, joints whose wide-window depth is more than ``wide_joint_rel`` (0.15) off the
+   per detection, joints whose wide-window depth is more than ``wide_joint_rel`` (0.25) off the
    median of its joints' depths are left out (:func:`on_main_surface`: the hand rests on the
    surface most of it lies over). Why: on DWM 00017 the plane sweep is confident on a handful of
    pixels just under a gap line between two drawers at 0.55 x the depth of the drawer front
@@ -215,9 +215,10 @@ class MetricScaleParams:
     # out before splatting: an isolated confident outlier of the plane sweep (DWM 00017: a
     # drawer's edge line at 0.55 x its front's depth) would otherwise be the wide window's only
     # depth under a hand; None keeps all (v17). Set on DWM 00017 (depth_camera v18)
-    wide_joint_rel: float | None = 0.15  # fallback: a detection's joints whose surface depth is
+    wide_joint_rel: float | None = 0.25  # fallback: a detection's joints whose surface depth is
     # more than this off (as a ratio) the median of its joints' surface depths are left out:
-    # the hand rests on the surface most of its joints lie over; None keeps all (v17)
+    # the hand rests on the surface most of its joints lie over; None keeps all (v17). DWM
+    # 00017's split joints: 1.35 apart; 0.15 cost 2 points on synthetic tabletop 0 (wide forced)
 
     def __post_init__(self) -> None:
         problems: list[str] = []

@@ -1052,7 +1052,7 @@ class DepthCameraStage(ClipStage):
     # readings spread over its sleeve step by step is searched for again; detections can change
     # 18: the scale's wide-window fallback leaves out frame-0 depths far off their neighbourhood
     # (metric_scale.drop_depth_outliers) and a detection's joints off its main surface
-    # (on_main_surface): DWM 00017's wide-window scale no longer follows a few wrong sweep
+    # (on_main_surface, 0.25): DWM 00017's wide-window scale no longer follows a few wrong sweep
     # depths under the hand; clips whose scale comes from the strict window are unchanged
     version = 18
     config_class = DepthCameraConfig
