@@ -813,3 +813,73 @@ def test_readings_spreading_step_by_step_are_refused_and_the_hand_searched_from_
         sizes[drift] = [_size(uv[f, 0]) / size if present[f, 0] else 0.0 for f in range(t)]
     assert max(sizes[None]) > 2.5 and not any(sizes[None][4:]), sizes
     assert max(sizes[1.6]) <= 1.6 and all(s == pytest.approx(1.0) for s in sizes[1.6][4:]), sizes
+
+
+def _ring_hand() -> np.ndarray:
+    """``(21, 2)`` a 60 px "hand" about the origin, wrist below (its ROI is upright)."""
+    a = np.linspace(0, 2 * np.pi, 21, endpoint=False)
+    shape = np.stack([np.cos(a), np.sin(a)], axis=1) * 30.0
+    shape[0] = [0.0, 30.0]
+    return shape
+
+
+def _scene_model(hands: dict[int, np.ndarray], scenery: np.ndarray | None, shape: np.ndarray):
+    """A landmark model for frames whose first pixel is their index: it reads the hand of
+    ``hands[frame]`` (a centre) when an ROI's centre is within a quarter of its side of it
+    (presence 0.9), else ``scenery`` (a centre: a 1.5x "hand" at presence 0.6, in every frame)
+    when that is within a quarter side, else nothing (presence 0.05)."""
+    from egosim.stages.common.roi_landmarks import RoiLandmarks
+
+    class Model:
+        def run(self, frame, roi, max_gain=1.0, mirror=False):
+            hand = hands.get(int(frame[0, 0, 0]))
+            reach = 0.25 * roi.side
+            if hand is not None and np.linalg.norm(roi.centre - hand) < reach:
+                return RoiLandmarks(shape + hand, np.zeros((21, 3)), 0.9, 0.7)
+            if scenery is not None and np.linalg.norm(roi.centre - scenery) < reach:
+                return RoiLandmarks(1.5 * shape + scenery, np.zeros((21, 3)), 0.6, 0.7)
+            return RoiLandmarks(shape + roi.centre, np.zeros((21, 3)), 0.05, 0.7)
+
+    return Model()
+
+
+def _follow(model, t: int, start: int, where: np.ndarray, shape: np.ndarray, confirm: bool):
+    """Follow the hand detected at frame ``start`` at ``where`` through ``t`` frames (no flow);
+    the centres found per frame (None where none)."""
+    frames = np.repeat(np.arange(t, dtype=np.uint8), 240 * 320 * 3).reshape(t, 240, 320, 3)
+    uv = np.full((t, 2, 21, 2), np.nan)
+    uv[start, 0] = shape + where
+    present = np.zeros((t, 2), dtype=bool)
+    present[start, 0] = True
+    params = TrackParams(flow=False, mirror_retry=False, carry_to_edge=False, confirm_wider=confirm)
+    track_through_misses(
+        frames, uv, np.zeros((t, 2, 21, 3)), np.full((t, 2), 0.5), present, model, params
+    )
+    return [uv[f, 0].mean(axis=0) if present[f, 0] else None for f in range(t)]
+
+
+def test_a_reading_found_away_from_the_hand_is_kept_only_when_it_leads_back() -> None:
+    """pour_coke (8 fps) as ``bench.hand_free_real`` samples it: the right hand, entering at
+    frame 5, followed back to frame 4 where it is out of view; no ROI round the hand holds it,
+    but the widest ROI shifted away from the border holds the jug and the can, read as a hand
+    1.58x the size, 0.87 hand sizes off, and followed back to frame 0 (a false mask inpainted
+    into every frame of a static camera's scene). Here: a hand seen at frame 3 only, and a
+    still 1.5x "hand" of scenery that only the wider ROIs shifted left reach. Without the
+    confirmation the scenery takes frames 0-2; with it, searched back from on frame 3, it
+    leads to itself, not to the hand: no frame takes it. A fast hand (0.45 ROI sides a frame,
+    found in a wider ROI) leads back to itself and is kept."""
+    shape = _ring_hand()
+    side = roi_from_landmarks(shape).side
+    hand = np.array([200.0, 120.0])
+    base = roi_from_landmarks(shape + hand).centre  # (2,) the hand's ROI centre
+    scenery = base - np.array([0.57 * side, 0.0])  # reached by the ROI 1.6x, 0.3 sides left only
+    model = _scene_model({3: hand}, scenery, shape)
+    seen = {c: _follow(model, 4, 3, hand, shape, c) for c in (False, True)}
+    read = (1.5 * shape + scenery).mean(axis=0)  # (2,) where the scenery is read
+    assert all(c is not None and np.linalg.norm(c - read) < 1e-6 for c in seen[False][:3]), seen
+    assert seen[True][:3] == [None, None, None], seen[True]
+
+    moved = hand + np.array([0.45 * side, 0.0])  # frame 1: found by the wider ROI to the right
+    fast = _scene_model({0: hand, 1: moved}, None, shape)
+    kept = _follow(fast, 2, 0, hand, shape, True)
+    assert kept[1] is not None and np.linalg.norm(kept[1] - (shape + moved).mean(axis=0)) < 1e-6

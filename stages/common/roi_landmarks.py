@@ -283,6 +283,10 @@ class TrackParams:
     # is carried there by the optical flow (no later frame could take it up again)
     mirror_retry: bool = True  # when no ROI holds the hand, read the predicted ROI once more
     # mirrored (the landmark model is not mirror-symmetric; see :func:`_search`)
+    # a reading found only in the ``wider`` ROIs (away from where the hand was predicted) is kept
+    # only when it is confirmed: the model, searching back from it on the frame it was followed
+    # from, finds there the hand it was followed from (:func:`_confirmed`); False: no such test
+    confirm_wider: bool = True
 
 
 def flow_shift(prev_gray: np.ndarray, next_gray: np.ndarray, points: np.ndarray) -> np.ndarray:
@@ -334,9 +338,18 @@ def track_through_misses(
     hand's readings, 0.12-0.51 present, spread over its dark sleeve 95 -> 122 -> 181 -> 220 px
     in four frames and the hand was lost. A reading refused for that is searched for again, as
     a lost hand, from the trusted landmarks carried on by the flow (there the real hand came
-    back in view two frames later and was found). A hand already in a frame that is a fit to
-    the followed hand's fingers alone (:func:`_partial_fits`) does not stop it: the whole hand
-    replaces it.
+    back in view two frames later and was found). A reading found only in the ``wider`` ROIs
+    (away from where the hand was predicted) while following a reading must lead back to it
+    (``confirm_wider``, :func:`_confirmed`): searched for from it on the frame it was followed
+    from, the model must find that reading's hand there; if it does not, the model read
+    another thing as a hand, and the hand is not followed further in that direction. On
+    pour_coke at 8 fps the right hand, entering at the border at frame 5, was followed back to
+    frame 4, where only its fingertips show: the widest ROI shifted away from the border read
+    the jug and the can as a hand 1.58x its size (presence 0.45), which, searched for back on
+    frame 5, is the jug and can again; the flow then carried the hand onto them to frame 0, a
+    false hand that the hand-free fill of a static camera repeats in every frame (issue 9). A
+    hand already in a frame that is a fit to the followed hand's fingers alone
+    (:func:`_partial_fits`) does not stop it: the whole hand replaces it.
     Returns ``tracked (T, K)`` bool: the slots filled here.
     """
     params = params or TrackParams()
@@ -366,12 +379,25 @@ def track_through_misses(
                 if not (~whole).any():
                     continue
                 move = flow_shift(grey[f], grey[g], src) if params.flow else np.zeros(2)  # (2,)
-                res = _search(model, frames[g], src, move, params)
+                res, wide = _search(model, frames[g], src, move, params)
                 need = params.min_presence if coast == 0 else params.reacquire_presence
                 partial = present[g] & _partial_fits(res.uv, uv[g], present[g], params)  # (K,)
                 whole = present[g] & ~partial
                 plausible = _plausible(res, src, need, params)
                 drifted = plausible and _drifted(res, trusted, params)
+                # found only away from the prediction, from a reading (not a coasting guess):
+                # it must lead back to the hand it was followed from
+                if (
+                    params.confirm_wider
+                    and wide
+                    and coast == 0
+                    and plausible
+                    and not drifted
+                    and not _confirmed(model, frames[f], grey[f], grey[g], res, src, params)
+                ):
+                    continue  # another thing read as a hand where this one was looked for:
+                    # the hand is not followed further this way (coasting on, the search only
+                    # took that thing up again: pour_coke's jug and can)
                 if (
                     not plausible
                     or drifted
@@ -433,16 +459,44 @@ def _drifted(res: RoiLandmarks, trusted: np.ndarray, params: TrackParams) -> boo
     return not 1 / params.max_drift <= ratio <= params.max_drift
 
 
+def _confirmed(
+    model: LandmarkModel,
+    frame: np.ndarray,
+    grey: np.ndarray | None,
+    grey_found: np.ndarray | None,
+    res: RoiLandmarks,
+    src: np.ndarray,
+    params: TrackParams,
+) -> bool:
+    """Whether the reading ``res``, found in the frame after (or before) ``frame`` by following
+    landmarks ``src (21, 2)`` of ``frame``, leads back to them: searched for from ``res`` in
+    ``frame`` (moved by the flow from ``grey_found``, the found frame's grey image, to ``grey``),
+    the hand the model finds there is present (``min_presence``), within ``duplicate_distance``
+    of ``src``'s size of it and of a size within ``max_size_change`` of it."""
+    move = flow_shift(grey_found, grey, res.uv) if params.flow else np.zeros(2)  # (2,)
+    back, _ = _search(model, frame, res.uv, move, params)
+    if back.presence < params.min_presence:
+        return False
+    size = _size(src)
+    ratio = _size(back.uv) / max(size, 1e-6)
+    if not 1 / params.max_size_change <= ratio <= params.max_size_change:
+        return False
+    jump = float(np.linalg.norm(back.uv.mean(axis=0) - src.mean(axis=0)))
+    return jump <= params.duplicate_distance * size
+
+
 def _search(
     model: LandmarkModel, frame: np.ndarray, src: np.ndarray, move: np.ndarray, params: TrackParams
-) -> RoiLandmarks:
-    """The most present hand among ROIs around the one ``src (21, 2)`` predicts in ``frame``.
+) -> tuple[RoiLandmarks, bool]:
+    """The most present hand among ROIs around the one ``src (21, 2)`` predicts in ``frame``,
+    and whether it was found only in the ``wider`` ROIs.
 
     Tried: the predicted ROI moved by ``move (2,)`` pixels (the optical flow) at every scale and
     downward shift of ``params`` (head-mounted cameras tilt up and down, so hands move mostly
     vertically in the image), and unmoved (when ``params.unmoved`` and there is a move); when
-    none holds a hand, the ``wider`` set (larger and sideways-shifted ROIs: fast hands). The
-    search stops at the first answer with ``good_presence``. When no ROI holds a hand
+    none holds a hand, the ``wider`` set (larger and sideways-shifted ROIs: fast hands; the
+    second value returned says the answer came from there). The search stops at the first
+    answer with ``good_presence``. When no ROI holds a hand
     (``min_presence``) and ``params.mirror_retry``, the predicted ROI is read once more with the
     crop mirrored (answer mirrored back): the landmark model is not mirror-symmetric, and on DWM
     00013 mirrored left to right the real left hand (then a right one) was lost at frames 12-20
@@ -464,24 +518,25 @@ def _search(
         for scale, right, down in params.wider
     ]
     best = None
+    wide = False  # the best answer came from the wider set
     for i, roi in enumerate(rois + wider):
         if i == len(rois) and best is not None and best.presence >= params.min_presence:
             break  # the wider set only when the others found nothing
         res = model.run(frame, roi, params.max_gain)
         if best is None or res.presence > best.presence:
-            best = res
+            best, wide = res, i >= len(rois)
         if best.presence >= params.good_presence:
             break  # clearly found: the remaining ROIs cannot matter much
     mirrored = False
     if params.mirror_retry and best.presence < params.min_presence:
         res = model.run(frame, rois[0], params.max_gain, mirror=True)
         if res.presence > best.presence:
-            best, mirrored = res, True
+            best, mirrored, wide = res, True, False
     if params.refine and best.presence >= params.min_presence:
         again = model.run(frame, roi_from_landmarks(best.uv), params.max_gain, mirror=mirrored)
         if again.presence >= best.presence:
             best = again
-    return best
+    return best, wide
 
 
 def _partial_fits(

@@ -258,7 +258,15 @@ class HandsStage(ClipStage):
     # spread over its dark sleeve, 95 -> 122 -> 181 -> 220 px, until it was lost (right recall
     # 0.708). A refused reading is searched for again from the trusted landmarks carried by the
     # flow: the hand is found on the frames after it (0.958); drift1.
-    version = 19
+    # 20: a tracked reading found only in the tracker's wider ROIs (away from where the hand was
+    # predicted), while following a reading, must lead back to it: searched for from it on the
+    # frame it came from, the model must find that hand there (roi_landmarks.TrackParams.
+    # confirm_wider); if not, the hand is not followed further that way. pour_coke at 8 fps
+    # (bench.hand_free_real): the right hand entering at frame 5 was followed back onto the jug
+    # and can (frames 0-4, 1.58x its size), a false frame-0 mask of 65,045 px that a static
+    # camera's fill repeats in every frame (issue 9); falsehand1. DWM / fixed @16 fps / EgoDex
+    # rows identical.
+    version = 20
     description = "3D hand joints per frame from the clip's labels, de-duplicated and de-spiked"
     config_class = HandsConfig
     inputs: ClassVar[Mapping[str, ShardSchema]] = {"clips": CLIPS}
