@@ -1526,8 +1526,9 @@ def test_true_runs_gives_each_run_of_true_frames() -> None:
 def test_weak_arm_runs_open_short_runs_reached_while_the_hand_barely_moves() -> None:
     """hand_mask v24: frames whose arm found no colour region are opened to their neighbours'
     masks only in runs of at most ``max_run`` frames next to a frame of the hand that found one
-    and shows at least its hand's area of arm, as far as the wrist moves at most ``max_move``
-    hand lengths per frame from there and the frame's own arm is under ``max_share`` of it."""
+    and shows at least its hand's area of arm (and at most ``max_ratio`` times the arm of the
+    frame beyond it), as far as the wrist moves at most ``max_move`` hand lengths per frame from
+    there and the frame's own arm is under ``max_share`` of it."""
     from egosim.stages.hand_mask.arm_region import hand_length_px
     from egosim.stages.hand_mask.stage import weak_arm_runs
 
@@ -1563,6 +1564,11 @@ def test_weak_arm_runs_open_short_runs_reached_while_the_hand_barely_moves() -> 
     gone = valid.copy()
     gone[2, 0] = gone[5, 0] = False  # the neighbours missed the hand: no source
     assert not weak_arm_runs(weak, gone, keypoints, arm_px, hand_px, 4, 0.5, 0.5)[3:5, 0].any()
+    outlier = arm_px.copy()
+    outlier[1, 0] = 3000  # the source t=2 shows 1.67x the arm of t=1 beyond it: an outlier
+    got = weak_arm_runs(weak, valid, keypoints, outlier, hand_px, 4, 0.5, 0.5, 1.3)
+    assert not got[3, 0] and got[8, 0]
+    assert weak_arm_runs(weak, valid, keypoints, outlier, hand_px, 4, 0.5, 0.5, 2.0)[3, 0]
 
 
 def test_frames_whose_arm_found_no_colour_receive_their_neighbours_mask(

@@ -129,6 +129,8 @@ class HandMaskConfig(StageConfig):
     weak_arm_share: float = 0.5  # ... and only frames whose own arm (the hand's mask outside
     # its capsules) is under this share of that neighbour's, which must show at least the
     # capsules' area of arm (the arm was lost, not found by GrabCut without the region)
+    weak_arm_agree: float = 1.3  # ... and only from a neighbour whose arm is at most this
+    # many times the arm of the frame beyond it (a one-frame outlier is not spread)
     no_arm_from_top: bool = True  # an arm whose ray from the wrist leaves through the top
     # border is not drawn (forearms enter a head-worn view from the bottom or the sides; see
     # arm_region.leaves_through_top). Off for fixed or third-person cameras: an arm may enter
@@ -152,6 +154,8 @@ class HandMaskConfig(StageConfig):
             problems.append(f"grow_margin_m must be in [0, 0.025], got {self.grow_margin_m}")
         if not 0 <= self.weak_arm_frames <= 1000:
             problems.append(f"weak_arm_frames must be in [0, 1000], got {self.weak_arm_frames}")
+        if not 1.0 <= self.weak_arm_agree <= 100.0:
+            problems.append(f"weak_arm_agree must be in [1, 100], got {self.weak_arm_agree}")
         if not 0.0 <= self.weak_arm_share <= 1.0:
             problems.append(f"weak_arm_share must be in [0, 1], got {self.weak_arm_share}")
         if not 0.0 <= self.weak_arm_move <= 10.0:
@@ -231,6 +235,7 @@ def weak_arm_runs(
     max_run: int,
     max_move: float,
     max_share: float,
+    max_ratio: float = 1.3,
 ) -> np.ndarray:
     """``(T, K)`` bool: the frames of ``weak (T, K)`` (hands whose arm has no colour region)
     that lost their arm, to be opened to their neighbours' masks of that hand.
@@ -238,7 +243,10 @@ def weak_arm_runs(
     A run of at most ``max_run`` consecutive weak frames of a hand, next to a frame of the same
     hand that is ``valid (T, K)``, not weak and shows an arm (the source: its mask of the hand
     outside the hand's capsules, ``arm_px (T, K)``, at least the capsules' own ``hand_px (T,
-    K)``), is walked from the source into the run; each frame reached is opened while the wrist
+    K)``, and at most ``max_ratio`` times the arm of the frame beyond it, the next one away
+    from the run, when that frame has the hand: a one-frame outlier, e.g. a floor region taken
+    for the arm in one frame, is not spread into its neighbours), is walked from the source
+    into the run; each frame reached is opened while the wrist
     of ``keypoints (T, K, 21, 2)`` moved at most ``max_move`` hand lengths
     (:func:`arm_region.hand_length_px`) since the frame before and its own arm (``arm_px``) is
     under ``max_share`` of the source's; the walk stops at the first frame that fails. Such a
@@ -261,18 +269,23 @@ def weak_arm_runs(
             return False
         return bool(np.hypot(*(wa - wb)) <= max_move * max(sizes))
 
-    def source_ok(t: int, k: int) -> bool:
-        """Whether frame ``t`` of hand ``k`` found its arm and shows it."""
-        return bool(valid[t, k] and not weak[t, k] and 0 < hand_px[t, k] <= arm_px[t, k])
+    def source_ok(t: int, k: int, beyond: int) -> bool:
+        """Whether frame ``t`` of hand ``k`` is a source (see above), ``beyond`` the frame
+        next to it away from the run."""
+        if not (valid[t, k] and not weak[t, k] and 0 < hand_px[t, k] <= arm_px[t, k]):
+            return False
+        if not (0 <= beyond < n and valid[beyond, k]):
+            return True  # nothing beyond the source to compare with (a track's end)
+        return bool(arm_px[t, k] <= max_ratio * arm_px[beyond, k])
 
     for k in range(weak.shape[1]):
         for t, end in true_runs(weak[:, k] & valid[:, k]):
             if end - t > max_run:
                 continue
             chains = []
-            if t > 0 and source_ok(t - 1, k):
+            if t > 0 and source_ok(t - 1, k, t - 2):
                 chains.append(range(t - 1, end))  # from the frame before, forwards
-            if end < n and source_ok(end, k):
+            if end < n and source_ok(end, k, end + 1):
                 chains.append(range(end, t - 1, -1))  # from the frame after, backwards
             for chain in chains:
                 source = chain[0]
@@ -381,7 +394,7 @@ def masks_from_keypoints(
             arm_px, hand_px = arm_areas(per_hand, keypoints, valid, capsule)  # (T, K) each
             weak = weak_arm_runs(
                 valid & ~coloured, valid, keypoints, arm_px, hand_px, config.weak_arm_frames,
-                config.weak_arm_move, config.weak_arm_share,
+                config.weak_arm_move, config.weak_arm_share, config.weak_arm_agree,
             ) & ~opened_top  # fmt: skip
         # A frame whose hand was carried there still receives that hand's mask from its
         # neighbours (its arm, from frames where the search found it), joined to its own; so
@@ -528,7 +541,9 @@ class HandMaskStage(ClipStage):
     # receives that hand's mask from its neighbours by propagation, joined to its own
     # (weak_arm_runs): DWM 00013's navy sleeve on a dark floor was masked or not from frame to
     # frame (t=31 10k px, 27k with the keypoints shifted 1 px), the search and the colour test
-    # flipping on a 1 px change; now 30k / 27k
+    # flipping on a 1 px change; now 27k / 27k. Not from a neighbour whose arm is over
+    # weak_arm_agree (1.3) times the arm of the frame beyond it (rehearsal copy 50013, t=28's
+    # one-frame floor region spread into t=29-30 without that)
     backends = ("keypoints", "sam")
     # What process reads (the executor decodes nothing else): the frames, joints and camera
     # of the clip, the robot arm's mask, the cleaned joints.
