@@ -24,7 +24,9 @@ with the default :class:`~egosim.stages.hands.mediapipe_backend.MediaPipeParams`
   scaled to cover 480x832 and centre-cropped; 61-frame windows, then a 1 + 4k tail of at least
   33 frames): per window, frames with 0 / 1 / 2 hands, the fraction
   with any, the share of found hand-frames with a trusted 3D hand (``lifted_share``) and the
-  first frame with each hand (no ground truth there).
+  first frame with each hand (no ground truth there); the fixed-camera videos also as
+  ``bench.hand_free_real`` takes them (:func:`fixed_sampled`: 8 fps, 49 frames, 640 wide: a
+  false hand at frame 0 there is filled into every frame of the static scene; hands v20).
 - **Synthetic world** (``render_clip(WorldConfig(seed, mode))``, true joints known): recall, 2D
   error, 3D coverage (true hand-frames found with a trusted 3D hand), and over those the 3D
   orientation error and wrist-relative MPJPE (:mod:`egosim.stages.hands.metrics`),
@@ -300,26 +302,45 @@ def count_figures(path: Path, tracks: list | None = None) -> list[dict[str, floa
     """Per ingest window of one video: frames with 0 / 1 / 2 hands, the fraction with any
     (pack's gate wants >= 0.1) and the first frame of each side; given a ``tracks`` list, each
     window's :func:`track_rows` are added to it (the window's start in ``"start"``)."""
-    out = []
-    for window in ingest_windows(path):
-        frames = window.frames
-        start, cpu = time.perf_counter(), time.process_time()
-        res = _run(frames, EGOSIM.fps)
-        seconds, cpu = time.perf_counter() - start, time.process_time() - cpu
-        n = res.valid.sum(axis=1)  # (T,)
-        first = float(window.index * EGOSIM.num_frames)
-        if tracks is not None:
-            tracks += [{"start": first, **row} for row in track_rows(frames, res)]
-        fig = {"start": first, "frames": float(len(frames)), "seconds": seconds, "cpu_s": cpu}
-        for c in range(3):
-            fig[f"{c}_hands"] = float((n == c).sum())
-        fig["hand_fraction"] = float((n > 0).mean())
-        fig["lifted_share"] = float(res.lifted.sum() / max(res.valid.sum(), 1))
-        for s in range(2):
-            hit = np.flatnonzero(res.valid[:, s])
-            fig[f"first_{SIDES[s]}"] = float(hit[0]) if hit.size else float("nan")
-        out.append(fig)
-    return out
+    return [
+        _counts(window.frames, EGOSIM.fps, float(window.index * EGOSIM.num_frames), tracks)
+        for window in ingest_windows(path)
+    ]
+
+
+def fixed_sampled(path: Path, fps: float = 8.0, frames: int = 49, width: int = 640) -> np.ndarray:
+    """``(T, H, W, 3)`` the frames of a fixed-camera video as ``bench.hand_free_real``'s
+    ``fixed_case`` takes them (``fps`` by nearest timestamp, ``frames`` long, scaled to ``width``):
+    on pour_coke so taken the tracker of hands v19 carried the entering hand back onto the jug
+    and can (frames 0-4), a false frame-0 hand that ingest's own windows did not show."""
+    import cv2
+
+    video, stamps = read_video_file(path)
+    pick = [int(np.argmin(np.abs(stamps - k / fps))) for k in range(frames)]
+    h = round(video.shape[1] * width / video.shape[2])
+    return np.stack([cv2.resize(video[i], (width, h), interpolation=cv2.INTER_AREA) for i in pick])
+
+
+def _counts(
+    frames: np.ndarray, fps: float, first: float, tracks: list | None = None
+) -> dict[str, float]:
+    """:func:`count_figures`' figures of one clip ``frames (T, H, W, 3)`` at ``fps`` whose first
+    frame is the video's frame ``first``."""
+    start, cpu = time.perf_counter(), time.process_time()
+    res = _run(frames, fps)
+    seconds, cpu = time.perf_counter() - start, time.process_time() - cpu
+    n = res.valid.sum(axis=1)  # (T,)
+    if tracks is not None:
+        tracks += [{"start": first, **row} for row in track_rows(frames, res)]
+    fig = {"start": first, "frames": float(len(frames)), "seconds": seconds, "cpu_s": cpu}
+    for c in range(3):
+        fig[f"{c}_hands"] = float((n == c).sum())
+    fig["hand_fraction"] = float((n > 0).mean())
+    fig["lifted_share"] = float(res.lifted.sum() / max(res.valid.sum(), 1))
+    for s in range(2):
+        hit = np.flatnonzero(res.valid[:, s])
+        fig[f"first_{SIDES[s]}"] = float(hit[0]) if hit.size else float("nan")
+    return fig
 
 
 def landmark_thinness(uv: np.ndarray) -> float:
@@ -677,6 +698,12 @@ def real(data: Path, tracks: bool = False) -> None:
         rows = [] if tracks else None
         for fig in count_figures(video, rows):
             print(_line(f"{video.stem}@{fig['start']:.0f}", fig))
+        for row in rows or []:
+            print(_line("  track", row))
+    print("Fixed-camera videos as bench.hand_free_real takes them (8 fps, 49 frames, 640 wide)")
+    for video in [data / v for v in dwm_fixed_videos(data)]:
+        rows = [] if tracks else None
+        print(_line(f"{video.stem}@8fps", _counts(fixed_sampled(video), 8.0, 0.0, rows)))
         for row in rows or []:
             print(_line("  track", row))
 
