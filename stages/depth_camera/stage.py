@@ -1054,7 +1054,10 @@ class DepthCameraStage(ClipStage):
     # (metric_scale.drop_depth_outliers) and a detection's joints off its main surface
     # (on_main_surface, 0.25): DWM 00017's wide-window scale no longer follows a few wrong sweep
     # depths under the hand; clips whose scale comes from the strict window are unchanged
-    version = 18
+    # 19: the scale's and mask_hands' hand tracker checks a reading found only in its wider ROIs
+    # against the hand it was followed from (roi_landmarks.TrackParams.confirm_wider, hands v20):
+    # a tracked "hand" on scenery next to an entering hand is not followed; detections can change
+    version = 19
     config_class = DepthCameraConfig
     inputs: ClassVar[Mapping[str, ShardSchema]] = {"clips": CLIPS}
     output = DEPTH_CAMERA
