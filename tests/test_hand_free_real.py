@@ -124,3 +124,29 @@ def test_main_measures_every_clip_found_and_says_n_a_without_truth(
     assert rows[1].startswith("dwm 90013 recall n/a (3 px n/a; filled n/a")
     assert "hand n/a vs Telea n/a dB, frame n/a vs n/a" in rows[1]
     assert "recall n/a" not in rows[0]
+
+
+def test_shift_stability_is_high_for_a_plain_hand_and_n_a_without_a_mask() -> None:
+    """A hand and sleeve on a table, masked from its keypoints: moving them 1 px moves the mask
+    by about that much (IoU near 1); a clip without a mask is not scored; 0 px is not measured."""
+    from bench.hand_free_real import shift_stability
+    from egosim.stages.hand_mask.stage import HandMaskConfig, masks_from_keypoints
+    from tests.test_hand_mask import _hand_keypoints, _sleeve_frame
+
+    h, w = 160, 200
+    wrist, down = np.array([100.5, 60.5]), np.array([0.0, 1.0])
+    frame = _sleeve_frame(h, w, wrist, down, 3)
+    video = np.stack([frame, frame, frame])  # (3, H, W, 3)
+    uv = np.zeros((3, 2, 21, 2))
+    uv[:2, 0] = _hand_keypoints(wrist, -down, 30.0, 24.0)
+    present = np.array([[True, False], [True, False], [False, False]])  # frame 2: carried
+    masks = masks_from_keypoints(video, uv, present, HandMaskConfig()) > 0
+    assert masks[0].sum() > 0.003 * h * w
+    mean, least, worst = shift_stability(video, uv, present, masks, 1.0)
+    assert 0.85 <= least <= mean + 1e-9 and mean <= 1.0, (mean, least)
+    assert worst in (0, 1, 2)
+    nan_mean, nan_min, frame_none = shift_stability(video, uv, present, masks, 0.0)
+    assert np.isnan(nan_mean) and np.isnan(nan_min) and frame_none == -1
+    none = np.zeros_like(present)
+    empty = masks_from_keypoints(video, uv, none, HandMaskConfig()) > 0
+    assert shift_stability(video, uv, none, empty, 1.0)[2] == -1
