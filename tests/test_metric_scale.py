@@ -120,42 +120,52 @@ def test_splat_depth_moves_a_plane_with_the_camera() -> None:
     np.testing.assert_allclose(surface_depth(nearer, uv, params), 1.5)
 
 
-@pytest.mark.parametrize("lift", ["palm_pnp", "translation"])
-def test_hand_resting_on_a_plane_gives_the_scale(lift: str) -> None:
-    """Hand-built: a flat hand 1 cm above a table (joint centres), seen from eight poses; its
-    palm is the average palm the palm-PnP lift assumes."""
-    h, w = 120, 160
+def flat_hand_over_table(
+    h: int, w: int, poses: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, RawLandmarks]:
+    """A flat hand (the average palm, 10 cm across) with its joint centres 1 cm above the table
+    z = 0, seen by ``poses (T, 4, 4)`` (metric, world from camera) through a 70 degree
+    ``h x w`` camera. Returns (intrinsics, hand joints (21, 3) in world metres, frame 0's
+    z-depth of the table (H, W) in metres, landmarks of frames 1.. as the detector gives them:
+    pixels and joints about their centroid, camera frame)."""
     k = intrinsics_from_fov(w, h, 70.0)
-    scale = 0.25  # metres per unit
     rng = np.random.default_rng(1)
     hand = np.zeros((21, 3))
     hand[:, :2] = rng.uniform(-0.05, 0.05, (21, 2))  # flat, 10 cm across, world metres
     hand[list(PALM_JOINTS), :2] = PALM_TEMPLATE[:, :2] - [0.05, 0.0]  # the average palm
     hand[:, 2] = 0.01  # joint centres 1 cm above the table z = 0
-    metric_poses = np.stack(
-        [look_at([-0.35 + 0.02 * i, 0.01 * i, 0.4], [0.0, 0.0, 0.0]) for i in range(8)]
-    )  # (T, 4, 4) metric
-    # Frame-0 depth of the plane z = 0 (the hand is masked out anyway).
     rays = np.concatenate(
         [(np.mgrid[0:h, 0:w][::-1].transpose(1, 2, 0) + 0.5 - k[2:]) / k[:2], np.ones((h, w, 1))],
         axis=-1,
     )  # (H, W, 3) camera rays with z = 1
-    rays_world = rays @ metric_poses[0, :3, :3].T  # (H, W, 3)
-    depth0_m = -metric_poses[0, 2, 3] / rays_world[..., 2]  # (H, W) z-depth to z = 0
-    t = len(metric_poses)
+    depth0_m = -poses[0, 2, 3] / (rays @ poses[0, :3, :3].T)[..., 2]  # (H, W) z-depth to z = 0
+    t = len(poses)
     uv = np.full((t, 2, 21, 2), np.nan)
     world = np.full((t, 2, 21, 3), np.nan)
     present = np.zeros((t, 2), dtype=bool)
     for f in range(1, t):
-        points_cam = transform_points(invert_se3(metric_poses[f]), hand)  # (21, 3)
+        points_cam = transform_points(invert_se3(poses[f]), hand)  # (21, 3)
         uv[f, 0] = project_points(points_cam, k)[0]
         world[f, 0] = points_cam - points_cam.mean(axis=0)
         present[f, 0] = True
+    return k, hand, depth0_m, RawLandmarks(uv, world, np.ones((t, 2)), present)
+
+
+@pytest.mark.parametrize("lift", ["palm_pnp", "translation"])
+def test_hand_resting_on_a_plane_gives_the_scale(lift: str) -> None:
+    """Hand-built: a flat hand 1 cm above a table (joint centres), seen from eight poses; its
+    palm is the average palm the palm-PnP lift assumes."""
+    h, w = 120, 160
+    scale = 0.25  # metres per unit
+    metric_poses = np.stack(
+        [look_at([-0.35 + 0.02 * i, 0.01 * i, 0.4], [0.0, 0.0, 0.0]) for i in range(8)]
+    )  # (T, 4, 4) metric
+    k, _, depth0_m, lm = flat_hand_over_table(h, w, metric_poses)
+    t = len(metric_poses)
     units = metric_poses.copy()
     units[:, :3, 3] /= scale
     frames = np.zeros((t, h, w, 3), np.uint8)
     frames[1:] = 200  # every joint's pixel differs from frame 0: the hand is in front
-    lm = RawLandmarks(uv, world, np.ones((t, 2)), present)
     est = scale_from_landmarks(
         lm,
         frames,
@@ -411,30 +421,12 @@ def plane_with_an_outlier_line(
     table's (None: no line). Returns (landmarks, frames, intrinsics, poses in units, depth0 in
     units, scale)."""
     h, w = 240, 320
-    k = intrinsics_from_fov(w, h, 70.0)
     scale = 0.25  # metres per unit
-    rng = np.random.default_rng(1)
-    hand = np.zeros((21, 3))
-    hand[:, :2] = rng.uniform(-0.05, 0.05, (21, 2))
-    hand[list(PALM_JOINTS), :2] = PALM_TEMPLATE[:, :2] - [0.05, 0.0]
-    hand[:, 2] = 0.01
     poses = np.stack(
         [look_at([-0.35 + 0.012 * i, 0.006 * i, 0.4], [0.0, 0.0, 0.0]) for i in range(12)]
     )  # (T, 4, 4) metric
-    rays = np.concatenate(
-        [(np.mgrid[0:h, 0:w][::-1].transpose(1, 2, 0) + 0.5 - k[2:]) / k[:2], np.ones((h, w, 1))],
-        axis=-1,
-    )  # (H, W, 3)
-    depth_m = -poses[0, 2, 3] / (rays @ poses[0, :3, :3].T)[..., 2]  # (H, W) to z = 0
+    k, hand, depth_m, lm = flat_hand_over_table(h, w, poses)
     t = len(poses)
-    uv = np.full((t, 2, 21, 2), np.nan)
-    world = np.full((t, 2, 21, 3), np.nan)
-    present = np.zeros((t, 2), dtype=bool)
-    for f in range(1, t):
-        points_cam = transform_points(invert_se3(poses[f]), hand)  # (21, 3)
-        uv[f, 0] = project_points(points_cam, k)[0]
-        world[f, 0] = points_cam - points_cam.mean(axis=0)
-        present[f, 0] = True
     foot = project_points(transform_points(invert_se3(poses[0]), hand), k)[0]  # (21, 2)
     lo, hi = np.floor(foot.min(axis=0)).astype(int), np.ceil(foot.max(axis=0)).astype(int)
     known = np.zeros((h, w), dtype=bool)
@@ -448,7 +440,6 @@ def plane_with_an_outlier_line(
     units[:, :3, 3] /= scale
     frames = np.zeros((t, h, w, 3), np.uint8)
     frames[1:] = 200  # the hand is in front of the table wherever it is
-    lm = RawLandmarks(uv, world, np.ones((t, 2)), present)
     return lm, frames, k, units, depth / scale, scale
 
 
