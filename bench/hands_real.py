@@ -78,7 +78,13 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.real_clips import dwm_dynamic_clips, dwm_fixed_videos, egodex_videos, table_entry
+from bench.real_clips import (
+    dwm_dynamic_clips,
+    dwm_fixed_videos,
+    egodex_videos,
+    rehearsal_source,
+    table_entry,
+)
 from egosim.pipeline import media
 from egosim.pipeline.geometry import intrinsics_from_fov, project_points
 from egosim.pipeline.media import read_video_file
@@ -114,6 +120,19 @@ RENDER_GAPS = {
 }
 
 
+def render_gaps(video: Path) -> tuple[int, ...]:
+    """The frames of DWM clip ``video`` whose truth render leaves out a visible hand:
+    :data:`RENDER_GAPS`' entry, or for a rehearsal copy of a clip it holds
+    (:func:`bench.real_clips.rehearsal_source`) the copy's frames made from those; an unknown
+    clip has none (said once)."""
+    if video.stem not in RENDER_GAPS:
+        found = rehearsal_source(video.parent.parent, video.stem)
+        if found is not None and found[0] in RENDER_GAPS:
+            source, frames = found
+            return tuple(i for i, f in enumerate(frames) if f in RENDER_GAPS[source])
+    return table_entry(RENDER_GAPS, video.stem, (), "RENDER_GAPS")  # an unknown clip: none
+
+
 def render_masks(render: np.ndarray) -> np.ndarray:
     """``(T, 2, H, W)`` bool: green (left) and red (right) pixels of renders ``(T, H, W, 3)``."""
     r, g, b = (render[..., c].astype(np.int16) for c in range(3))
@@ -137,7 +156,7 @@ def dwm_figures(
     render, _ = read_video_file(render_path)
     t = min(len(frames), len(render))
     frames, render = frames[:t], render[:t]
-    gaps = table_entry(RENDER_GAPS, video.stem, (), "RENDER_GAPS")  # an unknown clip: none
+    gaps = render_gaps(video)
     fps = DWM.fps  # the files' rate and ingest's dwm preset's
     if perturb is not None:
         frames, render, gaps, fps = perturb_clip(frames, render, gaps, perturb)

@@ -24,6 +24,7 @@ with a neutral default for an id it does not hold, saying so once.
 
 from __future__ import annotations
 
+import json
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -34,6 +35,8 @@ DWM_FIXED = "dwm_realworld/realworld_fixed"  # DWM fixed-camera videos
 EGODEX = "egodex_sample"  # EgoDex-style egocentric clips
 HOT3D = "hot3d_video"  # HOT3D Aria recordings (three views side by side)
 VIDEO_SUFFIX = ".mp4"  # the suffix (compared case-insensitively) of a clip file
+REHEARSAL_INDEX = "rehearsal.json"  # in a DWM dynamic folder: which clip and frames each
+# rehearsal copy (bench.rehearsal_copies) was made from
 
 T = TypeVar("T")
 
@@ -113,6 +116,31 @@ def egodex_videos(data: Path) -> list[str]:
 def hot3d_videos(data: Path) -> list[str]:
     """Every HOT3D Aria recording under ``data`` (relative paths, sorted)."""
     return [_relative(data, p) for p in _videos(data / HOT3D)]
+
+
+def rehearsal_source(root: Path, clip_id: str) -> tuple[str, tuple[int, ...]] | None:
+    """``(source id, source frame of each of the copy's frames)`` for a rehearsal copy listed in
+    ``root/rehearsal.json`` (``root``: a DWM dynamic folder; written by
+    ``bench.rehearsal_copies``), or None for a clip it does not list or without the file. An
+    index that is not such a mapping raises ``ValueError`` naming the file."""
+    path = root / REHEARSAL_INDEX
+    if not path.is_file():
+        return None
+    try:
+        index = json.loads(path.read_text())
+    except (OSError, ValueError) as err:
+        raise ValueError(f"{path}: not a readable rehearsal index ({err})") from err
+    entry = index.get(clip_id) if isinstance(index, dict) else None
+    if entry is None:
+        return None
+    source, frames = (
+        (entry.get("source"), entry.get("frames")) if isinstance(entry, dict) else ("", None)
+    )
+    if not (isinstance(source, str) and isinstance(frames, list)) or not all(
+        isinstance(f, int) and f >= 0 for f in frames
+    ):
+        raise ValueError(f"{path}: entry {clip_id!r} is not {{source: id, frames: [int, ...]}}")
+    return source, tuple(frames)
 
 
 _SAID: set[tuple[str, str]] = set()  # (table, key) pairs table_entry has reported missing

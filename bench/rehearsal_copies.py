@@ -20,13 +20,17 @@ kind with its own id prefix, so that every real bench runs on them with ``--data
 - ``small`` (4xxxx): every twin scaled to :data:`SMALL_SCALE` of its size (area resampling).
 
 Every twin of a clip gets the same frames and the same transform, so the truth still lines up;
-the prompt is copied. Copies are written with H.264 at ``--crf`` (default 12, near-lossless).
+the prompt is copied. ``rehearsal.json`` beside the copies
+(:func:`bench.real_clips.rehearsal_source`) says which clip and frames each copy was made from,
+so per-clip tables kept by eye for the originals (``bench.hands_real.RENDER_GAPS``) reach their
+copies. Copies are written with H.264 at ``--crf`` (default 12, near-lossless).
 Prints one line per copy: id, kind, frames, size.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import shutil
 from pathlib import Path
 
@@ -88,17 +92,30 @@ def transform(kind: str, twin: str, frames: np.ndarray, start: int) -> np.ndarra
     raise ValueError(f"unknown rehearsal kind {kind!r}; known: {sorted(KIND_PREFIX)}")
 
 
+def source_frames(kind: str, length: int, start: int) -> list[int]:
+    """The original's frame index of each frame of a copy of ``kind`` (``length`` frames in
+    the original, the window starting at ``start``)."""
+    if kind == "window":
+        return list(range(start, length))
+    if kind == "reverse":
+        return list(range(length - 1, -1, -1))
+    return list(range(length))
+
+
 def copy_clip(
     data: Path, clip: real_clips.DwmDynamicClip, out: Path, kinds: list[str], crf: int
-) -> list[str]:
-    """Write ``clip``'s copies of each kind under ``out``; returns one printed line per copy."""
+) -> tuple[list[str], dict[str, dict]]:
+    """Write ``clip``'s copies of each kind under ``out``; returns one printed line per copy and
+    the copies' entries of the rehearsal index (:data:`bench.real_clips.REHEARSAL_INDEX`)."""
     src = {t: getattr(clip, t) for t in TWINS if getattr(clip, t)}
     frames = {t: media.read_video_file(data / p)[0] for t, p in src.items()}
     fps = media.probe_video_file(data / clip.video).fps
     start = first_hand_frame(frames["hands"]) if "hands" in frames else 0
-    lines = []
+    lines, index = [], {}
     for kind in kinds:
         new_id = KIND_PREFIX[kind] + clip.clip_id[1:]
+        frame_map = source_frames(kind, len(frames["video"]), start)
+        index[new_id] = {"source": clip.clip_id, "kind": kind, "frames": frame_map}
         for twin, rel in src.items():
             target = out / Path(rel).parent / f"{new_id}.mp4"
             target.parent.mkdir(parents=True, exist_ok=True)
@@ -111,7 +128,7 @@ def copy_clip(
         shape = transform(kind, "video", frames["video"][:1], 0).shape
         length = len(frames["video"]) - (start if kind == "window" else 0)
         lines.append(f"{new_id}  {kind:<9} {length} frames  {shape[2]}x{shape[1]}")
-    return lines
+    return lines, index
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -130,9 +147,14 @@ def main(argv: list[str] | None = None) -> int:
     if not clips:
         print(f"no DWM dynamic clip under {args.data}")
         return 1
+    path = args.out / real_clips.DWM_DYNAMIC / real_clips.REHEARSAL_INDEX
+    index = json.loads(path.read_text()) if path.is_file() else {}  # earlier runs' copies kept
     for clip in clips:
-        for line in copy_clip(args.data, clip, args.out, kinds, args.crf):
+        lines, entries = copy_clip(args.data, clip, args.out, kinds, args.crf)
+        for line in lines:
             print(line, flush=True)
+        index.update(entries)
+    path.write_text(json.dumps(index, indent=1, sort_keys=True))
     return 0
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -63,6 +64,15 @@ def test_copies_keep_the_layout_and_their_truth_lined_up(tmp_path: Path) -> None
     assert _read(out, "videos_static", "50042").mean() < original.mean() - 20
     dim_hands = (_read(out, "videos_hands", "50042") > 30).any(axis=-1)
     assert (dim_hands == (hands > 30).any(axis=-1)).mean() > 0.99
+    # the index names each copy's source frames
+    assert real_clips.rehearsal_source(out / real_clips.DWM_DYNAMIC, "70042") == (
+        "00042",
+        tuple(range(FIRST_HAND, T)),
+    )
+    assert real_clips.rehearsal_source(out / real_clips.DWM_DYNAMIC, "80042")[1] == tuple(
+        range(T - 1, -1, -1)
+    )
+    assert real_clips.rehearsal_source(out / real_clips.DWM_DYNAMIC, "00042") is None
     # small: every twin at the same smaller size
     for folder in ("videos", "videos_hands", "videos_static"):
         assert _read(out, folder, "40042").shape[1:3] == (36, 48)
@@ -82,3 +92,42 @@ def test_an_unknown_kind_is_refused(tmp_path: Path) -> None:
             ["--data", str(tmp_path), "--out", str(tmp_path / "o"), "--kinds", "upside"]
         )
     assert rehearsal_copies.main(["--data", str(tmp_path), "--out", str(tmp_path / "o")]) == 1
+
+
+def test_a_second_run_keeps_the_first_runs_index_entries(tmp_path: Path) -> None:
+    data, out = tmp_path / "data", tmp_path / "out"
+    _clip(data)
+    assert rehearsal_copies.main(["--data", str(data), "--out", str(out), "--kinds", "mirror"]) == 0
+    assert (
+        rehearsal_copies.main(["--data", str(data), "--out", str(out), "--kinds", "reverse"]) == 0
+    )
+    root = out / real_clips.DWM_DYNAMIC
+    assert real_clips.rehearsal_source(root, "90042") == ("00042", tuple(range(T)))
+    assert real_clips.rehearsal_source(root, "80042") is not None
+
+
+def test_a_broken_rehearsal_index_is_a_clear_error(tmp_path: Path) -> None:
+    (tmp_path / real_clips.REHEARSAL_INDEX).write_text('{"70042": {"source": "00042"}}')
+    with pytest.raises(ValueError, match="70042"):
+        real_clips.rehearsal_source(tmp_path, "70042")
+    assert real_clips.rehearsal_source(tmp_path, "60042") is None
+    (tmp_path / real_clips.REHEARSAL_INDEX).write_text("not json")
+    with pytest.raises(ValueError, match=r"rehearsal\.json"):
+        real_clips.rehearsal_source(tmp_path, "70042")
+
+
+def test_render_gaps_of_a_copy_are_its_sources_at_the_copys_frames(tmp_path: Path) -> None:
+    from bench.hands_real import RENDER_GAPS, render_gaps
+
+    root = tmp_path / real_clips.DWM_DYNAMIC
+    (root / "videos").mkdir(parents=True)
+    index = {
+        "70013": {"source": "00013", "frames": list(range(8, 49))},  # window from frame 8
+        "80013": {"source": "00013", "frames": list(range(48, -1, -1))},  # reversed
+    }
+    (root / real_clips.REHEARSAL_INDEX).write_text(json.dumps(index))
+    gaps = RENDER_GAPS["00013"]  # (7, 8, 21, 22, 35)
+    assert render_gaps(root / "videos" / "70013.mp4") == tuple(f - 8 for f in gaps if f >= 8)
+    assert render_gaps(root / "videos" / "80013.mp4") == tuple(sorted(48 - f for f in gaps))
+    assert render_gaps(root / "videos" / "00013.mp4") == gaps
+    assert render_gaps(root / "videos" / "12345.mp4") == ()
