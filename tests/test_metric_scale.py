@@ -121,13 +121,15 @@ def test_splat_depth_moves_a_plane_with_the_camera() -> None:
 
 
 def flat_hand_over_table(
-    h: int, w: int, poses: np.ndarray
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, RawLandmarks]:
+    h: int, w: int, poses: np.ndarray, scale: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, RawLandmarks, np.ndarray, np.ndarray]:
     """A flat hand (the average palm, 10 cm across) with its joint centres 1 cm above the table
     z = 0, seen by ``poses (T, 4, 4)`` (metric, world from camera) through a 70 degree
     ``h x w`` camera. Returns (intrinsics, hand joints (21, 3) in world metres, frame 0's
     z-depth of the table (H, W) in metres, landmarks of frames 1.. as the detector gives them:
-    pixels and joints about their centroid, camera frame)."""
+    pixels and joints about their centroid, camera frame; the poses in units of ``scale``
+    metres, frames (T, H, W, 3) whose pixels all differ from frame 0's from frame 1 on: the
+    hand is in front of the table wherever it is)."""
     k = intrinsics_from_fov(w, h, 70.0)
     rng = np.random.default_rng(1)
     hand = np.zeros((21, 3))
@@ -148,7 +150,11 @@ def flat_hand_over_table(
         uv[f, 0] = project_points(points_cam, k)[0]
         world[f, 0] = points_cam - points_cam.mean(axis=0)
         present[f, 0] = True
-    return k, hand, depth0_m, RawLandmarks(uv, world, np.ones((t, 2)), present)
+    units = poses.copy()
+    units[:, :3, 3] /= scale
+    frames = np.zeros((t, h, w, 3), np.uint8)
+    frames[1:] = 200
+    return k, hand, depth0_m, RawLandmarks(uv, world, np.ones((t, 2)), present), units, frames
 
 
 @pytest.mark.parametrize("lift", ["palm_pnp", "translation"])
@@ -160,12 +166,8 @@ def test_hand_resting_on_a_plane_gives_the_scale(lift: str) -> None:
     metric_poses = np.stack(
         [look_at([-0.35 + 0.02 * i, 0.01 * i, 0.4], [0.0, 0.0, 0.0]) for i in range(8)]
     )  # (T, 4, 4) metric
-    k, _, depth0_m, lm = flat_hand_over_table(h, w, metric_poses)
+    k, _, depth0_m, lm, units, frames = flat_hand_over_table(h, w, metric_poses, scale)
     t = len(metric_poses)
-    units = metric_poses.copy()
-    units[:, :3, 3] /= scale
-    frames = np.zeros((t, h, w, 3), np.uint8)
-    frames[1:] = 200  # every joint's pixel differs from frame 0: the hand is in front
     est = scale_from_landmarks(
         lm,
         frames,
@@ -425,8 +427,7 @@ def plane_with_an_outlier_line(
     poses = np.stack(
         [look_at([-0.35 + 0.012 * i, 0.006 * i, 0.4], [0.0, 0.0, 0.0]) for i in range(12)]
     )  # (T, 4, 4) metric
-    k, hand, depth_m, lm = flat_hand_over_table(h, w, poses)
-    t = len(poses)
+    k, hand, depth_m, lm, units, frames = flat_hand_over_table(h, w, poses, scale)
     foot = project_points(transform_points(invert_se3(poses[0]), hand), k)[0]  # (21, 2)
     lo, hi = np.floor(foot.min(axis=0)).astype(int), np.ceil(foot.max(axis=0)).astype(int)
     known = np.zeros((h, w), dtype=bool)
@@ -436,10 +437,6 @@ def plane_with_an_outlier_line(
     if near is not None:
         mid = (lo[1] + hi[1]) // 2
         depth[mid : mid + 2, lo[0] : hi[0]] = near * depth_m[mid : mid + 2, lo[0] : hi[0]]
-    units = poses.copy()
-    units[:, :3, 3] /= scale
-    frames = np.zeros((t, h, w, 3), np.uint8)
-    frames[1:] = 200  # the hand is in front of the table wherever it is
     return lm, frames, k, units, depth / scale, scale
 
 
