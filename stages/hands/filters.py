@@ -321,6 +321,56 @@ def smooth_finger_depths(
     return out
 
 
+def smooth_palm_turns(
+    joints_cam: np.ndarray,
+    ok: np.ndarray,
+    sigma: float = 1.0,
+    starts: np.ndarray | None = None,
+    world_from_cam: np.ndarray | None = None,
+) -> np.ndarray:
+    """``joints_cam (T, 2, 21, 3)`` (camera metres, each joint on its landmark's ray) with each
+    ``ok (T, 2)`` hand's palm turn (:func:`palm_rotations`) smoothed over time by a Gaussian of
+    ``sigma`` frames within runs of consecutive ``ok`` frames (edges renormalised; a frame where
+    ``starts (T, 2)`` is True begins a new run: another hand given the same side). The smoothed
+    turn is the chordal mean of the weighted rotations, taken in the world frame when
+    ``world_from_cam (T, 4, 4)`` is given (a turning head does not turn the hand; None: in the
+    camera frame). Each hand's wrist-relative shape is turned about its wrist from its own palm
+    to the smoothed one, then each joint is put back on its own ray at its new depth, so the 2D
+    does not change. Other frames are unchanged; ``sigma <= 0`` changes nothing. Why: the palm
+    PnP is per frame, and its pitch is its least sure angle (figures in docs/design.md, "Hands
+    v21")."""
+    if sigma <= 0:
+        return joints_cam
+    t = joints_cam.shape[0]
+    if ok.shape != (t, 2) or joints_cam.shape[1:] != (2, 21, 3):
+        raise HandFilterError(f"joints {joints_cam.shape} and ok {ok.shape} disagree")
+    if world_from_cam is not None and world_from_cam.shape != (t, 4, 4):
+        raise HandFilterError(f"world_from_cam {world_from_cam.shape} != ({t}, 4, 4)")
+    cam_from_palm = palm_rotations(joints_cam)  # (T, 2, 3, 3)
+    turn = np.broadcast_to(np.eye(3), (t, 3, 3))  # (T, 3, 3) world_from_cam's rotation
+    if world_from_cam is not None:
+        turn = world_from_cam[:, :3, :3]
+    world_from_palm = np.einsum("tij,tsjk->tsik", turn, cam_from_palm)  # (T, 2, 3, 3)
+    out = joints_cam.copy()
+    for s in range(2):
+        good = ok[:, s] & np.all(np.isfinite(world_from_palm[:, s]), axis=(1, 2))  # (T,)
+        summed = gaussian_smooth_runs(
+            world_from_palm[:, s].reshape(t, 9),
+            good,
+            sigma,
+            None if starts is None else starts[:, s],
+        ).reshape(t, 3, 3)  # (T, 3, 3) weighted means of rotations (not rotations)
+        for f in np.flatnonzero(good):
+            u, _, vt = np.linalg.svd(summed[f])
+            mean = u @ np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))]) @ vt  # (3, 3) world
+            smooth = turn[f].T @ mean  # (3, 3) cam_from_palm, smoothed
+            wrist = joints_cam[f, s, 0]  # (3,)
+            moved = wrist + (joints_cam[f, s] - wrist) @ cam_from_palm[f, s] @ smooth.T  # (21, 3)
+            old = joints_cam[f, s]  # (21, 3) on their rays
+            out[f, s] = old * (np.maximum(moved[:, 2], 1e-3) / old[:, 2])[:, None]
+    return out
+
+
 def gaussian_smooth_runs(
     values: np.ndarray, ok: np.ndarray, sigma: float, starts: np.ndarray | None = None
 ) -> np.ndarray:

@@ -76,7 +76,10 @@ Steps, for one clip:
    60-180 degrees off.
    The fingers' wrist-relative depths are smoothed over time within runs of trusted frames
    (``finger_depth_sigma``, :func:`~egosim.stages.hands.filters.smooth_finger_depths`, hands
-   v14; each joint kept on its ray). Then to world with ``world_from_cam``.
+   v14; each joint kept on its ray), and so is each trusted palm's turn, in the world frame
+   when the clip has poses (``palm_turn_sigma``,
+   :func:`~egosim.stages.hands.filters.smooth_palm_turns`, hands v21: the shape turned about
+   its wrist, each joint kept on its ray). Then to world with ``world_from_cam``.
 
 :func:`mediapipe_hands` runs all of it; :func:`mediapipe_detections` wraps it for the stage.
 MediaPipe is imported lazily: install it as ``make setup`` does (``--no-deps mediapipe==0.10.21``).
@@ -115,6 +118,7 @@ from egosim.stages.hands.filters import (
     gaussian_smooth_runs,
     palm_rotations,
     smooth_finger_depths,
+    smooth_palm_turns,
     turn_outliers,
 )
 from egosim.stages.hands.scene_check import SceneCheckParams, scene_tracks, seed_candidates
@@ -134,6 +138,10 @@ class MediaPipeParams(HandLandmarkParams):
     # the 2D kept) within runs of trusted frames, in frames (filters.smooth_finger_depths: the
     # bend fit is per frame; hands v14); 0 = none
     finger_depth_sigma: float = 1.0
+    # Gaussian smoothing over time of each trusted hand's palm turn (in the world frame when the
+    # clip has poses), the shape turned about the wrist and kept on its rays (the 2D kept), in
+    # frames (filters.smooth_palm_turns: the palm PnP is per frame; hands v21); 0 = none
+    palm_turn_sigma: float = 1.0
     link_distance: float = 0.6  # max centroid jump between linked detections, in hand sizes
     # per frame of gap up to two (link_limit: tracks, and which gaps are bridged)
     position_weight: float = 0.5  # weight of the image-position side vote vs the labels
@@ -163,6 +171,10 @@ class MediaPipeParams(HandLandmarkParams):
     def __post_init__(self) -> None:
         super().__post_init__()
         problems = []
+        if not 0 <= self.palm_turn_sigma < np.inf:
+            problems.append(
+                f"palm_turn_sigma must be >= 0 and finite, got {self.palm_turn_sigma!r}"
+            )
         if not self.max_turn_rate > 0:
             problems.append(f"max_turn_rate must be > 0 deg/s, got {self.max_turn_rate!r}")
         if self.turn_window < 1:
@@ -540,6 +552,9 @@ def hands_from_raw(
     unsure = turn_outliers(joints, valid & ~shaky, fps, params.turn_window, params.max_turn_rate)
     unsure |= shaky
     joints = smooth_finger_depths(joints, valid & ~unsure, params.finger_depth_sigma, lm.starts)
+    joints = smooth_palm_turns(
+        joints, valid & ~unsure, params.palm_turn_sigma, lm.starts, world_from_cam
+    )
     joints, lifted = repair_unsure(joints, valid, unsure, params.max_gap)
     if world_from_cam is not None:
         for f in range(t):
