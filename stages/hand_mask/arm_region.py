@@ -20,12 +20,15 @@ hand with 2D keypoints (MANO order, pixels, pixel centres at integer + 0.5):
   the sides (:func:`arm_extent`); where the strip does not stand out from either side there is
   no arm to follow (it is out of view) and nothing more is added;
 - pixels of the strip's colour connected to it within ``colour_region`` half-widths of the axis
-  are certainly arm; when those within ``refine_half_angle_deg`` form a ray from the wrist, the
-  arm is re-aimed along its main axis (:func:`region_direction`) and the labels redrawn, unless
-  that axis turns more than ``refine_slack_deg`` farther from the hand's direction than the
-  searched one (a shaded table or cushion in the arm's colour running off sideways); that
-  region is probably arm wherever it runs (``region_probable``: an arm that turns more than the
-  band allows is not ruled out);
+  are certainly arm (in a dim frame, one whose upper-quartile lightness is under
+  ``dark_floor``, the strip's colour, its walk and this region are read from the frame lifted
+  by a gamma to that floor, :func:`lift_dark`: the tolerances are absolute Lab units, which a
+  dim frame's shadows all fall within); when those within ``refine_half_angle_deg`` form a ray
+  from the wrist, the arm is re-aimed along its main axis (:func:`region_direction`) and the
+  labels redrawn, unless that axis turns more than ``refine_slack_deg`` farther from the
+  hand's direction than the searched one (a shaded table or cushion in the arm's colour
+  running off sideways); that region is probably arm wherever it runs (``region_probable``:
+  an arm that turns more than the band allows is not ruled out);
 - a tapered band along ``d`` from the wrist to the image border is probably arm;
 - an arm whose ray from the wrist leaves through the top border is not drawn at all
   (``no_arm_from_top``, :func:`leaves_through_top`): in a head-worn view forearms come in from
@@ -140,6 +143,13 @@ class ArmParams:
     no_arm_from_top: bool = True  # an arm whose ray from the wrist leaves the image through
     # its top border is not drawn (hand only): in a head-worn view the body is below the
     # camera and forearms come in from the bottom or the sides (:func:`leaves_through_top`)
+    dark_floor: float = 70.0  # a frame whose upper-quartile lightness (OpenCV 8-bit L) is
+    # below this is lifted by a gamma to it before the arm's strip colour, its walk and its
+    # colour region are read (:func:`lift_dark`; the direction search reads the frame as it
+    # is): ``walk_tolerance`` is in absolute Lab units, and in a dim frame every shadow lies
+    # within it of a dark strip, so the region runs along the shadow and re-aims the arm
+    # there (rehearsal copy 50013 t=28). Every well-lit frame of the real clips has 60 or more
+    # (DWM 66-88, HOT3D 60-102, fixed cameras and EgoDex 140+); the dim copies 29-45 (0: off)
 
     def __post_init__(self) -> None:
         problems = []
@@ -176,6 +186,8 @@ class ArmParams:
             problems.append(
                 f"off_side_min_tilt_deg must be in [0, 90], got {self.off_side_min_tilt_deg}"
             )
+        if not 0.0 <= self.dark_floor <= 255.0:
+            problems.append(f"dark_floor must be in [0, 255], got {self.dark_floor}")
         if not 0.0 < self.other_arm_floor <= 1.0:
             problems.append(f"other_arm_floor must be in (0, 1], got {self.other_arm_floor}")
         for name in ("turn_cost", "out_of_view", "hand_ring", "other_arm", "other_arm_unsure"):
@@ -183,6 +195,42 @@ class ArmParams:
                 problems.append(f"{name} must be in [0, 100], got {getattr(self, name)}")
         if problems:
             raise ValueError("; ".join(problems))
+
+
+def quartile_lightness(image: np.ndarray, step: int = 4) -> float:
+    """Upper-quartile (75th percentile) OpenCV 8-bit Lab lightness of ``image (H, W, 3)``
+    uint8 RGB, on every ``step``-th pixel in each direction. Not the median: black letterbox
+    bars and a fisheye circle's corners pull the median of a well-lit frame down (HOT3D: median
+    14-52, upper quartile 60-102)."""
+    small = np.ascontiguousarray(image[::step, ::step])
+    return float(np.percentile(cv2.cvtColor(small, cv2.COLOR_RGB2LAB)[..., 0], 75))
+
+
+def lift_dark(image: np.ndarray, floor: float) -> np.ndarray:
+    """``image (H, W, 3)`` uint8 RGB, lifted by a gamma on its channels so that its
+    upper-quartile lightness (:func:`quartile_lightness`) reaches ``floor``; the image itself
+    when it is already that bright, ``floor`` is 0 or the image is black.
+
+    The gamma is found by bisection on the subsampled image (the quartile is monotone in it).
+    """
+    if floor <= 0:
+        return image
+    small = np.ascontiguousarray(image[::4, ::4])
+    if quartile_lightness(small, 1) >= floor or not small.any():
+        return image
+    levels = np.arange(256, dtype=np.float64) / 255.0  # (256,)
+
+    def table(gamma: float) -> np.ndarray:
+        return np.round(255.0 * levels**gamma).astype(np.uint8)  # (256,)
+
+    lo, hi = 0.05, 1.0  # gamma: lo lifts far past any floor, hi is the image itself
+    for _ in range(12):
+        mid = 0.5 * (lo + hi)
+        if quartile_lightness(cv2.LUT(small, table(mid)), 1) >= floor:
+            lo = mid
+        else:
+            hi = mid
+    return cv2.LUT(image, table(lo))
 
 
 def hand_direction(keypoints: np.ndarray) -> tuple[np.ndarray, np.ndarray, float] | None:
@@ -490,6 +538,7 @@ def draw_arm_labels(
     other: np.ndarray | None = None,
     direction: np.ndarray | None = None,
     nearer_side: bool = False,
+    region_lab: np.ndarray | None = None,
 ) -> tuple[np.ndarray | None, bool]:
     """Paint one hand's GrabCut labels into ``labels (H, W)`` uint8 in place (see module doc).
 
@@ -502,6 +551,8 @@ def draw_arm_labels(
     asking the strip to stand out from both sides (:func:`arm_search`), and that direction is
     drawn when it lies more than ``start_switch_deg`` from the first: another arm, not the
     same one a step off (the first search's choice within one valley is kept).
+    ``region_lab (H, W, 3)``: the float32 Lab image the arm's strip colour, its walk and its
+    colour region are read from (a dim frame lifted, :func:`lift_dark`); None: ``lab``.
 
     With ``lab (H, W, 3)``, the image in float32 Lab, the forearm's direction is searched round
     the hand's own (:func:`arm_direction`, with ``other (3,)``, the Lab colour of the other
@@ -521,11 +572,12 @@ def draw_arm_labels(
     start = _arm_start(keypoints, capsule, arm, h, w)
     drawn = None
     region = None
+    region_lab = lab if region_lab is None or lab is None else region_lab  # (H, W, 3)
     if start is not None and direction is not None:
         _, wrist, _, hand_len, _, _ = start
         drawn = np.asarray(direction, np.float64)
         fan, band, seed, region = _arm_regions(
-            lab, mask, wrist, drawn, hand_len, scale, capsule, arm
+            region_lab, mask, wrist, drawn, hand_len, scale, capsule, arm
         )
         if region is not None and arm.region_probable:
             band = band | region
@@ -544,7 +596,9 @@ def draw_arm_labels(
                 both = arm_direction(*search_args, nearer_side=True, **search_kw)
                 if _turn_deg(both, d) > arm.start_switch_deg:
                     d = both  # another arm, not the same one a step off: see the docstring
-        fan, band, seed, region = _arm_regions(lab, mask, wrist, d, hand_len, scale, capsule, arm)
+        fan, band, seed, region = _arm_regions(
+            region_lab, mask, wrist, d, hand_len, scale, capsule, arm
+        )
         if region is not None and arm.refine_direction:
             better = region_direction(region, wrist, d)
             limit = _turn_deg(d, hand_dir) + arm.refine_slack_deg
@@ -552,7 +606,7 @@ def draw_arm_labels(
                 better = None  # the arm's colour runs off sideways (a shaded table or cushion)
             if better is not None:
                 fan, band, seed, again = _arm_regions(
-                    lab, mask, wrist, better, hand_len, scale, capsule, arm
+                    region_lab, mask, wrist, better, hand_len, scale, capsule, arm
                 )
                 region = region if again is None else again
                 d = better
@@ -812,8 +866,12 @@ def hand_labels(
     drawn = np.full((len(keypoints), 2), np.nan)
     coloured = np.zeros(len(keypoints), bool)
     lab = None  # (H, W, 3) the image in Lab, converted once for every hand's arm search
+    region_lab = None  # (H, W, 3) ... and lifted when dim, for the arm's colour region
     if capsule.forearm and np.any(valid):
         lab = cv2.cvtColor(image, cv2.COLOR_RGB2LAB).astype(np.float32)
+        lit = lift_dark(image, arm.dark_floor)  # (H, W, 3) the image itself unless dim
+        region_lab = lab if lit is image else cv2.cvtColor(lit, cv2.COLOR_RGB2LAB)
+        region_lab = region_lab.astype(np.float32)
     others: list[np.ndarray | None] = [None] * len(keypoints)
     if lab is not None and arm.other_arm > 0 and int(np.sum(valid)) > 1:
         others = other_arm_colours(lab, keypoints, valid, capsule, arm, starts)
@@ -831,7 +889,7 @@ def hand_labels(
             arm_k = replace(arm_k, no_arm_from_top=False)
         points = np.asarray(hand, dtype=np.float64)  # (21, 2)
         d, coloured[k] = draw_arm_labels(own[k], points, capsule, arm_k, lab, others[k], fixed,
-                                         nearer)  # fmt: skip
+                                         nearer, region_lab)  # fmt: skip
         if d is not None:
             drawn[k] = d
     return own, drawn, coloured

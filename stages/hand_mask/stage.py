@@ -20,7 +20,8 @@ Backends:
   only on average, is preferred when it is another direction; an arm on the other hand's side
   at a track's end holds the direction of the track's frame next to it; an arm that would run
   up to the top border is not drawn: forearms enter a head-worn view from the bottom or the
-  sides); a hand the keypoints miss
+  sides; in a dim frame the arm's colour region is read from the frame lifted to
+  ``dark_floor``); a hand the keypoints miss
   in a frame is first carried there from the nearest frame
   that found it (at most ``carry_frames`` away) by tracking its pixels (see ``carry``); then
   each hand's mask is carried by optical flow up to ``propagate_frames`` frames backwards and
@@ -131,6 +132,11 @@ class HandMaskConfig(StageConfig):
     # capsules' area of arm (the arm was lost, not found by GrabCut without the region)
     weak_arm_agree: float = 1.3  # ... and only from a neighbour whose arm is at most this
     # many times the arm of the frame beyond it (a one-frame outlier is not spread)
+    dark_floor: float = 70.0  # a frame whose upper-quartile lightness (OpenCV 8-bit Lab L) is
+    # below this is lifted by a gamma to it before the arm's colour region is read (its walk
+    # and region tolerances are absolute Lab units, and a dim frame's shadows all lie within
+    # them of a dark strip); the direction search and GrabCut read the frame as it is (0: off;
+    # see arm_region.lift_dark)
     no_arm_from_top: bool = True  # an arm whose ray from the wrist leaves through the top
     # border is not drawn (forearms enter a head-worn view from the bottom or the sides; see
     # arm_region.leaves_through_top). Off for fixed or third-person cameras: an arm may enter
@@ -158,6 +164,8 @@ class HandMaskConfig(StageConfig):
             problems.append(f"weak_arm_agree must be in [1, 100], got {self.weak_arm_agree}")
         if not 0.0 <= self.weak_arm_share <= 1.0:
             problems.append(f"weak_arm_share must be in [0, 1], got {self.weak_arm_share}")
+        if not 0.0 <= self.dark_floor <= 255.0:
+            problems.append(f"dark_floor must be in [0, 255], got {self.dark_floor}")
         if not 0.0 <= self.weak_arm_move <= 10.0:
             problems.append(f"weak_arm_move must be in [0, 10], got {self.weak_arm_move}")
         if self.grabcut_max_side < 16:
@@ -311,7 +319,9 @@ def masks_from_keypoints(
         )
     capsule = CapsuleParams(radius_scale=config.radius_scale, forearm=config.forearm)
     arm = ArmParams(
-        fan_half_angle_deg=config.fan_half_angle_deg, no_arm_from_top=config.no_arm_from_top
+        fan_half_angle_deg=config.fan_half_angle_deg,
+        no_arm_from_top=config.no_arm_from_top,
+        dark_floor=config.dark_floor,
     )
 
     # The first frame of each hand's track: no steady run reaches it, so its search asks that
@@ -490,7 +500,7 @@ class HandMaskStage(ClipStage):
     # cleaned joints and a replacement camera (see the module docstring)
     optional_inputs: ClassVar[Mapping[str, ShardSchema]] = {**CAMERA_ROLES, "hands": HANDS}
     output = HAND_MASK
-    version = 24  # 2: image-space arm masks (no world axis). 3: arm found by a colour walk, masks
+    version = 25  # 2: image-space arm masks (no world axis). 3: arm found by a colour walk, masks
     # carried into frames whose hands were missed. 4: arm re-aimed along its colour region.
     # 5: that region is probably arm wherever it runs. 6: each hand carried into the frames that
     # missed it, and only its certain seeds (skeleton, arm strip) carried with confidence.
@@ -544,6 +554,12 @@ class HandMaskStage(ClipStage):
     # flipping on a 1 px change; now 27k / 27k. Not from a neighbour whose arm is over
     # weak_arm_agree (1.3) times the arm of the frame beyond it (rehearsal copy 50013, t=28's
     # one-frame floor region spread into t=29-30 without that)
+    # 25: in a dim frame (upper-quartile Lab lightness under dark_floor, 70) the arm's strip
+    # colour, its walk and its colour region are read from the frame lifted by a gamma to that
+    # floor (arm_region.lift_dark); the direction search and GrabCut read it as it is. The
+    # walk's 18 Lab held every shadow of a dim frame, so a left arm's region ran along the
+    # shadow under the cushion to the right border and re-aimed the arm there (rehearsal copy
+    # 50013 t=28: 10,761 px far from any hand -> 0). Well-lit frames are unchanged.
     backends = ("keypoints", "sam")
     # What process reads (the executor decodes nothing else): the frames, joints and camera
     # of the clip, the robot arm's mask, the cleaned joints.
