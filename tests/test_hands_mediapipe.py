@@ -891,8 +891,8 @@ def test_a_palm_turned_off_its_track_is_interpolated_or_its_3d_withheld() -> Non
     within 5 degrees and 5 mm (wrist-relative) of the true hand; frame 8 has no trusted frame
     after it: its 3D is withheld (``lifted`` False) but the hand stays valid with joints on its
     landmarks' rays (its 2D, which masks use) at a tenth of the confidence. The other frames
-    are lifted as before. Smoothing (of the landmarks, and of the finger depths since hands v14)
-    off so the misfit landmarks stay on their own frames."""
+    are lifted as before. Smoothing (of the landmarks, of the finger depths since hands v14 and of
+    the palm's turn since hands v21) off so the misfit landmarks stay on their own frames."""
     from egosim.stages.hands.mediapipe_backend import (
         WITHHELD_CONFIDENCE_FACTOR,
         hands_from_raw,
@@ -912,9 +912,9 @@ def test_a_palm_turned_off_its_track_is_interpolated_or_its_3d_withheld() -> Non
         label_right=np.tile([0.5, 0.9], (t, 1)),
         present=np.tile([False, True], (t, 1)),
     )
-    params = MediaPipeParams(smooth_sigma=0.0, finger_depth_sigma=0.0)
+    params = MediaPipeParams(smooth_sigma=0.0, finger_depth_sigma=0.0, palm_turn_sigma=0.0)
     new = hands_from_raw(raw, 832, k, None, None, params, fps=16.0, frames=None)
-    untested = MediaPipeParams(smooth_sigma=0.0, finger_depth_sigma=0.0, max_turn_rate=np.inf)
+    untested = replace(params, max_turn_rate=np.inf)
     old = hands_from_raw(raw, 832, k, None, None, untested, fps=16.0, frames=None)
     assert new.valid[:, 1].all() and old.valid[:, 1].all()
     for f in (3, 8):
