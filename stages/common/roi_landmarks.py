@@ -20,7 +20,7 @@ landmarks come back in crop pixels and are mapped to the frame through the same 
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import cv2
@@ -217,6 +217,15 @@ SPREAD_TRANSFORMS: tuple[tuple[float, float, bool], ...] = (
 )
 
 
+# The reads that check a reading found only in a mirrored crop (TrackParams.mirror_max_spread):
+# as it is, turned +20 degrees and scaled 1.25, all mirrored.
+MIRROR_SPREAD_TRANSFORMS: tuple[tuple[float, float, bool], ...] = (
+    (0.0, 1.0, True),
+    (20.0, 1.0, True),
+    (0.0, 1.25, True),
+)
+
+
 def landmark_spread(
     model: LandmarkModel,
     frame: np.ndarray,
@@ -281,12 +290,22 @@ class TrackParams:
     max_gain: float = 4.0  # dark, flat crops get their contrast stretched by up to this gain
     carry_to_edge: bool = True  # a hand lost at the clip's first/last frame, found next to it,
     # is carried there by the optical flow (no later frame could take it up again)
-    mirror_retry: bool = True  # when no ROI holds the hand, read the predicted ROI once more
-    # mirrored (the landmark model is not mirror-symmetric; see :func:`_search`)
+    mirror_retry: bool = True  # when no ROI holds the hand at the presence the step needs,
+    # read the predicted ROIs once more mirrored (the model is not mirror-symmetric; _search)
     # a reading found only in the ``wider`` ROIs (away from where the hand was predicted) is kept
     # only when it is confirmed: the model, searching back from it on the frame it was followed
     # from, finds there the hand it was followed from (:func:`_confirmed`); False: no such test
     confirm_wider: bool = True
+    # a reading found only in a mirrored crop is kept only when mirrored crops turned and scaled
+    # (MIRROR_SPREAD_TRANSFORMS) read it alike: its landmark_spread at most this (the hands
+    # stage's max_spread, not tuned here); None: no such test
+    mirror_max_spread: float | None = 0.05
+
+    def __post_init__(self) -> None:
+        if self.mirror_max_spread is not None and not 0.0 < self.mirror_max_spread < np.inf:
+            raise ValueError(
+                f"mirror_max_spread must be > 0 and finite or None, got {self.mirror_max_spread!r}"
+            )
 
 
 def flow_shift(prev_gray: np.ndarray, next_gray: np.ndarray, points: np.ndarray) -> np.ndarray:
@@ -379,8 +398,8 @@ def track_through_misses(
                 if not (~whole).any():
                     continue
                 move = flow_shift(grey[f], grey[g], src) if params.flow else np.zeros(2)  # (2,)
-                res, wide = _search(model, frames[g], src, move, params)
                 need = params.min_presence if coast == 0 else params.reacquire_presence
+                res, wide = _search(model, frames[g], src, move, params, need)
                 partial = present[g] & _partial_fits(res.uv, uv[g], present[g], params)  # (K,)
                 whole = present[g] & ~partial
                 plausible = _plausible(res, src, need, params)
@@ -474,7 +493,7 @@ def _confirmed(
     the hand the model finds there is present (``min_presence``), within ``duplicate_distance``
     of ``src``'s size of it and of a size within ``max_size_change`` of it."""
     move = flow_shift(grey_found, grey, res.uv) if params.flow else np.zeros(2)  # (2,)
-    back, _ = _search(model, frame, res.uv, move, params)
+    back, _ = _search(model, frame, res.uv, move, params, params.min_presence)
     if back.presence < params.min_presence:
         return False
     size = _size(src)
@@ -486,7 +505,12 @@ def _confirmed(
 
 
 def _search(
-    model: LandmarkModel, frame: np.ndarray, src: np.ndarray, move: np.ndarray, params: TrackParams
+    model: LandmarkModel,
+    frame: np.ndarray,
+    src: np.ndarray,
+    move: np.ndarray,
+    params: TrackParams,
+    need: float,
 ) -> tuple[RoiLandmarks, bool]:
     """The most present hand among ROIs around the one ``src (21, 2)`` predicts in ``frame``,
     and whether it was found only in the ``wider`` ROIs.
@@ -496,13 +520,28 @@ def _search(
     vertically in the image), and unmoved (when ``params.unmoved`` and there is a move); when
     none holds a hand, the ``wider`` set (larger and sideways-shifted ROIs: fast hands; the
     second value returned says the answer came from there). The search stops at the first
-    answer with ``good_presence``. When no ROI holds a hand
-    (``min_presence``) and ``params.mirror_retry``, the predicted ROI is read once more with the
-    crop mirrored (answer mirrored back): the landmark model is not mirror-symmetric, and on DWM
-    00013 mirrored left to right the real left hand (then a right one) was lost at frames 12-20
-    that the unmirrored clip follows throughout (recall 0.625 -> 1, the unmirrored clips'
-    figures unchanged; design.md, "Hands v17"). The best answer is refined once on its own ROI
-    (mirrored again if it came from the mirrored read).
+    answer with ``good_presence``. When no ROI holds a hand at ``need`` (the presence the
+    tracker needs on this step: ``min_presence`` following a reading, ``reacquire_presence``
+    after a coast) and ``params.mirror_retry``, each predicted ROI (not the wider ones) is read
+    once more with the crop mirrored (answer mirrored back), and the most present answer of
+    all is kept. The landmark model is not mirror-symmetric: on DWM 00013 mirrored left to
+    right the real left hand (then a right one) was lost at frames 12-20 that the unmirrored
+    clip follows throughout (hands v17 read the first predicted ROI mirrored when none held a
+    hand at ``min_presence``: recall 0.625 -> 1; design.md, "Hands v17"). On the rehearsal copy
+    90013 (00013 mirrored, re-encoded) the same sleeved hand, at the bottom border at frame 22,
+    was read at 0.12 at best (the first predicted ROI mirrored no better), then, coasting, at
+    0.48 and 0.43 on frames 23-24 (under ``reacquire_presence``) and never found again (recall
+    0.542): another predicted ROI read mirrored holds it at 0.23 on frame 22, and it is
+    followed to frame 32 (recall 1.0). On 00013 re-encoded as ingested (60013) the right hand,
+    coasting at frames 28-30 from an oversized palm detection, is read 0.45 on 28, and on 30
+    at 0.89 mirrored (recall 0.708 -> 0.958). design.md, "Tracker: every predicted ROI read
+    mirrored". The best answer is refined once on its own ROI (mirrored again if it came from
+    a mirrored read). An answer from a mirrored read is then kept only if mirrored crops turned
+    and scaled read it alike (``params.mirror_max_spread``, :data:`MIRROR_SPREAD_TRANSFORMS`):
+    on the synthetic tuned world every predicted ROI read mirrored added a hidden hand read as
+    a clump 33-48 px off its joints (default seed 1), which that test removes; it also removes
+    90013's gain, so that copy stays at 0.542 (60013 as ingested 0.708 -> 0.917 and 40013 as
+    ingested left 0.875 -> 1 stay).
     """
     base = roi_from_landmarks(src)
     moves = [move] + ([np.zeros(2)] if params.unmoved and np.any(move != 0) else [])
@@ -528,14 +567,19 @@ def _search(
         if best.presence >= params.good_presence:
             break  # clearly found: the remaining ROIs cannot matter much
     mirrored = False
-    if params.mirror_retry and best.presence < params.min_presence:
-        res = model.run(frame, rois[0], params.max_gain, mirror=True)
-        if res.presence > best.presence:
-            best, mirrored, wide = res, True, False
+    if params.mirror_retry and best.presence < max(need, params.min_presence):
+        for roi in rois:  # the predicted ROIs only: a mirrored read is no wider search
+            res = model.run(frame, roi, params.max_gain, mirror=True)
+            if res.presence > best.presence:
+                best, mirrored, wide = res, True, False
     if params.refine and best.presence >= params.min_presence:
         again = model.run(frame, roi_from_landmarks(best.uv), params.max_gain, mirror=mirrored)
         if again.presence >= best.presence:
             best = again
+    if mirrored and params.mirror_max_spread is not None and best.presence >= params.min_presence:
+        spread = landmark_spread(model, frame, best.uv, MIRROR_SPREAD_TRANSFORMS, params.max_gain)
+        if spread > params.mirror_max_spread:
+            best = replace(best, presence=0.0)  # read differently at every turn: not kept
     return best, wide
 
 

@@ -1057,7 +1057,8 @@ class DepthCameraStage(ClipStage):
     # 19: the scale's and mask_hands' hand tracker checks a reading found only in its wider ROIs
     # against the hand it was followed from (roi_landmarks.TrackParams.confirm_wider, hands v20):
     # a tracked "hand" on scenery next to an entering hand is not followed; detections can change
-    version = 19
+    # 20: the same tracker's mirrored reads (hands v22: every predicted ROI, kept only when steady)
+    version = 20
     config_class = DepthCameraConfig
     inputs: ClassVar[Mapping[str, ShardSchema]] = {"clips": CLIPS}
     output = DEPTH_CAMERA
