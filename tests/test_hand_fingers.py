@@ -225,6 +225,27 @@ def test_a_frame_without_palm_pose_takes_its_neighbours_palm_depth(
     assert np.linalg.norm(old[palm] - placed[0], axis=1).max() > 0.005  # what the change removes
 
 
+def _right_hand_track(noisy: np.ndarray, untrusted: int) -> tuple[np.ndarray, np.ndarray]:
+    """``(joints (T, 2, 21, 3), ok (T, 2))``: ``noisy (T, 21, 3)`` as the right hand (the left
+    NaN), trusted on every frame but ``untrusted``."""
+    t = len(noisy)
+    joints = np.full((t, 2, 21, 3), np.nan)
+    joints[:, 1] = noisy
+    ok = np.zeros((t, 2), dtype=bool)
+    ok[:, 1] = np.arange(t) != untrusted
+    return joints, ok
+
+
+def _assert_left_empty_and_2d_kept(out: np.ndarray, noisy: np.ndarray) -> None:
+    """A smoothing of the right hand left the left one NaN and every joint on its ray."""
+    assert np.isnan(out[:, 0]).all()
+    np.testing.assert_allclose(
+        project_points(out[:, 1].reshape(-1, 3), K)[0],
+        project_points(noisy.reshape(-1, 3), K)[0],
+        atol=1e-9,
+    )
+
+
 def test_finger_depths_smoothed_over_time_come_back_towards_the_truth() -> None:
     """A right hand closing and opening slowly over 24 frames (curl 0.4 +- 0.2), its finger
     joints lifted on their true rays at depths off by 8 mm (rms, per joint and frame: the
@@ -241,17 +262,9 @@ def test_finger_depths_smoothed_over_time_come_back_towards_the_truth() -> None:
     noisy = truth.copy()
     scale = 1.0 + rng.normal(0.0, 0.008, (t, 12)) / truth[:, FINGERS, 2]  # (T, 12) along rays
     noisy[:, FINGERS] *= scale[..., None]
-    joints = np.full((t, 2, 21, 3), np.nan)
-    joints[:, 1] = noisy
-    ok = np.zeros((t, 2), dtype=bool)
-    ok[:, 1] = np.arange(t) != 12
+    joints, ok = _right_hand_track(noisy, untrusted=12)
     out = smooth_finger_depths(joints, ok, 1.0)
-    assert np.isnan(out[:, 0]).all()
-    np.testing.assert_allclose(
-        project_points(out[:, 1].reshape(-1, 3), K)[0],
-        project_points(noisy.reshape(-1, 3), K)[0],
-        atol=1e-9,
-    )
+    _assert_left_empty_and_2d_kept(out, noisy)
     others = [j for j in range(21) if j not in FINGERS]
     np.testing.assert_array_equal(out[:, 1, others], noisy[:, others])
     np.testing.assert_array_equal(out[12, 1], noisy[12])
@@ -331,17 +344,9 @@ def test_palm_turns_smoothed_over_time_come_back_towards_the_truth() -> None:
             for f in range(t)
         ]
     )  # (T, 21, 3) on the true rays
-    joints = np.full((t, 2, 21, 3), np.nan)
-    joints[:, 1] = noisy
-    ok = np.zeros((t, 2), dtype=bool)
-    ok[:, 1] = np.arange(t) != 12
+    joints, ok = _right_hand_track(noisy, untrusted=12)
     out = smooth_palm_turns(joints, ok, 1.0)
-    assert np.isnan(out[:, 0]).all()
-    np.testing.assert_allclose(
-        project_points(out[:, 1].reshape(-1, 3), K)[0],
-        project_points(noisy.reshape(-1, 3), K)[0],
-        atol=1e-9,
-    )
+    _assert_left_empty_and_2d_kept(out, noisy)
     np.testing.assert_allclose(out[:, 1, 0], noisy[:, 0], atol=1e-15)  # the wrist stays
     np.testing.assert_array_equal(out[12, 1], noisy[12])
     first = smooth_palm_turns(joints[:12], ok[:12], 1.0)  # the first run alone
