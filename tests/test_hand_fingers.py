@@ -236,6 +236,22 @@ def _right_hand_track(noisy: np.ndarray, untrusted: int) -> tuple[np.ndarray, np
     return joints, ok
 
 
+def _assert_runs_respected(
+    smooth, joints: np.ndarray, ok: np.ndarray, out: np.ndarray, atol: float
+) -> None:
+    """``out = smooth(joints, ok, 1.0)`` of :func:`_right_hand_track` (untrusted frame 12)
+    kept frame 12, smoothed each run on its own (also where ``starts`` begins one at frame 6),
+    and ``sigma`` 0 changes nothing."""
+    np.testing.assert_array_equal(out[12], joints[12])
+    np.testing.assert_allclose(out[:12], smooth(joints[:12], ok[:12], 1.0), atol=atol)
+    np.testing.assert_array_equal(smooth(joints, ok, 0.0), joints)
+    starts = np.zeros(ok.shape, dtype=bool)
+    starts[6, 1] = True  # another hand given this side from frame 6: a run of its own
+    split = smooth(joints, ok, 1.0, starts)
+    np.testing.assert_allclose(split[:6], smooth(joints[:6], ok[:6], 1.0), atol=atol)
+    np.testing.assert_allclose(split[12:], out[12:], atol=atol)  # the second run as before
+
+
 def _assert_left_empty_and_2d_kept(out: np.ndarray, noisy: np.ndarray) -> None:
     """A smoothing of the right hand left the left one NaN and every joint on its ray."""
     assert np.isnan(out[:, 0]).all()
@@ -267,15 +283,7 @@ def test_finger_depths_smoothed_over_time_come_back_towards_the_truth() -> None:
     _assert_left_empty_and_2d_kept(out, noisy)
     others = [j for j in range(21) if j not in FINGERS]
     np.testing.assert_array_equal(out[:, 1, others], noisy[:, others])
-    np.testing.assert_array_equal(out[12, 1], noisy[12])
-    first = smooth_finger_depths(joints[:12], ok[:12], 1.0)  # the first run alone
-    np.testing.assert_allclose(out[:12], first, atol=1e-15)
-    np.testing.assert_array_equal(smooth_finger_depths(joints, ok, 0.0), joints)
-    starts = np.zeros((t, 2), dtype=bool)
-    starts[6, 1] = True  # another hand given this side from frame 6: a run of its own
-    split = smooth_finger_depths(joints, ok, 1.0, starts)
-    np.testing.assert_allclose(split[:6], smooth_finger_depths(joints[:6], ok[:6], 1.0), atol=1e-15)
-    np.testing.assert_allclose(split[12:], out[12:], atol=1e-15)  # the second run as before
+    _assert_runs_respected(smooth_finger_depths, joints, ok, out, atol=1e-15)
 
     def errors(hands: np.ndarray) -> tuple[float, float]:
         shape = np.mean([_finger_error_mm(hands[f], truth[f]) for f in range(t)])
@@ -348,15 +356,7 @@ def test_palm_turns_smoothed_over_time_come_back_towards_the_truth() -> None:
     out = smooth_palm_turns(joints, ok, 1.0)
     _assert_left_empty_and_2d_kept(out, noisy)
     np.testing.assert_allclose(out[:, 1, 0], noisy[:, 0], atol=1e-15)  # the wrist stays
-    np.testing.assert_array_equal(out[12, 1], noisy[12])
-    first = smooth_palm_turns(joints[:12], ok[:12], 1.0)  # the first run alone
-    np.testing.assert_allclose(out[:12], first, atol=1e-12)
-    np.testing.assert_array_equal(smooth_palm_turns(joints, ok, 0.0), joints)
-    starts = np.zeros((t, 2), dtype=bool)
-    starts[6, 1] = True  # another hand given this side from frame 6: a run of its own
-    split = smooth_palm_turns(joints, ok, 1.0, starts)
-    np.testing.assert_allclose(split[:6], smooth_palm_turns(joints[:6], ok[:6], 1.0), atol=1e-12)
-    np.testing.assert_allclose(split[12:], out[12:], atol=1e-12)  # the second run as before
+    _assert_runs_respected(smooth_palm_turns, joints, ok, out, atol=1e-12)
 
     def errors(hands: np.ndarray) -> tuple[float, float]:  # over the trusted frames
         from egosim.pipeline.geometry import rotation_angle_deg
