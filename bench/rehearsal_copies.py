@@ -126,8 +126,7 @@ def copy_clip(
             target.parent.mkdir(parents=True, exist_ok=True)
             shutil.copyfile(data / clip.prompt, target)
         shape = transform(kind, "video", frames["video"][:1], 0).shape
-        length = len(frames["video"]) - (start if kind == "window" else 0)
-        lines.append(f"{new_id}  {kind:<9} {length} frames  {shape[2]}x{shape[1]}")
+        lines.append(f"{new_id}  {kind:<9} {len(frame_map)} frames  {shape[2]}x{shape[1]}")
     return lines, index
 
 

@@ -866,12 +866,12 @@ def hand_labels(
     drawn = np.full((len(keypoints), 2), np.nan)
     coloured = np.zeros(len(keypoints), bool)
     lab = None  # (H, W, 3) the image in Lab, converted once for every hand's arm search
-    region_lab = None  # (H, W, 3) ... and lifted when dim, for the arm's colour region
+    region_lab = None  # (H, W, 3) Lab of the frame lifted when dim, for the arm region (None: lab)
     if capsule.forearm and np.any(valid):
         lab = cv2.cvtColor(image, cv2.COLOR_RGB2LAB).astype(np.float32)
         lit = lift_dark(image, arm.dark_floor)  # (H, W, 3) the image itself unless dim
-        region_lab = lab if lit is image else cv2.cvtColor(lit, cv2.COLOR_RGB2LAB)
-        region_lab = region_lab.astype(np.float32)
+        if lit is not image:
+            region_lab = cv2.cvtColor(lit, cv2.COLOR_RGB2LAB).astype(np.float32)
     others: list[np.ndarray | None] = [None] * len(keypoints)
     if lab is not None and arm.other_arm > 0 and int(np.sum(valid)) > 1:
         others = other_arm_colours(lab, keypoints, valid, capsule, arm, starts)
