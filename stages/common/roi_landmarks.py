@@ -20,7 +20,7 @@ landmarks come back in crop pixels and are mapped to the frame through the same 
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
@@ -566,7 +566,7 @@ def _search(
             best, wide = res, i >= len(rois)
         if best.presence >= params.good_presence:
             break  # clearly found: the remaining ROIs cannot matter much
-    mirrored = False
+    mirrored, plain, plain_wide = False, best, wide
     if params.mirror_retry and best.presence < max(need, params.min_presence):
         for roi in rois:  # the predicted ROIs only: a mirrored read is no wider search
             res = model.run(frame, roi, params.max_gain, mirror=True)
@@ -578,8 +578,8 @@ def _search(
             best = again
     if mirrored and params.mirror_max_spread is not None and best.presence >= params.min_presence:
         spread = landmark_spread(model, frame, best.uv, MIRROR_SPREAD_TRANSFORMS, params.max_gain)
-        if spread > params.mirror_max_spread:
-            best = replace(best, presence=0.0)  # read differently at every turn: not kept
+        if spread > params.mirror_max_spread:  # read differently at every turn: not kept
+            best, wide = plain, plain_wide  # the plain reads' answer (under ``need``: not taken)
     return best, wide
 
 
